@@ -1,0 +1,1 @@
+//! voxstream server library (filled in by the build pipeline work).

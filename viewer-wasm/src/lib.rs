@@ -1,0 +1,1 @@
+//! voxstream viewer (in progress).
