@@ -1,0 +1,90 @@
+#!/usr/bin/env bash
+# Run every check voxstream has:
+#
+#   bash scripts/test.sh
+#
+#   1. scripts/setup.sh          installs what is missing (quick when all is there)
+#   2. cargo fmt --check         formatting (rustfmt.toml at the root)
+#   3. cargo clippy -D warnings  all targets of the workspace
+#   4. scripts/build-web.sh      wasm viewer bundle into viewer-wasm/dist (the browser test serves it)
+#   5. cargo test --workspace    unit, property, server integration, native render on lavapipe,
+#                                browser end-to-end (headless Chromium, SwiftShader WebGPU)
+#
+# Every step runs even when an earlier one failed (except setup), and the script exits non-zero
+# if any failed, listing which. Extra arguments go to `cargo test` (e.g. `-- --nocapture`).
+# Environment: VOXSTREAM_TEST_PROFILE=release runs the tests with --release (default: dev
+# profile, which is optimised enough: opt-level 1, dependencies at 2).
+set -uo pipefail
+
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$ROOT" || exit 1
+CARGO_HOME="${CARGO_HOME:-$HOME/.cargo}"
+export PATH="$CARGO_HOME/bin:$PATH"
+
+log() { printf '\n=== test: %s\n' "$*" >&2; }
+
+bash scripts/setup.sh || {
+  echo "test: ERROR: scripts/setup.sh failed; nothing was tested" >&2
+  exit 1
+}
+
+PROFILE_ARGS=()
+case "${VOXSTREAM_TEST_PROFILE:-dev}" in
+  dev) ;;
+  release) PROFILE_ARGS=(--release) ;;
+  *)
+    echo "test: ERROR: VOXSTREAM_TEST_PROFILE must be dev or release" >&2
+    exit 1
+    ;;
+esac
+
+FAILED=()
+step() {
+  # step NAME CMD... : runs CMD, records NAME as failed when it exits non-zero.
+  local name="$1"
+  shift
+  log "$name: $*"
+  local start=$SECONDS
+  if "$@"; then
+    echo "test: $name ok ($((SECONDS - start))s)" >&2
+  else
+    echo "test: $name FAILED ($((SECONDS - start))s)" >&2
+    FAILED+=("$name")
+  fi
+}
+
+build_web() {
+  [ -f scripts/build-web.sh ] || {
+    echo "test: scripts/build-web.sh is missing" >&2
+    return 1
+  }
+  bash scripts/build-web.sh || return 1
+  [ -f viewer-wasm/dist/index.html ] || {
+    echo "test: scripts/build-web.sh did not produce viewer-wasm/dist/index.html" >&2
+    return 1
+  }
+}
+
+shell_syntax() {
+  local f rc=0
+  for f in scripts/*.sh .ci/run; do bash -n "$f" || rc=1; done
+  return $rc
+}
+
+# In CI, Cargo.lock must already be complete (a dependency added without its lock entry fails).
+LOCKED=()
+[ "${CI:-}" = "true" ] && LOCKED=(--locked)
+
+step "fmt" cargo fmt --all -- --check
+step "shell syntax" shell_syntax
+step "node syntax" node --check tests/browser/e2e.mjs
+step "clippy" cargo clippy --workspace --all-targets "${LOCKED[@]}" -- -D warnings
+step "build-web" build_web
+step "cargo test" cargo test --workspace "${LOCKED[@]}" "${PROFILE_ARGS[@]}" "$@"
+
+echo >&2
+if [ "${#FAILED[@]}" -gt 0 ]; then
+  echo "test: FAILED steps: ${FAILED[*]}" >&2
+  exit 1
+fi
+echo "test: all steps passed (${SECONDS}s)" >&2

@@ -1,0 +1,161 @@
+// Browser end-to-end harness for voxstream.
+//
+//   node tests/browser/e2e.mjs <url> <out-dir>
+//
+// Opens <url> in headless Chromium with a SwiftShader (CPU) WebGPU adapter, forwards the page's
+// console to stdout, waits until the viewer sets document.body.dataset.ready = "1", then writes
+//   <out-dir>/browser.png   screenshot of the #voxstream-canvas element
+//   <out-dir>/browser.json  { stats, view, viewAfter, ... } from window.voxstream
+// Exit status 0 on success, non-zero (with a reason on stderr) otherwise. The Rust test
+// tests/tests/browser.rs drives this script and checks the outputs.
+//
+// Environment:
+//   VOXSTREAM_CHROMIUM        browser binary (default /usr/bin/chromium)
+//   VOXSTREAM_E2E_TIMEOUT_MS  how long to wait for dataset.ready (default 240000; SwiftShader is slow)
+
+import { chromium } from 'playwright-core';
+import { mkdtempSync, mkdirSync, rmSync, writeFileSync, existsSync } from 'node:fs';
+import { tmpdir } from 'node:os';
+import { join } from 'node:path';
+
+const CHROMIUM_ARGS = [
+  '--headless=new',
+  '--no-sandbox',
+  '--enable-unsafe-webgpu',
+  '--enable-features=Vulkan',
+  '--use-webgpu-adapter=swiftshader',
+  '--use-vulkan=swiftshader',
+  '--use-angle=swiftshader',
+  '--enable-unsafe-swiftshader',
+  '--disable-background-networking',
+  '--disable-component-update',
+  '--disable-sync',
+  '--no-first-run',
+];
+const VIEWPORT = { width: 640, height: 480 };
+const CANVAS = '#voxstream-canvas';
+
+function die(msg) {
+  console.error(`e2e.mjs: ${msg}`);
+  process.exit(1);
+}
+
+const [url, outDir] = process.argv.slice(2);
+if (!url || !outDir) die('usage: node tests/browser/e2e.mjs <url> <out-dir>');
+const executablePath = process.env.VOXSTREAM_CHROMIUM || '/usr/bin/chromium';
+if (!existsSync(executablePath)) {
+  die(`${executablePath} not found; run scripts/setup.sh (installs chromium) or set VOXSTREAM_CHROMIUM`);
+}
+const readyTimeoutMs = Number(process.env.VOXSTREAM_E2E_TIMEOUT_MS || 240000);
+if (!Number.isFinite(readyTimeoutMs) || readyTimeoutMs <= 0) die('bad VOXSTREAM_E2E_TIMEOUT_MS');
+
+mkdirSync(outDir, { recursive: true });
+const userDataDir = mkdtempSync(join(tmpdir(), 'voxstream-chromium-'));
+const t0 = Date.now();
+const since = () => `${((Date.now() - t0) / 1000).toFixed(1)}s`;
+
+// Last line of defence: a wedged browser must not hang the test forever.
+const watchdog = setTimeout(() => {
+  console.error(`e2e.mjs: watchdog fired after ${since()}; aborting`);
+  rmSync(userDataDir, { recursive: true, force: true });
+  process.exit(3);
+}, readyTimeoutMs + 120000);
+watchdog.unref();
+
+let context;
+let failure = null;
+const pageErrors = [];
+try {
+  context = await chromium.launchPersistentContext(userDataDir, {
+    executablePath,
+    headless: true,
+    args: CHROMIUM_ARGS,
+    viewport: VIEWPORT,
+    deviceScaleFactor: 1,
+    timeout: 60000,
+  });
+  const page = context.pages()[0] ?? (await context.newPage());
+  page.on('console', (m) => console.log(`[console.${m.type()} ${since()}] ${m.text()}`));
+  page.on('pageerror', (e) => {
+    pageErrors.push(String(e?.stack || e));
+    console.log(`[pageerror ${since()}] ${e?.stack || e}`);
+  });
+  page.on('requestfailed', (r) => console.log(`[requestfailed ${since()}] ${r.url()} ${r.failure()?.errorText}`));
+  page.on('response', (r) => {
+    if (r.status() >= 400) console.log(`[http ${r.status()} ${since()}] ${r.url()}`);
+  });
+  page.on('crash', () => console.log(`[crash ${since()}] page crashed`));
+
+  console.log(`[e2e ${since()}] opening ${url}`);
+  await page.goto(url, { waitUntil: 'load', timeout: 60000 });
+  const gpu = await page.evaluate(async () => {
+    if (!navigator.gpu) return { error: 'navigator.gpu is undefined (WebGPU unavailable)' };
+    const a = await navigator.gpu.requestAdapter();
+    if (!a) return { error: 'requestAdapter() returned null' };
+    return { vendor: a.info?.vendor, architecture: a.info?.architecture, description: a.info?.description };
+  });
+  console.log(`[e2e ${since()}] WebGPU adapter: ${JSON.stringify(gpu)}`);
+  if (gpu.error) throw new Error(gpu.error);
+
+  console.log(`[e2e ${since()}] waiting up to ${readyTimeoutMs / 1000}s for document.body.dataset.ready === "1"`);
+  try {
+    await page.waitForFunction(() => document.body && document.body.dataset.ready === '1', null, {
+      timeout: readyTimeoutMs,
+      polling: 250,
+    });
+  } catch (e) {
+    const state = await page
+      .evaluate(() => ({
+        ready: document.body?.dataset.ready ?? null,
+        statsLine: document.getElementById('voxstream-stats')?.textContent ?? null,
+        hasApi: typeof window.voxstream === 'object' && window.voxstream !== null,
+        stats: window.voxstream?.stats?.() ?? null,
+      }))
+      .catch((err) => ({ evaluateFailed: String(err) }));
+    throw new Error(`page never became ready within ${readyTimeoutMs / 1000}s: ${JSON.stringify(state)} (${e.message.split('\n')[0]})`);
+  }
+  console.log(`[e2e ${since()}] page ready`);
+
+  const snapshot = () =>
+    page.evaluate(() => {
+      if (typeof window.voxstream?.stats !== 'function' || typeof window.voxstream?.view !== 'function') {
+        throw new Error('window.voxstream.stats()/view() missing');
+      }
+      return { stats: window.voxstream.stats(), view: window.voxstream.view() };
+    });
+  const before = await snapshot();
+  const canvas = page.locator(CANVAS);
+  if ((await canvas.count()) !== 1) throw new Error(`expected exactly one ${CANVAS} element`);
+  const canvasBox = await canvas.evaluate((c) => ({
+    width: c.width,
+    height: c.height,
+    clientWidth: c.clientWidth,
+    clientHeight: c.clientHeight,
+  }));
+  await canvas.screenshot({ path: join(outDir, 'browser.png'), animations: 'disabled', timeout: 60000 });
+  const after = await snapshot();
+
+  const result = {
+    url,
+    elapsedMs: Date.now() - t0,
+    userAgent: await page.evaluate(() => navigator.userAgent),
+    adapter: gpu,
+    viewport: VIEWPORT,
+    canvas: canvasBox,
+    stats: before.stats,
+    view: before.view,
+    statsAfter: after.stats,
+    viewAfter: after.view,
+    pageErrors,
+  };
+  writeFileSync(join(outDir, 'browser.json'), JSON.stringify(result, null, 2));
+  console.log(`[e2e ${since()}] stats ${JSON.stringify(before.stats)}`);
+  console.log(`[e2e ${since()}] wrote ${join(outDir, 'browser.png')} and browser.json`);
+} catch (e) {
+  failure = e;
+} finally {
+  if (context) await context.close().catch(() => {});
+  rmSync(userDataDir, { recursive: true, force: true });
+}
+if (failure) die(failure?.stack || String(failure));
+process.exit(0);
