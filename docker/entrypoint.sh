@@ -1,0 +1,37 @@
+#!/bin/sh
+# Container entrypoint for voxstream.
+#   no arguments: build the default scan into $VOXSTREAM_STORE if it holds no scene yet, then
+#                 serve it on $VOXSTREAM_ADDR with the viewer from $VOXSTREAM_WEB
+#   arguments:    run the voxstream binary with them (e.g. `build /in/scan.ply --out /store`)
+set -eu
+
+BIN=/usr/local/bin/voxstream
+STORE="${VOXSTREAM_STORE:-/store}"
+ADDR="${VOXSTREAM_ADDR:-0.0.0.0:8080}"
+WEB="${VOXSTREAM_WEB:-/opt/voxstream/web}"
+MESH="${VOXSTREAM_DEFAULT_MESH:-/opt/voxstream/data/koala.obj}"
+
+if [ "$#" -gt 0 ]; then
+  exec "$BIN" "$@"
+fi
+
+if [ ! -d "$STORE" ] || [ ! -w "$STORE" ]; then
+  echo "voxstream-entrypoint: $STORE must be a directory writable by uid $(id -u)" >&2
+  exit 1
+fi
+
+has_scene=0
+for manifest in "$STORE"/*/manifest.json; do
+  if [ -f "$manifest" ]; then
+    has_scene=1
+    break
+  fi
+done
+
+if [ "$has_scene" -eq 0 ]; then
+  echo "voxstream-entrypoint: $STORE has no scene yet; building $MESH (first start only)" >&2
+  "$BIN" build "$MESH" --out "$STORE"
+fi
+
+echo "voxstream-entrypoint: serving $STORE on $ADDR" >&2
+exec "$BIN" serve --store "$STORE" --addr "$ADDR" --web "$WEB"
