@@ -1,0 +1,136 @@
+// Draws the face records written by expand.wgsl: 6 vertices per face, no
+// vertex buffers (vertex pulling). Everything is in grid units (level-0 voxels).
+// The cone-traced ambient occlusion lives in ao.wgsl, which the viewer appends
+// to this file to form one module.
+
+struct Frame {
+    // Grid units -> clip space, wgpu depth 0..1.
+    view_proj: mat4x4<f32>,
+    // xyz: camera position in grid units.
+    eye: vec4<f32>,
+    // xyz: unit direction towards the key light.
+    key_light: vec4<f32>,
+    // x: grid edge in grid units, y: occupancy cells per edge at mip 0,
+    // z: occupancy mip count, w: AO strength (0 disables).
+    volume: vec4<f32>,
+}
+
+struct BlockInfo {
+    // Grid-unit position of the block's corner.
+    origin: vec3<f32>,
+    // Voxel edge in grid units (2^level).
+    voxel_size: f32,
+}
+
+struct FaceRecord {
+    pos_face: u32,
+    normal: u32,
+}
+
+@group(0) @binding(0) var<uniform> frame: Frame;
+@group(0) @binding(1) var occupancy: texture_3d<f32>;
+@group(0) @binding(2) var occupancy_sampler: sampler;
+
+@group(1) @binding(0) var<uniform> block: BlockInfo;
+@group(1) @binding(1) var<storage, read> faces: array<FaceRecord>;
+
+struct VertexOut {
+    @builtin(position) clip: vec4<f32>,
+    @location(0) grid_pos: vec3<f32>,
+    @location(1) @interpolate(flat) normal: vec3<f32>,
+    @location(2) @interpolate(flat) face_normal: vec3<f32>,
+}
+
+// Inverse of voxstream_format::oct_encode (two snorm16 halves, x low).
+fn oct_decode(e: u32) -> vec3<f32> {
+    let u = max(f32(bitcast<i32>(e << 16u) >> 16u) / 32767.0, -1.0);
+    let v = max(f32(bitcast<i32>(e) >> 16u) / 32767.0, -1.0);
+    let z = 1.0 - abs(u) - abs(v);
+    let t = max(-z, 0.0);
+    let x = u - t * sign(u);
+    let y = v - t * sign(v);
+    return normalize(vec3<f32>(x, y, z));
+}
+
+// Corner (in the face's two tangent axes) of each of the 6 vertices. Positive
+// faces wind counter-clockwise seen from outside; negative faces swap the two
+// tangent coordinates, which mirrors the winding.
+fn face_corner(corner: u32, positive: bool) -> vec2<f32> {
+    var c = vec2<f32>(0.0, 0.0);
+    switch corner {
+        case 1u: { c = vec2<f32>(1.0, 0.0); }
+        case 2u, 4u: { c = vec2<f32>(1.0, 1.0); }
+        case 5u: { c = vec2<f32>(0.0, 1.0); }
+        default: { c = vec2<f32>(0.0, 0.0); }
+    }
+    if positive {
+        return c;
+    }
+    return c.yx;
+}
+
+@vertex
+fn vs_main(@builtin(vertex_index) vertex_index: u32) -> VertexOut {
+    var out: VertexOut;
+    let face_index = vertex_index / 6u;
+    if face_index >= arrayLength(&faces) {
+        // Degenerate: outside the clip volume.
+        out.clip = vec4<f32>(2.0, 2.0, 2.0, 1.0);
+        return out;
+    }
+    let record = faces[face_index];
+    let local = vec3<f32>(
+        f32(record.pos_face & 63u),
+        f32((record.pos_face >> 6u) & 63u),
+        f32((record.pos_face >> 12u) & 63u),
+    );
+    let face = (record.pos_face >> 18u) & 7u;
+    let axis = face / 2u;
+    let positive = (face & 1u) == 1u;
+    let uv = face_corner(vertex_index % 6u, positive);
+
+    var offset = vec3<f32>(0.0, 0.0, 0.0);
+    var normal = vec3<f32>(0.0, 0.0, 0.0);
+    let side = select(-1.0, 1.0, positive);
+    let plane = select(0.0, 1.0, positive);
+    // The tangent axes are the two axes following `axis` cyclically, so that
+    // tangent_u x tangent_v = +axis.
+    if axis == 0u {
+        offset = vec3<f32>(plane, uv.x, uv.y);
+        normal = vec3<f32>(side, 0.0, 0.0);
+    } else if axis == 1u {
+        offset = vec3<f32>(uv.y, plane, uv.x);
+        normal = vec3<f32>(0.0, side, 0.0);
+    } else {
+        offset = vec3<f32>(uv.x, uv.y, plane);
+        normal = vec3<f32>(0.0, 0.0, side);
+    }
+    let grid_pos = block.origin + (local + offset) * block.voxel_size;
+    out.clip = frame.view_proj * vec4<f32>(grid_pos, 1.0);
+    out.grid_pos = grid_pos;
+    out.normal = oct_decode(record.normal);
+    out.face_normal = normal;
+    return out;
+}
+
+const BASE_COLOUR: vec3<f32> = vec3<f32>(0.86, 0.80, 0.72);
+
+@fragment
+fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
+    // The stored normal is the smooth surface normal; where it disagrees with
+    // the face we are drawing (thin features), lean on the face normal.
+    var n = normalize(in.normal);
+    let agreement = dot(n, in.face_normal);
+    if agreement < 0.2 {
+        n = normalize(n + in.face_normal * (1.2 - agreement));
+    }
+    let to_eye = normalize(frame.eye.xyz - in.grid_pos);
+    let headlight = max(dot(n, to_eye), 0.0);
+    let key = max(dot(n, frame.key_light.xyz), 0.0);
+    let diffuse = 0.65 * headlight + 0.35 * key;
+    let visibility = ambient_visibility(in.grid_pos, n);
+    // Warm grey, never darker than 0.3 x base: always distinct from the blue
+    // background (20, 24, 36), which is what the silhouette tests rely on.
+    let light = 0.3 + 0.7 * (0.4 * visibility + 0.6 * diffuse * (0.5 + 0.5 * visibility));
+    return vec4<f32>(BASE_COLOUR * clamp(light, 0.3, 1.0), 1.0);
+}

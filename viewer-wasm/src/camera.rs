@@ -1,0 +1,192 @@
+//! Orbit camera in grid units: yaw/pitch/distance around a target point, +Y up,
+//! right-handed, projecting to wgpu clip space (depth 0..1).
+
+use glam::camera::rh::{proj::directx, view};
+use glam::{Mat4, Vec3};
+
+/// Radians of orbit per pixel of pointer drag.
+const ORBIT_RADIANS_PER_PIXEL: f32 = 0.008;
+const MAX_PITCH: f32 = 1.55;
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OrbitCamera {
+    pub target: Vec3,
+    /// Rotation about +Y; 0 looks from +Z towards -Z.
+    pub yaw: f32,
+    /// Elevation above the target's horizontal plane.
+    pub pitch: f32,
+    pub distance: f32,
+    /// Vertical field of view in radians.
+    pub fov_y: f32,
+    /// Radius of the scene around `target` when framed; bounds zoom and the depth range.
+    pub scene_radius: f32,
+}
+
+impl OrbitCamera {
+    /// The default view of a scene whose voxels lie in the grid-unit box `min..max`:
+    /// a three-quarter view from the front, slightly above, the whole box in view.
+    pub fn framing(min: Vec3, max: Vec3) -> Self {
+        let target = (min + max) * 0.5;
+        let radius = ((max - min).length() * 0.5).max(1.0);
+        let fov_y = 45f32.to_radians();
+        Self {
+            target,
+            yaw: 35f32.to_radians(),
+            pitch: 20f32.to_radians(),
+            // The bounding sphere touches the frustum at 1/sin(fov/2); 5% margin.
+            distance: radius / (fov_y * 0.5).sin() * 1.05,
+            fov_y,
+            scene_radius: radius,
+        }
+    }
+
+    pub fn forward(&self) -> Vec3 {
+        -self.offset_direction()
+    }
+
+    fn offset_direction(&self) -> Vec3 {
+        let (sy, cy) = self.yaw.sin_cos();
+        let (sp, cp) = self.pitch.sin_cos();
+        Vec3::new(cp * sy, sp, cp * cy)
+    }
+
+    pub fn eye(&self) -> Vec3 {
+        self.target + self.offset_direction() * self.distance
+    }
+
+    pub fn view(&self) -> Mat4 {
+        view::look_at_mat4(self.eye(), self.target, Vec3::Y)
+    }
+
+    /// Near and far planes hugging the scene sphere, so depth precision follows the zoom.
+    pub fn depth_range(&self) -> (f32, f32) {
+        let r = self.scene_radius * 1.5;
+        let near = (self.distance - r).max(self.distance * 0.01).max(1e-3);
+        let far = (self.distance + r).max(near * 2.0);
+        (near, far)
+    }
+
+    pub fn projection(&self, aspect: f32) -> Mat4 {
+        let (near, far) = self.depth_range();
+        directx::perspective(self.fov_y, aspect.max(1e-3), near, far)
+    }
+
+    /// Grid units → wgpu clip space (depth 0..1).
+    pub fn view_proj(&self, aspect: f32) -> Mat4 {
+        self.projection(aspect) * self.view()
+    }
+
+    /// Pixels per grid unit at distance 1 for a viewport `height_px` tall.
+    pub fn focal_pixels(&self, height_px: f32) -> f32 {
+        height_px / (2.0 * (self.fov_y * 0.5).tan())
+    }
+
+    /// Drag by (dx, dy) pixels: right turns the scene right, down tilts it towards the viewer.
+    pub fn orbit(&mut self, dx: f32, dy: f32) {
+        self.yaw -= dx * ORBIT_RADIANS_PER_PIXEL;
+        self.pitch = (self.pitch + dy * ORBIT_RADIANS_PER_PIXEL).clamp(-MAX_PITCH, MAX_PITCH);
+    }
+
+    /// Multiplies the distance by `factor` (< 1 moves closer), within sane bounds.
+    pub fn zoom(&mut self, factor: f32) {
+        if !factor.is_finite() || factor <= 0.0 {
+            return;
+        }
+        let min = self.scene_radius * 0.01;
+        let max = self.scene_radius * 20.0;
+        self.distance = (self.distance * factor).clamp(min, max);
+    }
+
+    /// Moves the target so the scene follows a drag of (dx, dy) pixels.
+    pub fn pan(&mut self, dx: f32, dy: f32, viewport_height: f32) {
+        let units_per_pixel = self.distance / self.focal_pixels(viewport_height.max(1.0));
+        let forward = self.forward();
+        let right = forward.cross(Vec3::Y).normalize_or(Vec3::X);
+        let up = right.cross(forward);
+        self.target += (-right * dx + up * dy) * units_per_pixel;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec4;
+
+    fn project(m: Mat4, p: Vec3) -> Vec3 {
+        let c = m * Vec4::new(p.x, p.y, p.z, 1.0);
+        c.truncate() / c.w
+    }
+
+    #[test]
+    fn framing_puts_the_box_inside_the_frustum() {
+        let (min, max) = (Vec3::new(10.0, 0.0, 5.0), Vec3::new(500.0, 300.0, 400.0));
+        let cam = OrbitCamera::framing(min, max);
+        let vp = cam.view_proj(1.0);
+        let centre = project(vp, cam.target);
+        assert!(centre.x.abs() < 1e-4 && centre.y.abs() < 1e-4, "target at {centre}");
+        for i in 0..8 {
+            let corner = Vec3::new(
+                if i & 1 == 0 { min.x } else { max.x },
+                if i & 2 == 0 { min.y } else { max.y },
+                if i & 4 == 0 { min.z } else { max.z },
+            );
+            let ndc = project(vp, corner);
+            assert!(ndc.x.abs() <= 1.0 && ndc.y.abs() <= 1.0, "corner {corner} at {ndc}");
+            assert!(ndc.z > 0.0 && ndc.z < 1.0, "corner {corner} depth {}", ndc.z);
+        }
+    }
+
+    #[test]
+    fn depth_is_zero_to_one_and_y_is_up() {
+        let cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(100.0));
+        let vp = cam.view_proj(1.5);
+        let (near, far) = cam.depth_range();
+        let f = cam.forward();
+        let at_near = project(vp, cam.eye() + f * near);
+        let at_far = project(vp, cam.eye() + f * far);
+        assert!(at_near.z.abs() < 1e-4, "near maps to {}", at_near.z);
+        assert!((at_far.z - 1.0).abs() < 1e-4, "far maps to {}", at_far.z);
+        let above = project(vp, cam.target + Vec3::Y * 10.0);
+        assert!(above.y > 0.0, "a point above the target must be above the centre");
+    }
+
+    #[test]
+    fn orbit_keeps_distance_and_clamps_pitch() {
+        let mut cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(64.0));
+        let d = cam.eye().distance(cam.target);
+        cam.orbit(120.0, 10_000.0);
+        assert!((cam.eye().distance(cam.target) - d).abs() < 1e-3);
+        assert!(cam.pitch <= MAX_PITCH);
+        // Near the pole the view matrix must still be finite.
+        assert!(cam.view_proj(1.0).is_finite());
+    }
+
+    #[test]
+    fn zoom_is_bounded_and_ignores_garbage() {
+        let mut cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(64.0));
+        let d = cam.distance;
+        cam.zoom(f32::NAN);
+        cam.zoom(-2.0);
+        assert_eq!(cam.distance, d);
+        for _ in 0..100 {
+            cam.zoom(0.5);
+        }
+        assert!(cam.distance >= cam.scene_radius * 0.01 - 1e-6);
+        assert!(cam.view_proj(1.0).is_finite());
+    }
+
+    #[test]
+    fn pan_moves_the_target_with_the_pointer() {
+        let mut cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(64.0));
+        let before = cam.target;
+        let vp = cam.view_proj(1.0);
+        cam.pan(50.0, 0.0, 500.0);
+        // Dragging right moves the scene right, i.e. the old target now projects right of centre.
+        let new_vp = cam.view_proj(1.0);
+        let old_target_now = project(new_vp, before);
+        assert!(old_target_now.x > 0.0, "old target at {old_target_now}");
+        // 50 px of a 500 px viewport is 0.2 NDC units at the target's depth.
+        assert!((old_target_now.x - 0.2).abs() < 1e-3, "moved to {}", old_target_now.x);
+        assert!(project(vp, before).x.abs() < 1e-4);
+    }
+}

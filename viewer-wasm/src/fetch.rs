@@ -1,0 +1,105 @@
+//! Where manifest and block bytes come from: the server's HTTP API in the
+//! browser, a store's scene directory natively (tests). Only this module knows
+//! the difference; everything downstream sees bytes or a [`FetchError`].
+
+use voxstream_format::BlockKey;
+
+#[derive(Debug, Clone, thiserror::Error, PartialEq, Eq)]
+pub enum FetchError {
+    #[error("{what} not found")]
+    NotFound { what: String },
+    #[error("{what}: HTTP {status}")]
+    Status { what: String, status: u16 },
+    #[error("{what}: {message}")]
+    Failed { what: String, message: String },
+}
+
+/// A scene's bytes, addressed as the store layout and HTTP API in CONTRACTS.md do.
+#[derive(Debug, Clone)]
+pub enum BlockSource {
+    /// `<store>/<scene-id>/`: `manifest.json` and `blocks/<key>.vxb`.
+    #[cfg(not(target_arch = "wasm32"))]
+    SceneDir(std::path::PathBuf),
+    /// `.../api/scenes/<id>`: `/manifest` and `/blocks/<key>`.
+    #[cfg(target_arch = "wasm32")]
+    Http { scene_url: String },
+}
+
+impl BlockSource {
+    pub async fn manifest_bytes(&self) -> Result<Vec<u8>, FetchError> {
+        match self {
+            #[cfg(not(target_arch = "wasm32"))]
+            BlockSource::SceneDir(dir) => read_file(&dir.join("manifest.json"), "manifest"),
+            #[cfg(target_arch = "wasm32")]
+            BlockSource::Http { scene_url } => http::get_bytes(&format!("{scene_url}/manifest"), "manifest").await,
+        }
+    }
+
+    pub async fn block_bytes(&self, key: BlockKey) -> Result<Vec<u8>, FetchError> {
+        match self {
+            #[cfg(not(target_arch = "wasm32"))]
+            BlockSource::SceneDir(dir) => {
+                read_file(&dir.join("blocks").join(format!("{key}.vxb")), &format!("block {key}"))
+            }
+            #[cfg(target_arch = "wasm32")]
+            BlockSource::Http { scene_url } => {
+                http::get_bytes(&format!("{scene_url}/blocks/{key}"), &format!("block {key}")).await
+            }
+        }
+    }
+}
+
+#[cfg(not(target_arch = "wasm32"))]
+fn read_file(path: &std::path::Path, what: &str) -> Result<Vec<u8>, FetchError> {
+    std::fs::read(path).map_err(|e| match e.kind() {
+        std::io::ErrorKind::NotFound => FetchError::NotFound { what: format!("{what} ({})", path.display()) },
+        _ => FetchError::Failed { what: what.to_string(), message: format!("{}: {e}", path.display()) },
+    })
+}
+
+#[cfg(target_arch = "wasm32")]
+pub(crate) mod http {
+    use super::FetchError;
+    use wasm_bindgen::{JsCast, JsValue};
+    use wasm_bindgen_futures::JsFuture;
+
+    fn js_message(v: &JsValue) -> String {
+        v.as_string()
+            .or_else(|| v.dyn_ref::<js_sys::Error>().map(|e| String::from(e.message())))
+            .unwrap_or_else(|| format!("{v:?}"))
+    }
+
+    /// GET `url` and return the body; non-2xx statuses are errors.
+    pub async fn get_bytes(url: &str, what: &str) -> Result<Vec<u8>, FetchError> {
+        let failed = |e: JsValue| FetchError::Failed { what: what.to_string(), message: js_message(&e) };
+        let window = web_sys::window().ok_or_else(|| failed(JsValue::from_str("no window")))?;
+        let response: web_sys::Response =
+            JsFuture::from(window.fetch_with_str(url)).await.map_err(failed)?.dyn_into().map_err(failed)?;
+        match response.status() {
+            200..=299 => {}
+            404 => return Err(FetchError::NotFound { what: what.to_string() }),
+            status => return Err(FetchError::Status { what: what.to_string(), status }),
+        }
+        let buffer = JsFuture::from(response.array_buffer().map_err(failed)?).await.map_err(failed)?;
+        Ok(js_sys::Uint8Array::new(&buffer).to_vec())
+    }
+}
+
+#[cfg(all(test, not(target_arch = "wasm32")))]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn scene_dir_reads_the_store_layout() {
+        let dir = std::env::temp_dir().join(format!("voxstream-fetch-{}", std::process::id()));
+        std::fs::create_dir_all(dir.join("blocks")).unwrap();
+        std::fs::write(dir.join("manifest.json"), b"{}").unwrap();
+        std::fs::write(dir.join("blocks/2-0-1-0.vxb"), b"xyz").unwrap();
+        let src = BlockSource::SceneDir(dir.clone());
+        assert_eq!(pollster::block_on(src.manifest_bytes()).unwrap(), b"{}");
+        assert_eq!(pollster::block_on(src.block_bytes(BlockKey::new(2, 0, 1, 0))).unwrap(), b"xyz");
+        let missing = pollster::block_on(src.block_bytes(BlockKey::new(0, 0, 0, 0))).unwrap_err();
+        assert!(matches!(missing, FetchError::NotFound { .. }), "{missing}");
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+}

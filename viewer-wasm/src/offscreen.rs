@@ -1,0 +1,270 @@
+//! Native rendering for tests: the browser's code paths (selection, decode,
+//! GPU expansion, draw, AO) fed from a store's scene directory instead of HTTP,
+//! rendered on Vulkan (lavapipe in CI) into an Rgba8Unorm texture and read back.
+
+use std::path::Path;
+use std::time::Instant;
+
+use voxstream_format::{Block, BlockKey, Manifest, ManifestError};
+
+use crate::ao::cells_for_grid;
+use crate::camera::OrbitCamera;
+use crate::fetch::{BlockSource, FetchError};
+use crate::render::Renderer;
+use crate::scene::Scene;
+use crate::stats::Stats;
+
+#[derive(Debug, thiserror::Error)]
+pub enum OffscreenError {
+    #[error(
+        "no GPU adapter found ({0}). Native rendering needs Vulkan: install mesa-vulkan-drivers \
+         (lavapipe, a CPU Vulkan driver) or run on a machine with a GPU driver"
+    )]
+    NoAdapter(String),
+    #[error("could not open the GPU device: {0}")]
+    Device(String),
+    #[error(transparent)]
+    Fetch(#[from] FetchError),
+    #[error(transparent)]
+    Manifest(#[from] ManifestError),
+    #[error("reading back from the GPU failed: {0}")]
+    Readback(String),
+}
+
+/// One rendered frame and everything needed to check it.
+#[derive(Debug, Clone)]
+pub struct OffscreenFrame {
+    pub width: u32,
+    pub height: u32,
+    /// RGBA8, rows top to bottom, `width * 4` bytes each.
+    pub pixels: Vec<u8>,
+    /// Grid units → clip space, column-major, as `window.voxstream.view().viewProj`.
+    pub view_proj: [f32; 16],
+    /// Keys of the drawn blocks, sorted.
+    pub drawn_blocks: Vec<BlockKey>,
+    /// The decoded drawn blocks, in the order of `drawn_blocks`.
+    pub blocks: Vec<Block>,
+    /// Blocks that failed to fetch or decode, with why.
+    pub failures: Vec<(BlockKey, String)>,
+    pub stats: Stats,
+    /// The first draw, from encoding to the GPU finishing it (includes any lazy pipeline work).
+    pub first_frame_ms: f64,
+    /// The same frame drawn again: the steady-state cost.
+    pub frame_ms: f64,
+    /// The adapter that rendered it, e.g. "llvmpipe (LLVM 19.1.7, 256 bits) (Vulkan)".
+    pub adapter: String,
+}
+
+/// A native device and queue.
+pub struct Gpu {
+    pub device: wgpu::Device,
+    pub queue: wgpu::Queue,
+    pub adapter_info: wgpu::AdapterInfo,
+}
+
+impl Gpu {
+    /// Opens the default adapter; WGPU_ADAPTER_NAME / WGPU_BACKEND and friends are honoured.
+    pub fn new() -> Result<Self, OffscreenError> {
+        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        let adapter = pollster::block_on(wgpu::util::initialize_adapter_from_env_or_default(&instance, None))
+            .map_err(|e| OffscreenError::NoAdapter(e.to_string()))?;
+        let adapter_info = adapter.get_info();
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("voxstream offscreen"),
+            required_limits: wgpu::Limits::default(),
+            ..Default::default()
+        }))
+        .map_err(|e| OffscreenError::Device(e.to_string()))?;
+        Ok(Self { device, queue, adapter_info })
+    }
+
+    pub fn adapter_name(&self) -> String {
+        format!("{} ({:?})", self.adapter_info.name, self.adapter_info.backend)
+    }
+}
+
+/// Options for [`Offscreen::open`].
+#[derive(Debug, Clone, Copy)]
+pub struct RenderOptions {
+    pub width: u32,
+    pub height: u32,
+    /// `None`: the default camera the browser starts with.
+    pub camera: Option<OrbitCamera>,
+    pub ao_strength: f32,
+}
+
+impl RenderOptions {
+    pub fn new(width: u32, height: u32) -> Self {
+        Self { width, height, camera: None, ao_strength: 1.0 }
+    }
+}
+
+/// A scene loaded for native rendering.
+pub struct Offscreen {
+    pub renderer: Renderer,
+    pub scene: Scene,
+    source: BlockSource,
+    adapter: String,
+    target: wgpu::Texture,
+}
+
+impl Offscreen {
+    /// Opens the GPU and the scene in `scene_dir` (`<store>/<scene-id>`).
+    pub fn open(scene_dir: &Path, options: &RenderOptions) -> Result<Self, OffscreenError> {
+        let source = BlockSource::SceneDir(scene_dir.to_path_buf());
+        let manifest = Manifest::from_json(&pollster::block_on(source.manifest_bytes())?)?;
+        let gpu = Gpu::new()?;
+        let adapter = gpu.adapter_name();
+        let (width, height) = (options.width.max(1), options.height.max(1));
+        let renderer =
+            Renderer::new(gpu.device, gpu.queue, crate::COLOR_FORMAT, cells_for_grid(manifest.grid.resolution));
+        let mut scene = Scene::new(manifest, (width, height));
+        if let Some(camera) = options.camera {
+            scene.camera = camera;
+        }
+        scene.ao_strength = options.ao_strength;
+        let target = renderer.device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("offscreen target"),
+            size: wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: crate::COLOR_FORMAT,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+            view_formats: &[],
+        });
+        Ok(Self { renderer, scene, source, adapter, target })
+    }
+
+    /// Fetches, decodes and expands every block the current view wants.
+    pub fn load_wanted(&mut self) {
+        loop {
+            let keys = self.scene.next_fetches(64);
+            if keys.is_empty() {
+                break;
+            }
+            let results: Vec<_> =
+                keys.into_iter().map(|k| (k, pollster::block_on(self.source.block_bytes(k)))).collect();
+            self.scene.insert_fetched(&self.renderer, results);
+        }
+    }
+
+    /// Loads what the view wants, draws it, reads it back.
+    pub fn render(&mut self) -> Result<OffscreenFrame, OffscreenError> {
+        self.load_wanted();
+        wait_idle(&self.renderer.device)?;
+        let view = self.target.create_view(&Default::default());
+        let mut times = [0.0; 2];
+        let mut frame = None;
+        for t in &mut times {
+            let start = Instant::now();
+            frame = Some(self.scene.draw(&mut self.renderer, &view, 0.0));
+            wait_idle(&self.renderer.device)?;
+            *t = start.elapsed().as_secs_f64() * 1e3;
+        }
+        let frame = frame.expect("drawn twice");
+        self.scene.stats.frame_ms = times[1];
+        let pixels = read_texture(&self.renderer, &self.target)?;
+        let blocks = frame.drawn.iter().filter_map(|k| self.scene.block(k).cloned()).collect();
+        let mut failures: Vec<(BlockKey, String)> = self.scene.failures().map(|(k, e)| (*k, e.clone())).collect();
+        failures.sort();
+        Ok(OffscreenFrame {
+            width: self.target.width(),
+            height: self.target.height(),
+            pixels,
+            view_proj: frame.view_proj.to_cols_array(),
+            drawn_blocks: frame.drawn,
+            blocks,
+            failures,
+            stats: self.scene.stats.clone(),
+            first_frame_ms: times[0],
+            frame_ms: times[1],
+            adapter: self.adapter.clone(),
+        })
+    }
+
+    /// The indirect draw args the compute pass wrote for a cached block:
+    /// (vertex_count, instance_count, first_vertex, first_instance).
+    pub fn draw_args(&self, key: &BlockKey) -> Result<Option<[u32; 4]>, OffscreenError> {
+        let Some(gpu) = self.scene.gpu_block(key) else { return Ok(None) };
+        let bytes = read_buffer(&self.renderer, &gpu.draw_args)?;
+        Ok(Some(bytemuck::pod_read_unaligned(&bytes[..16])))
+    }
+
+    /// The face records the compute pass wrote for a cached block, as
+    /// (x | y << 6 | z << 12 | face << 18, normal) pairs in GPU order.
+    pub fn face_records(&self, key: &BlockKey) -> Result<Vec<[u32; 2]>, OffscreenError> {
+        let Some(gpu) = self.scene.gpu_block(key) else { return Ok(Vec::new()) };
+        let bytes = read_buffer(&self.renderer, &gpu.face_buffer)?;
+        Ok(bytes.chunks_exact(8).map(bytemuck::pod_read_unaligned).collect())
+    }
+}
+
+/// Renders the scene in `scene_dir` (`<store>/<scene-id>`) with the default
+/// camera at `width`×`height`, exactly as the browser would draw it once every
+/// selected block is loaded.
+pub fn render_scene(scene_dir: &Path, width: u32, height: u32) -> Result<OffscreenFrame, OffscreenError> {
+    Offscreen::open(scene_dir, &RenderOptions::new(width, height))?.render()
+}
+
+fn wait_idle(device: &wgpu::Device) -> Result<(), OffscreenError> {
+    device.poll(wgpu::PollType::wait_indefinitely()).map(|_| ()).map_err(|e| OffscreenError::Readback(e.to_string()))
+}
+
+fn map_and_read(renderer: &Renderer, staging: &wgpu::Buffer) -> Result<Vec<u8>, OffscreenError> {
+    let (tx, rx) = std::sync::mpsc::channel();
+    staging.map_async(wgpu::MapMode::Read, .., move |r| {
+        let _ = tx.send(r);
+    });
+    wait_idle(&renderer.device)?;
+    rx.recv()
+        .map_err(|e| OffscreenError::Readback(e.to_string()))?
+        .map_err(|e| OffscreenError::Readback(e.to_string()))?;
+    let bytes = staging.get_mapped_range(..).map_err(|e| OffscreenError::Readback(format!("{e:?}")))?.to_vec();
+    staging.unmap();
+    Ok(bytes)
+}
+
+/// Copies a whole buffer (COPY_SRC) back to the CPU.
+pub fn read_buffer(renderer: &Renderer, buffer: &wgpu::Buffer) -> Result<Vec<u8>, OffscreenError> {
+    let staging = renderer.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("readback"),
+        size: buffer.size(),
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let mut encoder = renderer.device.create_command_encoder(&Default::default());
+    encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, buffer.size());
+    renderer.queue.submit([encoder.finish()]);
+    map_and_read(renderer, &staging)
+}
+
+/// Copies an Rgba8 texture back, dropping the row padding wgpu requires.
+fn read_texture(renderer: &Renderer, texture: &wgpu::Texture) -> Result<Vec<u8>, OffscreenError> {
+    let (width, height) = (texture.width(), texture.height());
+    let row = width * 4;
+    let padded = row.div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+    let staging = renderer.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("frame readback"),
+        size: padded as u64 * height as u64,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let mut encoder = renderer.device.create_command_encoder(&Default::default());
+    encoder.copy_texture_to_buffer(
+        wgpu::TexelCopyTextureInfo {
+            texture,
+            mip_level: 0,
+            origin: wgpu::Origin3d::ZERO,
+            aspect: wgpu::TextureAspect::All,
+        },
+        wgpu::TexelCopyBufferInfo {
+            buffer: &staging,
+            layout: wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(padded), rows_per_image: Some(height) },
+        },
+        wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
+    );
+    renderer.queue.submit([encoder.finish()]);
+    let bytes = map_and_read(renderer, &staging)?;
+    Ok(bytes.chunks_exact(padded as usize).flat_map(|r| &r[..row as usize]).copied().collect())
+}

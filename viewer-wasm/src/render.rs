@@ -1,0 +1,253 @@
+//! The draw: one render pass, one indirect draw per block, 6 vertices per face
+//! pulled from the face buffer (shaders/voxel.wgsl + ao.wgsl), depth-tested,
+//! cleared to [`crate::BACKGROUND_RGBA8`].
+
+use bytemuck::{Pod, Zeroable};
+use glam::{Mat4, Vec3};
+
+use crate::ao::{OccupancyTexture, OccupancyVolume};
+use crate::expand::{Expander, GpuBlock, block_bind_group_layout};
+use crate::shaders;
+
+pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
+
+/// Group 0 uniform of voxel.wgsl (`Frame`).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+pub struct FrameUniform {
+    pub view_proj: [f32; 16],
+    pub eye: [f32; 4],
+    pub key_light: [f32; 4],
+    /// Grid edge (grid units), occupancy cells per edge, occupancy mips, AO strength.
+    pub volume: [f32; 4],
+}
+
+/// What one frame is drawn with.
+#[derive(Debug, Clone, Copy)]
+pub struct FrameParams {
+    pub view_proj: Mat4,
+    pub eye: Vec3,
+    /// Grid units per grid edge (the scene grid resolution).
+    pub grid_resolution: f32,
+    /// 0 disables ambient occlusion.
+    pub ao_strength: f32,
+}
+
+/// The sRGB-free clear colour of [`crate::BACKGROUND_RGBA8`].
+pub fn background_color() -> wgpu::Color {
+    let [r, g, b, a] = crate::BACKGROUND_RGBA8.map(|c| c as f64 / 255.0);
+    wgpu::Color { r, g, b, a }
+}
+
+struct DepthTarget {
+    view: wgpu::TextureView,
+    size: (u32, u32),
+}
+
+pub struct Renderer {
+    pub device: wgpu::Device,
+    pub queue: wgpu::Queue,
+    pub color_format: wgpu::TextureFormat,
+    pub expander: Expander,
+    pub block_layout: wgpu::BindGroupLayout,
+    pipeline: wgpu::RenderPipeline,
+    frame_uniform: wgpu::Buffer,
+    frame_group: wgpu::BindGroup,
+    occupancy: OccupancyTexture,
+    depth: Option<DepthTarget>,
+}
+
+impl Renderer {
+    /// Builds the pipelines for colour targets of `color_format` and an
+    /// occupancy volume of `occupancy_cells`³ (see [`crate::ao::cells_for_grid`]).
+    pub fn new(
+        device: wgpu::Device,
+        queue: wgpu::Queue,
+        color_format: wgpu::TextureFormat,
+        occupancy_cells: u32,
+    ) -> Self {
+        let expander = Expander::new(&device);
+        let block_layout = block_bind_group_layout(&device);
+        let frame_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("frame"),
+            entries: &[
+                wgpu::BindGroupLayoutEntry {
+                    binding: 0,
+                    visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
+                    ty: wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Uniform,
+                        has_dynamic_offset: false,
+                        min_binding_size: wgpu::BufferSize::new(size_of::<FrameUniform>() as u64),
+                    },
+                    count: None,
+                },
+                wgpu::BindGroupLayoutEntry {
+                    binding: 1,
+                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    ty: wgpu::BindingType::Texture {
+                        sample_type: wgpu::TextureSampleType::Float { filterable: true },
+                        view_dimension: wgpu::TextureViewDimension::D3,
+                        multisampled: false,
+                    },
+                    count: None,
+                },
+                wgpu::BindGroupLayoutEntry {
+                    binding: 2,
+                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
+                    count: None,
+                },
+            ],
+        });
+        let frame_uniform = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("frame"),
+            size: size_of::<FrameUniform>() as u64,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let occupancy = OccupancyTexture::new(&device, occupancy_cells);
+        let frame_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("frame"),
+            layout: &frame_layout,
+            entries: &[
+                wgpu::BindGroupEntry { binding: 0, resource: frame_uniform.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 1, resource: wgpu::BindingResource::TextureView(&occupancy.view) },
+                wgpu::BindGroupEntry { binding: 2, resource: wgpu::BindingResource::Sampler(&occupancy.sampler) },
+            ],
+        });
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("voxel.wgsl + ao.wgsl"),
+            source: wgpu::ShaderSource::Wgsl(shaders::voxel_module_source().into()),
+        });
+        let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("voxel draw"),
+            bind_group_layouts: &[Some(&frame_layout), Some(&block_layout)],
+            immediate_size: 0,
+        });
+        let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("voxel draw"),
+            layout: Some(&layout),
+            vertex: wgpu::VertexState {
+                module: &module,
+                entry_point: Some("vs_main"),
+                compilation_options: Default::default(),
+                buffers: &[],
+            },
+            primitive: wgpu::PrimitiveState {
+                topology: wgpu::PrimitiveTopology::TriangleList,
+                front_face: wgpu::FrontFace::Ccw,
+                // Exposed faces bound closed shells, so back faces are always hidden.
+                cull_mode: Some(wgpu::Face::Back),
+                ..Default::default()
+            },
+            depth_stencil: Some(wgpu::DepthStencilState {
+                format: DEPTH_FORMAT,
+                depth_write_enabled: Some(true),
+                depth_compare: Some(wgpu::CompareFunction::Less),
+                stencil: Default::default(),
+                bias: Default::default(),
+            }),
+            multisample: Default::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &module,
+                entry_point: Some("fs_main"),
+                compilation_options: Default::default(),
+                targets: &[Some(wgpu::ColorTargetState {
+                    format: color_format,
+                    blend: None,
+                    write_mask: wgpu::ColorWrites::ALL,
+                })],
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
+        Self {
+            device,
+            queue,
+            color_format,
+            expander,
+            block_layout,
+            pipeline,
+            frame_uniform,
+            frame_group,
+            occupancy,
+            depth: None,
+        }
+    }
+
+    pub fn occupancy_cells(&self) -> u32 {
+        self.occupancy.cells
+    }
+
+    pub fn upload_occupancy(&self, volume: &OccupancyVolume) {
+        self.occupancy.upload(&self.queue, volume);
+    }
+
+    fn depth_view(&mut self, width: u32, height: u32) -> &wgpu::TextureView {
+        if self.depth.as_ref().is_none_or(|d| d.size != (width, height)) {
+            let texture = self.device.create_texture(&wgpu::TextureDescriptor {
+                label: Some("depth"),
+                size: wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format: DEPTH_FORMAT,
+                usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+                view_formats: &[],
+            });
+            let view = texture.create_view(&Default::default());
+            self.depth = Some(DepthTarget { view, size: (width, height) });
+        }
+        &self.depth.as_ref().expect("just created").view
+    }
+
+    /// Records the frame into `encoder`: clear, then one indirect draw per block.
+    pub fn encode_frame(
+        &mut self,
+        encoder: &mut wgpu::CommandEncoder,
+        target: &wgpu::TextureView,
+        size: (u32, u32),
+        params: &FrameParams,
+        blocks: &[&GpuBlock],
+    ) {
+        // A key light from above and to the side of the viewer; the headlight is implicit.
+        let key_light = (Vec3::new(0.4, 1.0, 0.3)).normalize();
+        let uniform = FrameUniform {
+            view_proj: params.view_proj.to_cols_array(),
+            eye: params.eye.extend(1.0).to_array(),
+            key_light: key_light.extend(0.0).to_array(),
+            volume: [
+                params.grid_resolution,
+                self.occupancy.cells as f32,
+                self.occupancy.mip_count() as f32,
+                params.ao_strength,
+            ],
+        };
+        self.queue.write_buffer(&self.frame_uniform, 0, bytemuck::bytes_of(&uniform));
+        let (width, height) = (size.0.max(1), size.1.max(1));
+        let depth = self.depth_view(width, height).clone();
+        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some("voxels"),
+            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                view: target,
+                depth_slice: None,
+                resolve_target: None,
+                ops: wgpu::Operations { load: wgpu::LoadOp::Clear(background_color()), store: wgpu::StoreOp::Store },
+            })],
+            depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                view: &depth,
+                depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(1.0), store: wgpu::StoreOp::Discard }),
+                stencil_ops: None,
+            }),
+            timestamp_writes: None,
+            occlusion_query_set: None,
+            multiview_mask: None,
+        });
+        pass.set_pipeline(&self.pipeline);
+        pass.set_bind_group(0, &self.frame_group, &[]);
+        for block in blocks {
+            pass.set_bind_group(1, &block.bind_group, &[]);
+            pass.draw_indirect(&block.draw_args, 0);
+        }
+    }
+}

@@ -1,0 +1,305 @@
+//! The viewer's state for one scene, shared by the browser and the native
+//! offscreen path: camera, current selection, the block cache (decoded blocks
+//! and their GPU buffers), what to fetch next, what to draw, and stats.
+//! It never fetches by itself; the caller feeds it fetched bytes, so the same
+//! code runs under the browser's event loop and a blocking native loop.
+
+use std::collections::{HashMap, HashSet};
+
+use glam::{Mat4, Vec3};
+use voxstream_format::{Block, BlockKey, Manifest};
+
+use crate::ao::OccupancyVolume;
+use crate::camera::OrbitCamera;
+use crate::decode::decode_fetched;
+use crate::expand::GpuBlock;
+use crate::fetch::FetchError;
+use crate::render::{FrameParams, Renderer};
+use crate::select::{SelectParams, ViewParams, resolve_draw_set, scene_bounds, select_blocks};
+use crate::stats::Stats;
+
+/// GPU bytes of cached blocks beyond which blocks that are neither wanted nor
+/// drawn are evicted, least recently drawn first.
+const CACHE_BUDGET_BYTES: u64 = 384 << 20;
+/// While streaming, rebuild the occupancy volume at most this often.
+const OCCUPANCY_REBUILD_MS: f64 = 400.0;
+
+struct CachedBlock {
+    block: Block,
+    /// `None` for a block without faces.
+    gpu: Option<GpuBlock>,
+    last_drawn: u64,
+}
+
+/// What a call to [`Scene::draw`] drew.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DrawnFrame {
+    pub view_proj: Mat4,
+    pub drawn: Vec<BlockKey>,
+    /// Every wanted block was loaded (or failed for good) and is drawn as itself.
+    pub complete: bool,
+}
+
+pub struct Scene {
+    pub manifest: Manifest,
+    pub camera: OrbitCamera,
+    pub select_params: SelectParams,
+    /// 0 disables ambient occlusion; 1 is full strength.
+    pub ao_strength: f32,
+    pub stats: Stats,
+    viewport: (u32, u32),
+    selected_for: Option<(OrbitCamera, (u32, u32))>,
+    wanted: Vec<BlockKey>,
+    cache: HashMap<BlockKey, CachedBlock>,
+    pending: HashSet<BlockKey>,
+    failed: HashMap<BlockKey, String>,
+    drawn: Vec<BlockKey>,
+    occupancy_for: Option<Vec<BlockKey>>,
+    occupancy_built_ms: f64,
+    frame_counter: u64,
+}
+
+impl Scene {
+    /// A scene framed by the default camera for a `viewport`-sized view.
+    pub fn new(manifest: Manifest, viewport: (u32, u32)) -> Self {
+        let camera = default_camera(&manifest);
+        Self {
+            manifest,
+            camera,
+            select_params: SelectParams::default(),
+            ao_strength: 1.0,
+            stats: Stats::default(),
+            viewport: (viewport.0.max(1), viewport.1.max(1)),
+            selected_for: None,
+            wanted: Vec::new(),
+            cache: HashMap::new(),
+            pending: HashSet::new(),
+            failed: HashMap::new(),
+            drawn: Vec::new(),
+            occupancy_for: None,
+            occupancy_built_ms: f64::NEG_INFINITY,
+            frame_counter: 0,
+        }
+    }
+
+    pub fn viewport(&self) -> (u32, u32) {
+        self.viewport
+    }
+
+    pub fn set_viewport(&mut self, width: u32, height: u32) {
+        self.viewport = (width.max(1), height.max(1));
+    }
+
+    pub fn aspect(&self) -> f32 {
+        self.viewport.0 as f32 / self.viewport.1 as f32
+    }
+
+    pub fn view_proj(&self) -> Mat4 {
+        self.camera.view_proj(self.aspect())
+    }
+
+    /// The blocks this view wants, recomputed when the camera or viewport changed.
+    pub fn wanted(&mut self) -> &[BlockKey] {
+        let now = (self.camera, self.viewport);
+        if self.selected_for != Some(now) {
+            let view = ViewParams {
+                view_proj: self.view_proj(),
+                eye: self.camera.eye(),
+                focal_pixels: self.camera.focal_pixels(self.viewport.1 as f32),
+            };
+            self.wanted = select_blocks(&self.manifest, &view, &self.select_params);
+            self.selected_for = Some(now);
+        }
+        &self.wanted
+    }
+
+    /// Wanted blocks that are neither cached, in flight nor failed, coarsest
+    /// first (they are the fallbacks for the finer ones), at most `max`; they
+    /// are marked in flight.
+    pub fn next_fetches(&mut self, max: usize) -> Vec<BlockKey> {
+        self.wanted();
+        let mut todo: Vec<BlockKey> = self
+            .wanted
+            .iter()
+            .filter(|k| !self.cache.contains_key(k) && !self.pending.contains(k) && !self.failed.contains_key(k))
+            .copied()
+            .collect();
+        let eye = self.camera.eye();
+        let dist = |k: &BlockKey| {
+            crate::select::block_bounds(&self.manifest, k).map_or(f32::INFINITY, |b| b.distance_to(eye))
+        };
+        todo.sort_by(|a, b| b.level.cmp(&a.level).then(dist(a).total_cmp(&dist(b))));
+        todo.truncate(max);
+        self.pending.extend(todo.iter().copied());
+        todo
+    }
+
+    pub fn in_flight(&self) -> usize {
+        self.pending.len()
+    }
+
+    pub fn record_bytes_fetched(&mut self, bytes: u64) {
+        self.stats.bytes_fetched += bytes;
+    }
+
+    /// Takes fetched results: decodes them, expands them on the GPU in one
+    /// submission and caches them. Failures are recorded (stats line) and the
+    /// block is not asked for again; its ancestor keeps standing in for it.
+    pub fn insert_fetched(
+        &mut self,
+        renderer: &Renderer,
+        results: impl IntoIterator<Item = (BlockKey, Result<Vec<u8>, FetchError>)>,
+    ) {
+        let mut encoder = renderer.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("expand blocks"),
+        });
+        let mut expanded = 0;
+        for (key, result) in results {
+            self.pending.remove(&key);
+            let bytes = match result {
+                Ok(bytes) => bytes,
+                Err(e) => {
+                    self.fail(key, e.to_string());
+                    continue;
+                }
+            };
+            self.stats.bytes_fetched += bytes.len() as u64;
+            let block = match decode_fetched(key, self.manifest.block(&key), &bytes) {
+                Ok(block) => block,
+                Err(e) => {
+                    self.fail(key, e.to_string());
+                    continue;
+                }
+            };
+            let gpu = renderer.expander.expand(&renderer.device, &mut encoder, &block, &renderer.block_layout);
+            expanded += 1;
+            self.stats.blocks_loaded += 1;
+            self.cache.insert(key, CachedBlock { block, gpu, last_drawn: self.frame_counter });
+        }
+        if expanded > 0 {
+            renderer.queue.submit([encoder.finish()]);
+        }
+    }
+
+    fn fail(&mut self, key: BlockKey, message: String) {
+        self.stats.record_error(message);
+        self.failed.insert(key, self.stats.last_error.clone().unwrap_or_default());
+    }
+
+    pub fn failures(&self) -> impl Iterator<Item = (&BlockKey, &String)> {
+        self.failed.iter()
+    }
+
+    /// Every wanted block is settled (cached or failed) and nothing is in flight.
+    pub fn is_settled(&mut self) -> bool {
+        self.wanted();
+        self.pending.is_empty() && self.wanted.iter().all(|k| self.cache.contains_key(k) || self.failed.contains_key(k))
+    }
+
+    pub fn is_cached(&self, key: &BlockKey) -> bool {
+        self.cache.contains_key(key)
+    }
+
+    /// The decoded block, if cached.
+    pub fn block(&self, key: &BlockKey) -> Option<&Block> {
+        self.cache.get(key).map(|c| &c.block)
+    }
+
+    pub fn gpu_block(&self, key: &BlockKey) -> Option<&GpuBlock> {
+        self.cache.get(key).and_then(|c| c.gpu.as_ref())
+    }
+
+    /// Keys drawn by the last [`Scene::draw`].
+    pub fn drawn(&self) -> &[BlockKey] {
+        &self.drawn
+    }
+
+    /// Draws the current view into `target` and submits it. `now_ms` paces
+    /// occupancy rebuilds while streaming.
+    pub fn draw(&mut self, renderer: &mut Renderer, target: &wgpu::TextureView, now_ms: f64) -> DrawnFrame {
+        self.frame_counter += 1;
+        let settled = self.is_settled();
+        let max_level = self.manifest.coarsest_level();
+        let cache = &self.cache;
+        let drawn = resolve_draw_set(&self.wanted, max_level, |k| cache.contains_key(k));
+        let complete = settled && drawn == self.wanted;
+
+        let stale = self.occupancy_for.as_ref() != Some(&drawn);
+        if self.ao_strength > 0.0 && stale && (settled || now_ms - self.occupancy_built_ms >= OCCUPANCY_REBUILD_MS) {
+            let volume =
+                OccupancyVolume::build(self.manifest.grid.resolution, drawn.iter().filter_map(|k| self.block(k)));
+            if volume.cells == renderer.occupancy_cells() {
+                renderer.upload_occupancy(&volume);
+            }
+            self.occupancy_for = Some(drawn.clone());
+            self.occupancy_built_ms = now_ms;
+        }
+
+        let mut gpu_blocks = Vec::with_capacity(drawn.len());
+        let mut faces = 0u64;
+        for key in &drawn {
+            if let Some(c) = self.cache.get_mut(key) {
+                c.last_drawn = self.frame_counter;
+                if let Some(g) = &c.gpu {
+                    faces += g.faces as u64;
+                }
+            }
+        }
+        for key in &drawn {
+            if let Some(g) = self.gpu_block(key) {
+                gpu_blocks.push(g);
+            }
+        }
+        let params = FrameParams {
+            view_proj: self.view_proj(),
+            eye: self.camera.eye(),
+            grid_resolution: self.manifest.grid.resolution as f32,
+            ao_strength: self.ao_strength,
+        };
+        let mut encoder =
+            renderer.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
+        renderer.encode_frame(&mut encoder, target, self.viewport, &params, &gpu_blocks);
+        renderer.queue.submit([encoder.finish()]);
+
+        self.stats.blocks_drawn = drawn.len() as u32;
+        self.stats.faces_drawn = faces;
+        self.drawn = drawn.clone();
+        self.evict();
+        DrawnFrame { view_proj: params.view_proj, drawn, complete }
+    }
+
+    /// Drops least recently drawn blocks beyond the budget, never one that is
+    /// wanted, drawn, or on the coarsest level (the fallback of last resort).
+    fn evict(&mut self) {
+        let mut total: u64 = self.cache.values().filter_map(|c| c.gpu.as_ref()).map(|g| g.gpu_bytes).sum();
+        if total <= CACHE_BUDGET_BYTES {
+            return;
+        }
+        let keep: HashSet<BlockKey> = self.wanted.iter().chain(self.drawn.iter()).copied().collect();
+        let coarsest = self.manifest.coarsest_level();
+        let mut victims: Vec<(u64, BlockKey)> = self
+            .cache
+            .iter()
+            .filter(|(k, _)| !keep.contains(k) && k.level != coarsest)
+            .map(|(k, c)| (c.last_drawn, *k))
+            .collect();
+        victims.sort();
+        for (_, key) in victims {
+            if total <= CACHE_BUDGET_BYTES {
+                break;
+            }
+            if let Some(g) = self.cache.remove(&key).and_then(|c| c.gpu) {
+                total -= g.gpu_bytes;
+                g.destroy();
+            }
+        }
+    }
+}
+
+/// The default view: the scene's voxels framed from the front, slightly above.
+pub fn default_camera(manifest: &Manifest) -> OrbitCamera {
+    match scene_bounds(manifest) {
+        Some(b) => OrbitCamera::framing(b.min, b.max),
+        None => OrbitCamera::framing(Vec3::ZERO, Vec3::splat(manifest.grid.resolution as f32)),
+    }
+}

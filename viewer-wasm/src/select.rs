@@ -1,0 +1,337 @@
+//! Screen-space LOD selection (seed 003): start at the coarsest level and refine
+//! a block into its existing children while one of its voxels projects larger
+//! than a pixel threshold, culling blocks whose tight bounds leave the frustum.
+//! Plus the rule that keeps a coarser block on screen until its children load.
+
+use std::cmp::Ordering;
+use std::collections::{BTreeSet, BinaryHeap};
+
+use glam::{Mat4, Vec3, Vec4};
+use voxstream_format::{BlockKey, Manifest};
+
+/// What the selection needs to know about the view.
+#[derive(Debug, Clone, Copy)]
+pub struct ViewParams {
+    pub view_proj: Mat4,
+    pub eye: Vec3,
+    /// Pixels per grid unit at distance 1 (viewport height / (2 tan(fov/2))).
+    pub focal_pixels: f32,
+}
+
+#[derive(Debug, Clone, Copy)]
+pub struct SelectParams {
+    /// Refine while a block's voxel projects larger than this many pixels.
+    pub max_voxel_pixels: f32,
+    /// Stop refining once this many blocks are selected.
+    pub max_blocks: usize,
+}
+
+impl Default for SelectParams {
+    fn default() -> Self {
+        Self { max_voxel_pixels: 1.5, max_blocks: 768 }
+    }
+}
+
+/// An axis-aligned box in grid units.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Aabb {
+    pub min: Vec3,
+    pub max: Vec3,
+}
+
+impl Aabb {
+    pub fn distance_to(&self, p: Vec3) -> f32 {
+        let d = (self.min - p).max(p - self.max).max(Vec3::ZERO);
+        d.length()
+    }
+
+    pub fn union(&self, other: &Aabb) -> Aabb {
+        Aabb { min: self.min.min(other.min), max: self.max.max(other.max) }
+    }
+}
+
+/// Tight grid-unit bounds of a block's voxels, from the manifest.
+pub fn block_bounds(manifest: &Manifest, key: &BlockKey) -> Option<Aabb> {
+    let entry = manifest.block(key)?;
+    let (min, max) = entry.bounds.grid_units(key.level);
+    let v = |a: [f64; 3]| Vec3::new(a[0] as f32, a[1] as f32, a[2] as f32);
+    Some(Aabb { min: v(min), max: v(max) })
+}
+
+/// Bounds of everything in the scene: the union of the coarsest level's blocks.
+pub fn scene_bounds(manifest: &Manifest) -> Option<Aabb> {
+    let coarsest = manifest.coarsest_level();
+    manifest
+        .blocks
+        .iter()
+        .filter(|b| b.key.level == coarsest)
+        .filter_map(|b| block_bounds(manifest, &b.key))
+        .reduce(|a, b| a.union(&b))
+}
+
+/// The six planes of a wgpu (depth 0..1) frustum, as `n·p + d >= 0` inside.
+#[derive(Debug, Clone, Copy)]
+pub struct Frustum {
+    planes: [Vec4; 6],
+}
+
+impl Frustum {
+    pub fn from_view_proj(m: Mat4) -> Self {
+        let (r0, r1, r2, r3) = (m.row(0), m.row(1), m.row(2), m.row(3));
+        Self { planes: [r3 + r0, r3 - r0, r3 + r1, r3 - r1, r2, r3 - r2] }
+    }
+
+    pub fn intersects(&self, b: &Aabb) -> bool {
+        self.planes.iter().all(|p| {
+            // The box corner furthest along the plane normal.
+            let corner = Vec3::select(p.truncate().cmpge(Vec3::ZERO), b.max, b.min);
+            p.truncate().dot(corner) + p.w >= 0.0
+        })
+    }
+}
+
+/// Projected edge, in pixels, of one voxel of `level` at the nearest point of `bounds`.
+pub fn voxel_pixels(level: u8, bounds: &Aabb, view: &ViewParams) -> f32 {
+    let edge = (1u64 << level) as f32;
+    let dist = bounds.distance_to(view.eye);
+    if dist <= 1e-6 {
+        return f32::INFINITY;
+    }
+    edge * view.focal_pixels / dist
+}
+
+struct Candidate {
+    key: BlockKey,
+    pixels: f32,
+}
+
+impl PartialEq for Candidate {
+    fn eq(&self, other: &Self) -> bool {
+        self.cmp(other) == Ordering::Equal
+    }
+}
+impl Eq for Candidate {}
+impl PartialOrd for Candidate {
+    fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
+        Some(self.cmp(other))
+    }
+}
+impl Ord for Candidate {
+    fn cmp(&self, other: &Self) -> Ordering {
+        self.pixels.total_cmp(&other.pixels).then_with(|| other.key.cmp(&self.key))
+    }
+}
+
+/// The blocks to show for this view, coarse to fine refinement by largest
+/// projected voxel first, so a block budget spends itself where it shows most.
+/// The result is sorted by key (coarser levels last).
+pub fn select_blocks(manifest: &Manifest, view: &ViewParams, params: &SelectParams) -> Vec<BlockKey> {
+    let frustum = Frustum::from_view_proj(view.view_proj);
+    let visible = |key: &BlockKey| -> Option<Candidate> {
+        let bounds = block_bounds(manifest, key)?;
+        frustum.intersects(&bounds).then(|| Candidate { key: *key, pixels: voxel_pixels(key.level, &bounds, view) })
+    };
+    let coarsest = manifest.coarsest_level();
+    let mut open: BinaryHeap<Candidate> =
+        manifest.blocks.iter().filter(|b| b.key.level == coarsest).filter_map(|b| visible(&b.key)).collect();
+    let mut done = Vec::new();
+    while let Some(c) = open.pop() {
+        if c.pixels > params.max_voxel_pixels {
+            let children: Vec<Candidate> = c
+                .key
+                .children()
+                .into_iter()
+                .flatten()
+                .filter(|k| manifest.block(k).is_some())
+                .filter_map(|k| visible(&k))
+                .collect();
+            let has_children = c.key.children().into_iter().flatten().any(|k| manifest.block(&k).is_some());
+            let total_after = done.len() + open.len() + children.len();
+            if has_children && total_after <= params.max_blocks {
+                // Children all outside the frustum: this region has nothing visible at finer levels.
+                open.extend(children);
+                continue;
+            }
+        }
+        done.push(c.key);
+    }
+    done.sort();
+    done
+}
+
+/// What to draw now for the `wanted` selection: each wanted block if it is
+/// ready, else its nearest ready ancestor, and no block together with one of
+/// its ancestors (the ancestor already covers that space). This keeps the
+/// coarser block on screen until all of the children that replace it are ready,
+/// so nothing pops to empty while streaming.
+pub fn resolve_draw_set(wanted: &[BlockKey], max_level: u8, is_ready: impl Fn(&BlockKey) -> bool) -> Vec<BlockKey> {
+    let mut chosen = BTreeSet::new();
+    for key in wanted {
+        let mut k = *key;
+        loop {
+            if is_ready(&k) {
+                chosen.insert(k);
+                break;
+            }
+            if k.level >= max_level {
+                break;
+            }
+            k = k.parent();
+        }
+    }
+    let has_chosen_ancestor = |key: &BlockKey| {
+        let mut k = *key;
+        while k.level < max_level {
+            k = k.parent();
+            if chosen.contains(&k) {
+                return true;
+            }
+        }
+        false
+    };
+    chosen.iter().copied().filter(|k| !has_chosen_ancestor(k)).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::OrbitCamera;
+    use voxstream_format::{BLOCK_SIZE, BlockEntry, FORMAT_VERSION, GridFrame, LevelInfo, SourceInfo, VoxelBounds};
+
+    /// A full pyramid over a `res`³ grid where every block is filled edge to edge.
+    fn pyramid(res: u32) -> Manifest {
+        let mut levels = Vec::new();
+        let mut blocks = Vec::new();
+        let mut level = 0u8;
+        loop {
+            let level_res = res >> level;
+            let per_edge = level_res.div_ceil(BLOCK_SIZE);
+            levels.push(LevelInfo { level, resolution: level_res, blocks: per_edge.pow(3), voxels: 0, bytes: 0 });
+            for z in 0..per_edge {
+                for y in 0..per_edge {
+                    for x in 0..per_edge {
+                        let key = BlockKey::new(level, x, y, z);
+                        let min = key.coord().map(|c| c * BLOCK_SIZE);
+                        let max = key.coord().map(|c| ((c + 1) * BLOCK_SIZE).min(level_res));
+                        blocks.push(BlockEntry {
+                            key,
+                            bounds: VoxelBounds { min, max },
+                            voxels: 1,
+                            faces: 1,
+                            bytes: 1,
+                            hash: String::new(),
+                        });
+                    }
+                }
+            }
+            if per_edge == 1 {
+                break;
+            }
+            level += 1;
+        }
+        blocks.sort_by_key(|b| b.key);
+        let m = Manifest {
+            format_version: FORMAT_VERSION,
+            name: "pyramid".into(),
+            source: SourceInfo { file: "x".into(), format: "obj".into(), triangles: 0, skipped_triangles: 0 },
+            grid: GridFrame { origin: [0.0; 3], voxel_size: 1.0, resolution: res, units: None },
+            block_size: BLOCK_SIZE,
+            levels,
+            blocks,
+        };
+        m.validate().unwrap();
+        m
+    }
+
+    fn view_of(cam: &OrbitCamera, height: f32) -> ViewParams {
+        ViewParams { view_proj: cam.view_proj(1.0), eye: cam.eye(), focal_pixels: cam.focal_pixels(height) }
+    }
+
+    #[test]
+    fn frustum_culls_boxes_behind_and_beside() {
+        let cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(256.0));
+        let f = Frustum::from_view_proj(cam.view_proj(1.0));
+        let around = |c: Vec3| Aabb { min: c - 1.0, max: c + 1.0 };
+        assert!(f.intersects(&around(cam.target)));
+        assert!(!f.intersects(&around(cam.eye() - cam.forward() * 10.0)), "behind the eye");
+        assert!(!f.intersects(&around(cam.target + Vec3::new(0.0, 10_000.0, 0.0))), "far above");
+    }
+
+    #[test]
+    fn far_view_selects_only_the_root_and_near_view_refines() {
+        let m = pyramid(512);
+        let mut cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(512.0));
+        cam.distance *= 20.0;
+        cam.scene_radius *= 20.0;
+        let far = select_blocks(&m, &view_of(&cam, 400.0), &SelectParams::default());
+        assert_eq!(far, vec![BlockKey::new(3, 0, 0, 0)]);
+
+        let cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(512.0));
+        let near = select_blocks(&m, &view_of(&cam, 2000.0), &SelectParams::default());
+        assert!(near.iter().any(|k| k.level == 0), "a 2000 px view of a 512 grid needs level 0: {near:?}");
+        // The selection tiles space: no block together with its ancestor.
+        for k in &near {
+            let mut p = *k;
+            while p.level < 3 {
+                p = p.parent();
+                assert!(!near.contains(&p), "{k} and its ancestor {p} both selected");
+            }
+        }
+    }
+
+    #[test]
+    fn selection_respects_the_pixel_rule_and_budget() {
+        let m = pyramid(512);
+        let cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(512.0));
+        let view = view_of(&cam, 700.0);
+        let params = SelectParams::default();
+        let sel = select_blocks(&m, &view, &params);
+        for k in &sel {
+            let px = voxel_pixels(k.level, &block_bounds(&m, k).unwrap(), &view);
+            assert!(k.level == 0 || px <= params.max_voxel_pixels, "{k} left at {px} px");
+        }
+        let tight = select_blocks(&m, &view, &SelectParams { max_blocks: 10, ..params });
+        assert!(tight.len() <= 10 && !tight.is_empty());
+    }
+
+    #[test]
+    fn culled_blocks_are_not_selected() {
+        let m = pyramid(512);
+        let mut cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(512.0));
+        // Look closely at one corner: most level-0 blocks are off screen.
+        cam.target = Vec3::splat(32.0);
+        cam.distance = 60.0;
+        let view = view_of(&cam, 600.0);
+        let sel = select_blocks(&m, &view, &SelectParams::default());
+        let f = Frustum::from_view_proj(view.view_proj);
+        assert!(sel.iter().all(|k| f.intersects(&block_bounds(&m, k).unwrap())));
+        assert!(sel.len() < 100, "{} blocks for a corner view", sel.len());
+    }
+
+    #[test]
+    fn draw_set_falls_back_to_ready_ancestors() {
+        let root = BlockKey::new(2, 0, 0, 0);
+        let mids = root.children().unwrap();
+        let fines = mids[0].children().unwrap();
+        let mut wanted: Vec<BlockKey> = fines.to_vec();
+        wanted.extend_from_slice(&mids[1..]);
+
+        // Nothing ready: nothing drawn.
+        assert!(resolve_draw_set(&wanted, 2, |_| false).is_empty());
+        // Only the root ready: the root stands in for everything.
+        assert_eq!(resolve_draw_set(&wanted, 2, |k| *k == root), vec![root]);
+        // Everything but one fine block ready: its parent stands in for it and its
+        // siblings, the other mids draw themselves.
+        let missing = fines[3];
+        let ready = |k: &BlockKey| *k != missing;
+        let set = resolve_draw_set(&wanted, 2, ready);
+        let mut expect: Vec<BlockKey> = vec![mids[0]];
+        expect.extend_from_slice(&mids[1..]);
+        expect.sort();
+        assert_eq!(set, expect);
+        // All ready: exactly the wanted set.
+        let mut all = wanted.clone();
+        all.sort();
+        assert_eq!(resolve_draw_set(&wanted, 2, |_| true), all);
+    }
+}

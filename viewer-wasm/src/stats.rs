@@ -1,0 +1,67 @@
+//! Numbers the page shows in its stats line and returns from `window.voxstream.stats()`.
+
+use serde::Serialize;
+
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+#[serde(rename_all = "camelCase")]
+pub struct Stats {
+    /// Time of the last frame from the start of its encoding until the GPU finished it.
+    pub frame_ms: f64,
+    pub blocks_drawn: u32,
+    /// Bytes of block and manifest responses received so far.
+    pub bytes_fetched: u64,
+    /// Blocks decoded and expanded on the GPU so far (cache hits are not counted again).
+    pub blocks_loaded: u32,
+    pub faces_drawn: u64,
+    #[serde(skip)]
+    pub errors: u32,
+    #[serde(skip)]
+    pub last_error: Option<String>,
+}
+
+impl Stats {
+    pub fn record_error(&mut self, message: String) {
+        self.errors += 1;
+        self.last_error = Some(message);
+    }
+
+    /// The stats line: short enough for one line of a narrow window.
+    pub fn line(&self) -> String {
+        let mut s = format!(
+            "{:.1} ms · {} blocks drawn · {} faces · {} loaded · {:.2} MB fetched",
+            self.frame_ms,
+            self.blocks_drawn,
+            self.faces_drawn,
+            self.blocks_loaded,
+            self.bytes_fetched as f64 / 1e6
+        );
+        if let Some(e) = &self.last_error {
+            s.push_str(&format!(" · {} error(s), last: {e}", self.errors));
+        }
+        s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn json_uses_the_page_contract_names() {
+        let s = Stats { frame_ms: 1.5, blocks_drawn: 2, bytes_fetched: 3, blocks_loaded: 4, faces_drawn: 5, ..Default::default() };
+        let v: serde_json::Value = serde_json::to_value(&s).unwrap();
+        let keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
+        assert_eq!(keys.len(), 5);
+        for k in ["frameMs", "blocksDrawn", "bytesFetched", "blocksLoaded", "facesDrawn"] {
+            assert!(keys.contains(&k), "missing {k}");
+        }
+    }
+
+    #[test]
+    fn errors_show_in_the_line() {
+        let mut s = Stats::default();
+        assert!(!s.line().contains("error"));
+        s.record_error("block 0-0-0-0: bad magic".into());
+        assert!(s.line().contains("1 error(s), last: block 0-0-0-0: bad magic"));
+    }
+}
