@@ -152,7 +152,9 @@ mod tests {
 
     #[test]
     fn every_truncation_is_an_error() {
-        let b = block_from((0..300).map(|i| ([i % 64, i / 64, 7], 1 + (i % 63) as u8, [0.0, 1.0, 0.0])).collect());
+        let b = block_from(
+            (0..300).map(|i| ([i % 64, i / 64, 7], 1 + (i % 63) as u8, [0.0, 1.0, 0.0])).collect(),
+        );
         let bytes = encode_block(&b);
         for len in 0..bytes.len() {
             assert!(decode_block(&bytes[..len]).is_err(), "truncated to {len} decoded");

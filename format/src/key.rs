@@ -45,12 +45,7 @@ impl BlockKey {
         let l = self.level - 1;
         Some(std::array::from_fn(|i| {
             let i = i as u32;
-            BlockKey::new(
-                l,
-                self.x * 2 + (i & 1),
-                self.y * 2 + ((i >> 1) & 1),
-                self.z * 2 + ((i >> 2) & 1),
-            )
+            BlockKey::new(l, self.x * 2 + (i & 1), self.y * 2 + ((i >> 1) & 1), self.z * 2 + ((i >> 2) & 1))
         }))
     }
 }
@@ -113,8 +108,16 @@ mod tests {
     #[test]
     fn rejects_malformed() {
         for bad in [
-            "", "1-2-3", "1-2-3-4-5", "a-1-2-3", "-1-2-3-4", "1--2-3", "../1-2-3", "1-2-3-4 ",
-            "+1-2-3-4", "1-2-3-99999999999",
+            "",
+            "1-2-3",
+            "1-2-3-4-5",
+            "a-1-2-3",
+            "-1-2-3-4",
+            "1--2-3",
+            "../1-2-3",
+            "1-2-3-4 ",
+            "+1-2-3-4",
+            "1-2-3-99999999999",
         ] {
             assert!(bad.parse::<BlockKey>().is_err(), "{bad:?} parsed");
         }

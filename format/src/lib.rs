@@ -15,8 +15,8 @@ mod voxel;
 pub use codec::{BLOCK_MAGIC, CodecError, HEADER_LEN, decode_block, encode_block};
 pub use key::{BlockKey, KeyError};
 pub use manifest::{
-    BlockEntry, FORMAT_VERSION, GridFrame, LevelInfo, Manifest, ManifestError, SceneSummary,
-    SourceInfo, VoxelBounds,
+    BlockEntry, FORMAT_VERSION, GridFrame, LevelInfo, Manifest, ManifestError, SceneSummary, SourceInfo,
+    VoxelBounds,
 };
 pub use voxel::{Block, Face, PackedVoxel, morton3, oct_decode, oct_encode};
 

@@ -115,7 +115,9 @@ impl Manifest {
         if !self.grid.resolution.is_power_of_two() {
             return bad(format!("grid resolution {} is not a power of two", self.grid.resolution));
         }
-        if !(self.grid.voxel_size.is_finite() && self.grid.voxel_size > 0.0) || self.grid.origin.iter().any(|o| !o.is_finite()) {
+        if !(self.grid.voxel_size.is_finite() && self.grid.voxel_size > 0.0)
+            || self.grid.origin.iter().any(|o| !o.is_finite())
+        {
             return bad("grid frame is not finite and positive".into());
         }
         if self.levels.is_empty() || self.levels.iter().enumerate().any(|(i, l)| l.level as usize != i) {
@@ -176,7 +178,12 @@ mod tests {
         Manifest {
             format_version: FORMAT_VERSION,
             name: "t".into(),
-            source: SourceInfo { file: "t.obj".into(), format: "obj".into(), triangles: 1, skipped_triangles: 0 },
+            source: SourceInfo {
+                file: "t.obj".into(),
+                format: "obj".into(),
+                triangles: 1,
+                skipped_triangles: 0,
+            },
             grid: GridFrame { origin: [1e7, 0.0, -3.5], voxel_size: 0.01, resolution: 128, units: None },
             block_size: BLOCK_SIZE,
             levels: vec![
@@ -184,8 +191,22 @@ mod tests {
                 LevelInfo { level: 1, resolution: 64, blocks: 1, voxels: 1, bytes: 30 },
             ],
             blocks: vec![
-                BlockEntry { key: BlockKey::new(0, 1, 0, 0), bounds: VoxelBounds { min: [64, 0, 0], max: [65, 1, 1] }, voxels: 1, faces: 6, bytes: 30, hash: "x".into() },
-                BlockEntry { key: BlockKey::new(1, 0, 0, 0), bounds: VoxelBounds { min: [32, 0, 0], max: [33, 1, 1] }, voxels: 1, faces: 6, bytes: 30, hash: "y".into() },
+                BlockEntry {
+                    key: BlockKey::new(0, 1, 0, 0),
+                    bounds: VoxelBounds { min: [64, 0, 0], max: [65, 1, 1] },
+                    voxels: 1,
+                    faces: 6,
+                    bytes: 30,
+                    hash: "x".into(),
+                },
+                BlockEntry {
+                    key: BlockKey::new(1, 0, 0, 0),
+                    bounds: VoxelBounds { min: [32, 0, 0], max: [33, 1, 1] },
+                    voxels: 1,
+                    faces: 6,
+                    bytes: 30,
+                    hash: "y".into(),
+                },
             ],
         }
     }

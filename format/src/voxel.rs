@@ -47,10 +47,7 @@ pub struct PackedVoxel {
 impl PackedVoxel {
     pub fn new(local: [u32; 3], faces: u8, normal: u32) -> Self {
         debug_assert!(local.iter().all(|&c| c < BLOCK_SIZE) && faces < 64);
-        Self {
-            pos_faces: local[0] | local[1] << 6 | local[2] << 12 | (faces as u32) << 18,
-            normal,
-        }
+        Self { pos_faces: local[0] | local[1] << 6 | local[2] << 12 | (faces as u32) << 18, normal }
     }
 
     pub fn local(&self) -> [u32; 3] {

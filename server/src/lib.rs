@@ -1,1 +1,11 @@
-//! voxstream server library (filled in by the build pipeline work).
+//! voxstream server: turns meshes into sparse voxel LOD blocks and serves them.
+//!
+//! Data flows one way: [`ingest`] → [`voxelize`] → [`lod`] → [`store`] → [`http`];
+//! [`build`] runs the first four as one call.
+
+pub mod build;
+pub mod http;
+pub mod ingest;
+pub mod lod;
+pub mod store;
+pub mod voxelize;

@@ -1,1 +1,105 @@
-fn main() {}
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+use voxstream::build::{BuildOptions, build_scene};
+use voxstream::http::{AppState, router};
+
+/// voxstream: huge 3D scans as streamed voxel blocks.
+#[derive(Parser)]
+#[command(version, about)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Voxelize a mesh (OBJ or PLY) into LOD blocks and publish it to a store.
+    Build {
+        /// The mesh file.
+        mesh: PathBuf,
+        /// The store directory; the scene is published as <out>/<name>.
+        #[arg(long)]
+        out: PathBuf,
+        /// Level-0 voxels per edge of the mesh's bounding cube (a power of two).
+        #[arg(long, default_value_t = 512)]
+        resolution: u32,
+        /// Scene id (a-z, 0-9, '-', '_'); defaults to the file name.
+        #[arg(long)]
+        name: Option<String>,
+    },
+    /// Serve a store's scenes and the viewer over HTTP.
+    Serve {
+        #[arg(long, env = "VOXSTREAM_STORE")]
+        store: PathBuf,
+        #[arg(long, env = "VOXSTREAM_ADDR", default_value = "127.0.0.1:8080")]
+        addr: SocketAddr,
+        /// Directory of the built viewer (index.html, pkg/).
+        #[arg(long, env = "VOXSTREAM_WEB")]
+        web: Option<PathBuf>,
+    },
+}
+
+fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| "info,tower_http=info".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    match run(Cli::parse()) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("voxstream: error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(cli: Cli) -> anyhow::Result<()> {
+    match cli.command {
+        Command::Build { mesh, out, resolution, name } => {
+            let r = build_scene(&mesh, &out, &BuildOptions { resolution, name })?;
+            println!(
+                "built scene {:?} in {:.2} s: {} triangles ({} skipped), {} level-0 voxels, {} blocks on {} levels, {} bytes -> {}",
+                r.id,
+                r.seconds,
+                r.triangles,
+                r.skipped_triangles,
+                r.voxels,
+                r.blocks,
+                r.levels,
+                r.bytes,
+                r.scene_dir.display()
+            );
+            Ok(())
+        }
+        Command::Serve { store, addr, web } => {
+            if let Some(w) = &web
+                && !w.join("index.html").is_file()
+            {
+                anyhow::bail!(
+                    "{} has no index.html: build the viewer with scripts/build-web.sh",
+                    w.display()
+                );
+            }
+            let state = AppState::load(&store, web.as_deref())?;
+            let ids: Vec<&str> = state.scene_ids().collect();
+            tracing::info!(store = %store.display(), scenes = ?ids, "catalog loaded");
+            let rt = tokio::runtime::Runtime::new()?;
+            rt.block_on(async move {
+                let listener = tokio::net::TcpListener::bind(addr).await?;
+                tracing::info!("serving on http://{}", listener.local_addr()?);
+                axum::serve(listener, router(state))
+                    .with_graceful_shutdown(async {
+                        let _ = tokio::signal::ctrl_c().await;
+                    })
+                    .await?;
+                anyhow::Ok(())
+            })
+        }
+    }
+}

@@ -1,0 +1,61 @@
+use super::{IngestError, MeshFormat, TriangleMesh};
+
+pub(super) fn read(bytes: &[u8]) -> Result<TriangleMesh, IngestError> {
+    let options = tobj::LoadOptions {
+        triangulate: false, // fan-triangulated by push_polygon, with index checks
+        single_index: false,
+        ignore_points: true,
+        ignore_lines: true,
+    };
+    // The material loader never touches the filesystem: an upload must not be
+    // able to make us open paths it names.
+    let (models, _materials) = tobj::load_obj_buf(&mut std::io::Cursor::new(bytes), &options, |_| {
+        Err(tobj::LoadError::OpenFileFailed)
+    })
+    .map_err(|e| IngestError::Parse { format: MeshFormat::Obj, message: e.to_string() })?;
+
+    let mut mesh = TriangleMesh::default();
+    for model in &models {
+        let m = &model.mesh;
+        let base = mesh.positions.len() as u32;
+        let count = m.positions.len() / 3;
+        mesh.positions.extend(m.positions.chunks_exact(3).map(|p| [p[0], p[1], p[2]]));
+        let mut start = 0usize;
+        let arities: Vec<u32> =
+            if m.face_arities.is_empty() { vec![3; m.indices.len() / 3] } else { m.face_arities.clone() };
+        for (face, &arity) in arities.iter().enumerate() {
+            let end = start + arity as usize;
+            let Some(poly) = m.indices.get(start..end) else {
+                return Err(IngestError::Invalid(format!("face {face} of {:?} is truncated", model.name)));
+            };
+            let poly: Vec<u32> = poly.iter().map(|&i| i + base).collect();
+            mesh.push_polygon(&poly, base as usize + count, face)?;
+            start = end;
+        }
+    }
+    Ok(mesh)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quads_become_two_triangles() {
+        let m = read(b"v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\n").unwrap();
+        assert_eq!(m.positions.len(), 4);
+        assert_eq!(m.triangles, vec![[0, 1, 2], [0, 2, 3]]);
+    }
+
+    #[test]
+    fn mtllib_is_never_opened() {
+        let m = read(b"mtllib /etc/passwd\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n").unwrap();
+        assert_eq!(m.triangles.len(), 1);
+    }
+
+    #[test]
+    fn bad_input_is_an_error() {
+        assert!(read(b"v 0 0 0\nf 1 2 3\n").is_err());
+        assert!(read(b"v zero 0 0\n").is_err());
+    }
+}

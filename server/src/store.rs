@@ -1,0 +1,238 @@
+//! Store: encodes blocks, writes a scene directory and publishes it
+//! atomically; reads scenes back for serving.
+//!
+//! Layout: `<store>/<id>/manifest.json` and `<store>/<id>/blocks/<key>.vxb`.
+//! A scene is written under `<store>/.tmp-<id>-<pid>-<n>` and renamed into
+//! place only once every file is written and synced, so readers never see a
+//! half-written scene. Directories starting with `.` are never listed.
+
+use std::fs;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use rayon::prelude::*;
+use voxstream_format::{
+    BLOCK_SIZE, Block, BlockEntry, BlockKey, FORMAT_VERSION, GridFrame, LevelInfo, Manifest, PackedVoxel,
+    SourceInfo, VoxelBounds, encode_block, oct_encode,
+};
+
+use crate::lod::local_position;
+use crate::voxelize::SparseBlock;
+
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    #[error("{action} {path}: {source}")]
+    Io { action: &'static str, path: PathBuf, source: std::io::Error },
+    #[error(
+        "scene id {0:?} is invalid: use 1–64 characters from a-z, 0-9, '-' and '_', not starting with '-' or '_'"
+    )]
+    BadId(String),
+    #[error("scene {id} is damaged: {message}")]
+    Damaged { id: String, message: String },
+}
+
+fn io<'a>(action: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -> StoreError + 'a {
+    move |source| StoreError::Io { action, path: path.to_path_buf(), source }
+}
+
+/// Scene ids are safe path components and URL segments by construction.
+pub fn validate_id(id: &str) -> Result<(), StoreError> {
+    let ok = !id.is_empty()
+        && id.len() <= 64
+        && id.bytes().all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'-' || b == b'_')
+        && !id.starts_with(['-', '_']);
+    if ok { Ok(()) } else { Err(StoreError::BadId(id.to_string())) }
+}
+
+/// Derives a valid id from a file name: `Koala Scan.OBJ` → `koala-scan`.
+pub fn id_from_file_stem(path: &Path) -> String {
+    let stem = path.file_stem().and_then(|s| s.to_str()).unwrap_or("");
+    let mut id: String = stem
+        .chars()
+        .map(|c| if c.is_ascii_alphanumeric() || c == '_' { c.to_ascii_lowercase() } else { '-' })
+        .collect();
+    id = id.trim_matches(['-', '_']).chars().take(64).collect();
+    if id.is_empty() { "scene".to_string() } else { id }
+}
+
+pub fn packed_block(b: &SparseBlock) -> Block {
+    Block {
+        key: b.key,
+        voxels: b
+            .voxels
+            .iter()
+            .map(|v| PackedVoxel::new(local_position(v), v.faces, oct_encode(v.normal_sum)))
+            .collect(),
+    }
+}
+
+fn tight_bounds(b: &SparseBlock) -> VoxelBounds {
+    let base = b.key.coord().map(|c| c * BLOCK_SIZE);
+    let mut min = [u32::MAX; 3];
+    let mut max = [0u32; 3];
+    for v in &b.voxels {
+        let p = local_position(v);
+        for a in 0..3 {
+            min[a] = min[a].min(base[a] + p[a]);
+            max[a] = max[a].max(base[a] + p[a] + 1);
+        }
+    }
+    VoxelBounds { min, max }
+}
+
+/// What a scene is made of before it is written.
+pub struct SceneContent<'a> {
+    pub name: String,
+    pub source: SourceInfo,
+    pub grid: GridFrame,
+    /// Blocks per level, finest first, each level sorted by key.
+    pub levels: &'a [Vec<SparseBlock>],
+}
+
+fn write_synced(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
+    let mut f = fs::File::create(path).map_err(io("create", path))?;
+    f.write_all(bytes).map_err(io("write", path))?;
+    f.sync_all().map_err(io("sync", path))
+}
+
+/// Encodes and writes a scene, then publishes it as `<store>/<id>`, replacing
+/// any previous scene of that id. Returns the manifest written.
+pub fn write_scene(store: &Path, id: &str, content: &SceneContent) -> Result<Manifest, StoreError> {
+    validate_id(id)?;
+    fs::create_dir_all(store).map_err(io("create directory", store))?;
+    let tmp = store.join(format!(
+        ".tmp-{id}-{}-{}",
+        std::process::id(),
+        std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos())
+    ));
+    let result = write_scene_dir(&tmp, content).and_then(|manifest| {
+        publish(store, id, &tmp)?;
+        Ok(manifest)
+    });
+    if result.is_err() {
+        let _ = fs::remove_dir_all(&tmp);
+    }
+    result
+}
+
+fn write_scene_dir(dir: &Path, content: &SceneContent) -> Result<Manifest, StoreError> {
+    let blocks_dir = dir.join("blocks");
+    fs::create_dir_all(&blocks_dir).map_err(io("create directory", &blocks_dir))?;
+    let mut levels = Vec::new();
+    let mut blocks = Vec::new();
+    for (l, level) in content.levels.iter().enumerate() {
+        let entries: Vec<BlockEntry> = level
+            .par_iter()
+            .map(|b| {
+                let packed = packed_block(b);
+                let bytes = encode_block(&packed);
+                let path = blocks_dir.join(format!("{}.vxb", b.key));
+                write_synced(&path, &bytes)?;
+                Ok(BlockEntry {
+                    key: b.key,
+                    bounds: tight_bounds(b),
+                    voxels: packed.voxels.len() as u32,
+                    faces: packed.face_count(),
+                    bytes: bytes.len() as u32,
+                    hash: blake3::hash(&bytes).to_hex().to_string(),
+                })
+            })
+            .collect::<Result<_, StoreError>>()?;
+        levels.push(LevelInfo {
+            level: l as u8,
+            resolution: content.grid.resolution >> l,
+            blocks: entries.len() as u32,
+            voxels: entries.iter().map(|e| e.voxels as u64).sum(),
+            bytes: entries.iter().map(|e| e.bytes as u64).sum(),
+        });
+        blocks.extend(entries);
+    }
+    blocks.sort_by_key(|b| b.key);
+    let manifest = Manifest {
+        format_version: FORMAT_VERSION,
+        name: content.name.clone(),
+        source: content.source.clone(),
+        grid: content.grid.clone(),
+        block_size: BLOCK_SIZE,
+        levels,
+        blocks,
+    };
+    write_synced(&dir.join("manifest.json"), &manifest.to_json())?;
+    fs::File::open(&blocks_dir).and_then(|d| d.sync_all()).map_err(io("sync", &blocks_dir))?;
+    Ok(manifest)
+}
+
+fn publish(store: &Path, id: &str, tmp: &Path) -> Result<(), StoreError> {
+    let dest = store.join(id);
+    if dest.exists() {
+        // Move the old scene aside first: rename cannot replace a non-empty directory.
+        let old = store.join(format!(".old-{id}-{}", std::process::id()));
+        fs::rename(&dest, &old).map_err(io("move aside", &dest))?;
+        fs::rename(tmp, &dest).map_err(io("publish", &dest))?;
+        let _ = fs::remove_dir_all(&old);
+    } else {
+        fs::rename(tmp, &dest).map_err(io("publish", &dest))?;
+    }
+    fs::File::open(store).and_then(|d| d.sync_all()).map_err(io("sync", store))
+}
+
+/// A published scene, as the server reads it.
+#[derive(Debug, Clone)]
+pub struct StoredScene {
+    pub id: String,
+    pub dir: PathBuf,
+    pub manifest: Manifest,
+}
+
+impl StoredScene {
+    pub fn block_path(&self, key: &BlockKey) -> PathBuf {
+        self.dir.join("blocks").join(format!("{key}.vxb"))
+    }
+}
+
+/// Lists the published scenes of a store, sorted by id. A missing store is empty.
+pub fn list_scenes(store: &Path) -> Result<Vec<StoredScene>, StoreError> {
+    let entries = match fs::read_dir(store) {
+        Ok(e) => e,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        Err(e) => return Err(io("list", store)(e)),
+    };
+    let mut scenes = Vec::new();
+    for entry in entries {
+        let entry = entry.map_err(io("list", store))?;
+        let Some(id) = entry.file_name().to_str().map(str::to_string) else { continue };
+        if validate_id(&id).is_err() || !entry.path().is_dir() {
+            continue; // temp dirs, stray files
+        }
+        scenes.push(open_scene(store, &id)?);
+    }
+    scenes.sort_by(|a, b| a.id.cmp(&b.id));
+    Ok(scenes)
+}
+
+pub fn open_scene(store: &Path, id: &str) -> Result<StoredScene, StoreError> {
+    validate_id(id)?;
+    let dir = store.join(id);
+    let path = dir.join("manifest.json");
+    let bytes = fs::read(&path).map_err(io("read", &path))?;
+    let manifest = Manifest::from_json(&bytes)
+        .map_err(|e| StoreError::Damaged { id: id.to_string(), message: e.to_string() })?;
+    Ok(StoredScene { id: id.to_string(), dir, manifest })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ids() {
+        assert_eq!(id_from_file_stem(Path::new("/x/Koala Scan.OBJ")), "koala-scan");
+        assert_eq!(id_from_file_stem(Path::new("..")), "scene");
+        for good in ["koala", "a-1_b"] {
+            assert!(validate_id(good).is_ok());
+        }
+        for bad in ["", "..", "a/b", "-x", "Koala", "a b", &"x".repeat(65)] {
+            assert!(validate_id(bad).is_err(), "{bad:?}");
+        }
+    }
+}

@@ -1,0 +1,301 @@
+//! Voxelize: triangles → level-0 sparse blocks by exact conservative surface
+//! voxelization (every voxel whose closed cube a triangle touches).
+//!
+//! Work is split the way it will scale out of core: triangles are binned by
+//! the 64³ blocks their bounds overlap, then each block is voxelized on its
+//! own (rayon) into a dense brick, and only occupied voxels leave it.
+//! Within a block, triangles are visited in input order, so normal sums, and
+//! therefore the encoded store, are deterministic.
+
+use std::collections::BTreeMap;
+
+use rayon::prelude::*;
+use voxstream_format::{BLOCK_SIZE, BLOCK_VOXELS, BlockKey, GridFrame, morton3};
+
+use crate::ingest::TriangleMesh;
+
+/// A voxel while the store is being built.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BuildVoxel {
+    /// Block-local Morton index (< 2^18).
+    pub morton: u32,
+    /// Area-weighted sum of the normals of the triangles touching the voxel.
+    pub normal_sum: [f32; 3],
+    /// Exposed-face mask; filled in by the LOD stage.
+    pub faces: u8,
+}
+
+/// One block's voxels in strictly increasing Morton order.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SparseBlock {
+    pub key: BlockKey,
+    pub voxels: Vec<BuildVoxel>,
+}
+
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct VoxelizeStats {
+    pub triangles: u64,
+    /// Degenerate (zero-area) or non-finite triangles.
+    pub skipped: u64,
+}
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum VoxelizeError {
+    #[error("grid resolution {0} must be a power of two between 1 and 16384")]
+    BadResolution(u32),
+    #[error("the mesh has no valid triangle ({skipped} degenerate or non-finite)")]
+    NoValidTriangle { skipped: u64 },
+}
+
+/// Largest grid we accept: Morton keys and u32 block coordinates stay far from overflow.
+pub const MAX_RESOLUTION: u32 = 16384;
+
+pub fn check_resolution(resolution: u32) -> Result<(), VoxelizeError> {
+    if resolution.is_power_of_two() && resolution <= MAX_RESOLUTION {
+        Ok(())
+    } else {
+        Err(VoxelizeError::BadResolution(resolution))
+    }
+}
+
+/// A triangle in grid units, or `None` when it is degenerate or non-finite.
+fn to_grid(tri: [[f64; 3]; 3], frame: &GridFrame) -> Option<[[f64; 3]; 3]> {
+    let t = tri.map(|p| std::array::from_fn(|a| (p[a] - frame.origin[a]) / frame.voxel_size));
+    if t.iter().flatten().any(|c: &f64| !c.is_finite()) {
+        return None;
+    }
+    let n = cross(sub(t[1], t[0]), sub(t[2], t[0]));
+    (dot(n, n) > 0.0).then_some(t)
+}
+
+fn valid_triangle(tri: &[[f64; 3]; 3]) -> bool {
+    tri.iter().flatten().all(|c| c.is_finite()) && {
+        let n = cross(sub(tri[1], tri[0]), sub(tri[2], tri[0]));
+        dot(n, n) > 0.0
+    }
+}
+
+/// Chooses the bounding cube of the mesh's valid triangles, split into
+/// `resolution`³ voxels. The cube is centred on the bounds and enlarged by a
+/// hair so that no vertex lands exactly on the far faces.
+pub fn choose_frame(mesh: &TriangleMesh, resolution: u32) -> Result<GridFrame, VoxelizeError> {
+    check_resolution(resolution)?;
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    let mut skipped = 0;
+    for t in 0..mesh.triangles.len() {
+        let tri = mesh.triangle(t);
+        if !valid_triangle(&tri) {
+            skipped += 1;
+            continue;
+        }
+        for p in tri {
+            for a in 0..3 {
+                lo[a] = lo[a].min(p[a]);
+                hi[a] = hi[a].max(p[a]);
+            }
+        }
+    }
+    if lo[0] > hi[0] {
+        return Err(VoxelizeError::NoValidTriangle { skipped });
+    }
+    let extent = (0..3).map(|a| hi[a] - lo[a]).fold(0.0, f64::max);
+    // A flat or point-like mesh still gets a grid of finite, positive size.
+    let extent = if extent > 0.0 { extent } else { lo.iter().map(|v| v.abs()).fold(1.0, f64::max) * 1e-6 };
+    let voxel_size = extent * (1.0 + 1e-6) / resolution as f64;
+    let half = voxel_size * resolution as f64 / 2.0;
+    let origin = std::array::from_fn(|a| (lo[a] + hi[a]) / 2.0 - half);
+    Ok(GridFrame { origin, voxel_size, resolution, units: None })
+}
+
+/// Voxelizes every valid triangle into level-0 blocks, sorted by key.
+pub fn voxelize(
+    mesh: &TriangleMesh,
+    frame: &GridFrame,
+) -> Result<(Vec<SparseBlock>, VoxelizeStats), VoxelizeError> {
+    let res = frame.resolution as i64;
+    let mut stats = VoxelizeStats::default();
+    let mut tris: Vec<[[f64; 3]; 3]> = Vec::with_capacity(mesh.triangles.len());
+    let mut bins: BTreeMap<[u32; 3], Vec<u32>> = BTreeMap::new();
+    for t in 0..mesh.triangles.len() {
+        let Some(g) = to_grid(mesh.triangle(t), frame) else {
+            stats.skipped += 1;
+            continue;
+        };
+        let (lo, hi) = voxel_range(&g, res);
+        let (blo, bhi) =
+            (lo.map(|v| (v / BLOCK_SIZE as i64) as u32), hi.map(|v| (v / BLOCK_SIZE as i64) as u32));
+        for bz in blo[2]..=bhi[2] {
+            for by in blo[1]..=bhi[1] {
+                for bx in blo[0]..=bhi[0] {
+                    bins.entry([bx, by, bz]).or_default().push(tris.len() as u32);
+                }
+            }
+        }
+        tris.push(g);
+    }
+    stats.triangles = tris.len() as u64;
+    if tris.is_empty() {
+        return Err(VoxelizeError::NoValidTriangle { skipped: stats.skipped });
+    }
+    let blocks: Vec<SparseBlock> = bins
+        .into_par_iter()
+        .filter_map(|(coord, list)| {
+            voxelize_block(BlockKey::new(0, coord[0], coord[1], coord[2]), &list, &tris, res)
+        })
+        .collect();
+    Ok((blocks, stats))
+}
+
+/// Closed voxel index range of a grid-space triangle's bounds, clamped to the
+/// grid. A bound on an integer plane also touches the voxel below it, hence
+/// `ceil - 1` rather than `floor` at the low end.
+fn voxel_range(t: &[[f64; 3]; 3], res: i64) -> ([i64; 3], [i64; 3]) {
+    let lo = std::array::from_fn(|a| (t[0][a].min(t[1][a]).min(t[2][a]).ceil() as i64 - 1).clamp(0, res - 1));
+    let hi = std::array::from_fn(|a| (t[0][a].max(t[1][a]).max(t[2][a]).floor() as i64).clamp(0, res - 1));
+    (lo, hi)
+}
+
+/// A dense 64³ brick, indexed by local Morton code so that reading occupied
+/// voxels in index order yields them already sorted.
+struct DenseBrick {
+    bits: Vec<u64>,
+    normals: Vec<[f32; 3]>,
+}
+
+impl DenseBrick {
+    fn new() -> Self {
+        Self { bits: vec![0; BLOCK_VOXELS / 64], normals: vec![[0.0; 3]; BLOCK_VOXELS] }
+    }
+
+    fn add(&mut self, m: u32, n: [f32; 3]) {
+        self.bits[m as usize / 64] |= 1 << (m % 64);
+        let s = &mut self.normals[m as usize];
+        for a in 0..3 {
+            s[a] += n[a];
+        }
+    }
+
+    fn into_voxels(self) -> Vec<BuildVoxel> {
+        let mut out = Vec::new();
+        for (w, &word) in self.bits.iter().enumerate() {
+            let mut bits = word;
+            while bits != 0 {
+                let m = (w * 64) as u32 + bits.trailing_zeros();
+                bits &= bits - 1;
+                out.push(BuildVoxel { morton: m, normal_sum: self.normals[m as usize], faces: 0 });
+            }
+        }
+        out
+    }
+}
+
+fn voxelize_block(key: BlockKey, list: &[u32], tris: &[[[f64; 3]; 3]], res: i64) -> Option<SparseBlock> {
+    let base = key.coord().map(|c| c as i64 * BLOCK_SIZE as i64);
+    let mut brick = DenseBrick::new();
+    for &t in list {
+        let tri = &tris[t as usize];
+        let n = cross(sub(tri[1], tri[0]), sub(tri[2], tri[0]));
+        let nf = n.map(|c| c as f32);
+        let (lo, hi) = voxel_range(tri, res);
+        let lo: [i64; 3] = std::array::from_fn(|a| lo[a].max(base[a]));
+        let hi: [i64; 3] = std::array::from_fn(|a| hi[a].min(base[a] + BLOCK_SIZE as i64 - 1));
+        for_each_touched_voxel(tri, n, lo, hi, |v| {
+            let l = [v[0] - base[0], v[1] - base[1], v[2] - base[2]].map(|c| c as u32);
+            brick.add(morton3(l[0], l[1], l[2]), nf);
+        });
+    }
+    let voxels = brick.into_voxels();
+    (!voxels.is_empty()).then_some(SparseBlock { key, voxels })
+}
+
+/// Calls `hit` for every voxel in the closed index box `[lo, hi]` whose cube
+/// the triangle touches. Columns along the dominant normal axis are narrowed
+/// to the slab the triangle's plane crosses, so large triangles cost their
+/// area, not their bounding volume.
+pub fn for_each_touched_voxel(
+    tri: &[[f64; 3]; 3],
+    n: [f64; 3],
+    lo: [i64; 3],
+    hi: [i64; 3],
+    mut hit: impl FnMut([i64; 3]),
+) {
+    let w = (0..3).max_by(|&a, &b| n[a].abs().total_cmp(&n[b].abs())).unwrap_or(2);
+    let (u, v) = ((w + 1) % 3, (w + 2) % 3);
+    let d = dot(n, tri[0]);
+    for cu in lo[u]..=hi[u] {
+        for cv in lo[v]..=hi[v] {
+            // The plane's w over the column's closed square, at its four corners.
+            let mut wmin = f64::INFINITY;
+            let mut wmax = f64::NEG_INFINITY;
+            for (pu, pv) in [(cu, cv), (cu + 1, cv), (cu, cv + 1), (cu + 1, cv + 1)] {
+                let pw = (d - n[u] * pu as f64 - n[v] * pv as f64) / n[w];
+                wmin = wmin.min(pw);
+                wmax = wmax.max(pw);
+            }
+            let w0 = (wmin.floor() as i64 - 1).max(lo[w]);
+            let w1 = (wmax.floor() as i64 + 1).min(hi[w]);
+            for cw in w0..=w1 {
+                let mut c = [0i64; 3];
+                c[u] = cu;
+                c[v] = cv;
+                c[w] = cw;
+                if triangle_touches_voxel(tri, c) {
+                    hit(c);
+                }
+            }
+        }
+    }
+}
+
+/// Separating-axis test (Akenine-Möller) of a triangle against the closed unit
+/// cube at integer corner `c`. The cube is grown by a relative hair so that
+/// touching contacts lost to rounding still count: conservative by design.
+pub fn triangle_touches_voxel(tri: &[[f64; 3]; 3], c: [i64; 3]) -> bool {
+    const H: f64 = 0.5 + 1e-9;
+    let centre = c.map(|v| v as f64 + 0.5);
+    let p = tri.map(|q| sub(q, centre));
+    let e = [sub(p[1], p[0]), sub(p[2], p[1]), sub(p[0], p[2])];
+    // 9 edge cross axes.
+    for ei in e {
+        for a in 0..3 {
+            let mut axis = [0.0; 3];
+            axis[a] = 1.0;
+            let ax = cross(axis, ei);
+            let r = H * (ax[0].abs() + ax[1].abs() + ax[2].abs());
+            let (mn, mx) = project(&p, ax);
+            if mn > r || mx < -r {
+                return false;
+            }
+        }
+    }
+    // 3 box face normals.
+    for a in 0..3 {
+        let mn = p[0][a].min(p[1][a]).min(p[2][a]);
+        let mx = p[0][a].max(p[1][a]).max(p[2][a]);
+        if mn > H || mx < -H {
+            return false;
+        }
+    }
+    // Triangle plane.
+    let n = cross(e[0], e[1]);
+    let r = H * (n[0].abs() + n[1].abs() + n[2].abs());
+    dot(n, p[0]).abs() <= r
+}
+
+fn project(p: &[[f64; 3]; 3], ax: [f64; 3]) -> (f64, f64) {
+    let d = p.map(|q| dot(q, ax));
+    (d[0].min(d[1]).min(d[2]), d[0].max(d[1]).max(d[2]))
+}
+
+pub(crate) fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+pub(crate) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+pub(crate) fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+}
