@@ -81,8 +81,8 @@ pub fn merge_children(key: BlockKey, children: &[&SparseBlock]) -> Option<Sparse
             let q = [0, 1, 2].map(|a| octant[a] + p[a] / 2);
             let m = morton3(q[0], q[1], q[2]) as usize;
             faces[m] |= v.faces;
-            for a in 0..3 {
-                normals[m][a] += v.normal_sum[a];
+            for (sum, n) in normals[m].iter_mut().zip(v.normal_sum) {
+                *sum += n;
             }
             any = true;
         }

@@ -271,8 +271,7 @@ pub fn triangle_touches_voxel(tri: &[[f64; 3]; 3], c: [i64; 3]) -> bool {
     }
     // 3 box face normals.
     for a in 0..3 {
-        let mn = p[0][a].min(p[1][a]).min(p[2][a]);
-        let mx = p[0][a].max(p[1][a]).max(p[2][a]);
+        let (mn, mx) = project(&p, std::array::from_fn(|k| if k == a { 1.0 } else { 0.0 }));
         if mn > H || mx < -H {
             return false;
         }

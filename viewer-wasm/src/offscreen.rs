@@ -136,17 +136,22 @@ impl Offscreen {
         Ok(Self { renderer, scene, source, adapter, target })
     }
 
-    /// Fetches, decodes and expands every block the current view wants.
+    /// Fetches, decodes and expands every block the current view wants (and
+    /// their ancestors, as the browser does).
     pub fn load_wanted(&mut self) {
         loop {
             let keys = self.scene.next_fetches(64);
             if keys.is_empty() {
                 break;
             }
-            let results: Vec<_> =
-                keys.into_iter().map(|k| (k, pollster::block_on(self.source.block_bytes(k)))).collect();
-            self.scene.insert_fetched(&self.renderer, results);
+            self.load(&keys);
         }
+    }
+
+    /// Fetches, decodes and expands `keys` whatever the view wants.
+    pub fn load(&mut self, keys: &[BlockKey]) {
+        let results: Vec<_> = keys.iter().map(|&k| (k, pollster::block_on(self.source.block_bytes(k)))).collect();
+        self.scene.insert_fetched(&self.renderer, results);
     }
 
     /// Loads what the view wants, draws it, reads it back.

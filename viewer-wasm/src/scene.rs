@@ -113,22 +113,36 @@ impl Scene {
         &self.wanted
     }
 
-    /// Wanted blocks that are neither cached, in flight nor failed, coarsest
-    /// first (they are the fallbacks for the finer ones), at most `max`; they
-    /// are marked in flight.
-    pub fn next_fetches(&mut self, max: usize) -> Vec<BlockKey> {
+    /// The wanted blocks and all their ancestors present in the manifest: the
+    /// ancestors are the stand-ins while finer blocks stream in (or fail).
+    fn needed(&mut self) -> HashSet<BlockKey> {
         self.wanted();
+        let max_level = self.manifest.coarsest_level();
+        let mut needed = HashSet::new();
+        for key in &self.wanted {
+            let mut k = *key;
+            while needed.insert(k) && k.level < max_level {
+                k = k.parent();
+            }
+        }
+        needed.retain(|k| self.manifest.block(k).is_some());
+        needed
+    }
+
+    /// Needed blocks that are neither cached, in flight nor failed, coarsest
+    /// first (so the view fills in coarse to fine), nearest first within a
+    /// level, at most `max`; they are marked in flight.
+    pub fn next_fetches(&mut self, max: usize) -> Vec<BlockKey> {
         let mut todo: Vec<BlockKey> = self
-            .wanted
-            .iter()
+            .needed()
+            .into_iter()
             .filter(|k| !self.cache.contains_key(k) && !self.pending.contains(k) && !self.failed.contains_key(k))
-            .copied()
             .collect();
         let eye = self.camera.eye();
         let dist = |k: &BlockKey| {
             crate::select::block_bounds(&self.manifest, k).map_or(f32::INFINITY, |b| b.distance_to(eye))
         };
-        todo.sort_by(|a, b| b.level.cmp(&a.level).then(dist(a).total_cmp(&dist(b))));
+        todo.sort_by(|a, b| b.level.cmp(&a.level).then(dist(a).total_cmp(&dist(b))).then(a.cmp(b)));
         todo.truncate(max);
         self.pending.extend(todo.iter().copied());
         todo
@@ -269,13 +283,14 @@ impl Scene {
     }
 
     /// Drops least recently drawn blocks beyond the budget, never one that is
-    /// wanted, drawn, or on the coarsest level (the fallback of last resort).
+    /// needed (wanted or a stand-in), drawn, or on the coarsest level.
     fn evict(&mut self) {
         let mut total: u64 = self.cache.values().filter_map(|c| c.gpu.as_ref()).map(|g| g.gpu_bytes).sum();
         if total <= CACHE_BUDGET_BYTES {
             return;
         }
-        let keep: HashSet<BlockKey> = self.wanted.iter().chain(self.drawn.iter()).copied().collect();
+        let mut keep = self.needed();
+        keep.extend(self.drawn.iter().copied());
         let coarsest = self.manifest.coarsest_level();
         let mut victims: Vec<(u64, BlockKey)> = self
             .cache
