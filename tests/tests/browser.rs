@@ -1,0 +1,219 @@
+//! Browser end-to-end test: the real server (in-process, ephemeral port) serving a scene built from
+//! data/koala.obj and the wasm viewer bundle, opened in headless Chromium with a SwiftShader
+//! (CPU) WebGPU adapter by tests/browser/e2e.mjs (playwright-core).
+//!
+//! Checks that the page draws blocks and that the silhouette in its canvas screenshot matches the
+//! CPU coverage mask of the blocks it reports as drawn, projected with the matrix it reports.
+//!
+//! Needs: viewer-wasm/dist (scripts/build-web.sh), node + tests/browser/node_modules and
+//! /usr/bin/chromium (scripts/setup.sh). Missing pieces fail the test with the command to run.
+//! The screenshot and the page's JSON are kept in <target>/e2e/ for people to look at.
+
+use std::io::{BufRead, BufReader, Read};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use serde_json::Value;
+use voxstream::build::{BuildOptions, build_scene};
+use voxstream::http::{AppState, router};
+use voxstream_e2e::coverage;
+use voxstream_format::{BlockKey, decode_block};
+use voxstream_viewer::BACKGROUND_RGBA8;
+
+/// How long the whole node harness may take (its own ready timeout is 240 s by default).
+const HARNESS_TIMEOUT: Duration = Duration::from_secs(480);
+
+fn workspace_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("tests/ has a parent").to_path_buf()
+}
+
+/// `<workspace target dir>/e2e` (CARGO_TARGET_TMPDIR is `<target>/tmp`).
+fn artifacts_dir() -> PathBuf {
+    Path::new(env!("CARGO_TARGET_TMPDIR")).parent().expect("target/tmp has a parent").join("e2e")
+}
+
+fn require(path: &Path, fix: &str) {
+    assert!(path.exists(), "{} is missing: {fix}", path.display());
+}
+
+/// Runs `cmd`, echoing and collecting its stdout+stderr lines; kills it after `timeout`.
+/// Returns (success, collected output).
+fn run_with_timeout(mut cmd: Command, timeout: Duration) -> (bool, String) {
+    let mut child: Child =
+        cmd.stdin(Stdio::null()).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap_or_else(|e| {
+            panic!("cannot start {cmd:?}: {e} (is node installed? run scripts/setup.sh)")
+        });
+    let log = Arc::new(Mutex::new(String::new()));
+    let pump = |stream: Box<dyn Read + Send>, log: Arc<Mutex<String>>| {
+        std::thread::spawn(move || {
+            for line in BufReader::new(stream).lines().map_while(Result::ok) {
+                println!("{line}");
+                let mut log = log.lock().unwrap();
+                log.push_str(&line);
+                log.push('\n');
+            }
+        })
+    };
+    let readers = [
+        pump(Box::new(child.stdout.take().unwrap()), log.clone()),
+        pump(Box::new(child.stderr.take().unwrap()), log.clone()),
+    ];
+    let start = Instant::now();
+    let status = loop {
+        if let Some(status) = child.try_wait().expect("waiting for node") {
+            break Some(status);
+        }
+        if start.elapsed() > timeout {
+            let _ = child.kill();
+            let _ = child.wait();
+            break None;
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    };
+    for r in readers {
+        let _ = r.join();
+    }
+    let mut out = log.lock().unwrap().clone();
+    match status {
+        Some(s) if s.success() => (true, out),
+        Some(s) => {
+            out.push_str(&format!("(harness exited with {s})\n"));
+            (false, out)
+        }
+        None => {
+            out.push_str(&format!("(harness killed after {timeout:?})\n"));
+            (false, out)
+        }
+    }
+}
+
+/// Decodes the screenshot into (width, height, RGB8 pixels).
+fn read_png_rgb(path: &Path) -> (u32, u32, Vec<u8>) {
+    let file = std::fs::File::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let mut decoder = png::Decoder::new(std::io::BufReader::new(file));
+    decoder.set_transformations(png::Transformations::EXPAND | png::Transformations::STRIP_16);
+    let mut reader = decoder.read_info().expect("screenshot is a PNG");
+    let mut buf = vec![0; reader.output_buffer_size().expect("PNG size fits in memory")];
+    let info = reader.next_frame(&mut buf).expect("decode screenshot");
+    let (w, h) = (info.width, info.height);
+    let channels = match info.color_type {
+        png::ColorType::Rgb => 3,
+        png::ColorType::Rgba => 4,
+        other => panic!("unexpected screenshot colour type {other:?}"),
+    };
+    let rgb = buf[..info.buffer_size()].chunks_exact(channels).flat_map(|p| [p[0], p[1], p[2]]).collect();
+    (w, h, rgb)
+}
+
+fn json_f32_array<const N: usize>(v: &Value, what: &str) -> [f32; N] {
+    let arr = v.as_array().unwrap_or_else(|| panic!("{what} is not an array: {v}"));
+    assert_eq!(arr.len(), N, "{what} should have {N} numbers: {v}");
+    std::array::from_fn(|i| arr[i].as_f64().unwrap_or_else(|| panic!("{what}[{i}] is not a number")) as f32)
+}
+
+#[test]
+fn browser_renders_koala_matching_cpu_coverage() {
+    let root = workspace_root();
+    let web = root.join("viewer-wasm/dist");
+    require(&web.join("index.html"), "build the viewer bundle first: bash scripts/build-web.sh");
+    let script = root.join("tests/browser/e2e.mjs");
+    require(&script, "the browser harness is part of the repository");
+    require(
+        &root.join("tests/browser/node_modules/playwright-core/package.json"),
+        "install the harness dependencies: bash scripts/setup.sh (npm ci in tests/browser)",
+    );
+
+    // 1. Scene: data/koala.obj -> temp store.
+    let store = tempfile::tempdir().expect("temp store");
+    let t = Instant::now();
+    let report = build_scene(&root.join("data/koala.obj"), store.path(), &BuildOptions::default())
+        .expect("build_scene(data/koala.obj)");
+    println!(
+        "built scene {:?}: {} triangles, {} voxels, {} blocks, {} bytes in {:.1?}",
+        report.id,
+        report.triangles,
+        report.voxels,
+        report.blocks,
+        report.bytes,
+        t.elapsed()
+    );
+    assert!(report.blocks > 0, "the build produced no blocks");
+
+    // 2. Server on an ephemeral port, running on its own runtime while this thread drives node.
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
+    let state = AppState::load(store.path(), Some(&web)).expect("AppState::load");
+    let listener = rt.block_on(tokio::net::TcpListener::bind("127.0.0.1:0")).expect("bind 127.0.0.1:0");
+    let addr = listener.local_addr().unwrap();
+    let server = rt.spawn(async move { axum::serve(listener, router(state)).await });
+    let url = format!("http://{addr}/?scene={}", report.id);
+
+    // 3. Headless Chromium.
+    let out = artifacts_dir();
+    std::fs::create_dir_all(&out).unwrap();
+    for name in ["browser.png", "browser.json"] {
+        let _ = std::fs::remove_file(out.join(name));
+    }
+    let mut cmd = Command::new("node");
+    cmd.arg(&script).arg(&url).arg(&out).current_dir(&root);
+    let (ok, log) = run_with_timeout(cmd, HARNESS_TIMEOUT);
+    assert!(!server.is_finished(), "the server stopped during the browser run: {:?}", rt.block_on(server));
+    assert!(ok, "browser harness failed for {url}; its output (page console included):\n{log}");
+
+    // 4. What the page reported.
+    let json_path = out.join("browser.json");
+    let result: Value = serde_json::from_slice(
+        &std::fs::read(&json_path).unwrap_or_else(|e| panic!("{}: {e}\n{log}", json_path.display())),
+    )
+    .expect("browser.json is JSON");
+    let stats = &result["stats"];
+    let view = &result["view"];
+    let blocks_drawn = stats["blocksDrawn"].as_u64().unwrap_or_else(|| panic!("stats.blocksDrawn: {stats}"));
+    assert!(blocks_drawn > 0, "the page drew no blocks: stats = {stats}");
+    assert_eq!(
+        view["viewProj"], result["viewAfter"]["viewProj"],
+        "the camera moved while the screenshot was taken; the comparison needs a still view"
+    );
+    let view_proj: [f32; 16] = json_f32_array(&view["viewProj"], "view.viewProj");
+    let keys: Vec<String> = view["drawnBlocks"]
+        .as_array()
+        .unwrap_or_else(|| panic!("view.drawnBlocks: {view}"))
+        .iter()
+        .map(|k| k.as_str().expect("block keys are strings").to_owned())
+        .collect();
+    assert_eq!(keys.len() as u64, blocks_drawn, "view.drawnBlocks and stats.blocksDrawn disagree");
+
+    // 5. Screenshot silhouette.
+    let (w, h, rgb) = read_png_rgb(&out.join("browser.png"));
+    assert_eq!(
+        (Some(w as u64), Some(h as u64)),
+        (view["width"].as_u64(), view["height"].as_u64()),
+        "screenshot size differs from the canvas size the page reports (CSS size != drawing buffer?)"
+    );
+    let silhouette: Vec<bool> = rgb.chunks_exact(3).map(|p| p != &BACKGROUND_RGBA8[..3]).collect();
+    let lit = silhouette.iter().filter(|&&s| s).count();
+    assert!(lit > 0, "the screenshot is pure background colour: nothing visible was rendered");
+    assert!(lit < silhouette.len(), "the screenshot has no background pixel at all");
+
+    // 6. CPU coverage of the drawn blocks, read back from the store the server used.
+    let blocks: Vec<_> = keys
+        .iter()
+        .map(|k| {
+            let key: BlockKey = k.parse().unwrap_or_else(|e| panic!("bad block key {k:?}: {e}"));
+            let path = report.scene_dir.join("blocks").join(format!("{k}.vxb"));
+            let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+            (key, decode_block(&bytes).unwrap_or_else(|e| panic!("decode {k}: {e}")))
+        })
+        .collect();
+    let expected = coverage::coverage_mask(&blocks, &view_proj, w, h);
+    let cmp = coverage::compare_masks(&silhouette, &expected, w, h);
+    println!("browser silhouette vs CPU coverage: {cmp:?}; artifacts in {}", out.display());
+    assert!(
+        cmp.within_tolerance(),
+        "browser silhouette differs from the CPU coverage mask: {cmp:?} (screenshot: {})",
+        out.join("browser.png").display()
+    );
+
+    server.abort();
+}
