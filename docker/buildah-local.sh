@@ -86,6 +86,11 @@ if ! have_image "$BUILDER_BASE"; then
       rustc-web cargo-web rust-web-src lld-22
     rm -rf /var/lib/apt/lists/*' >&2
   mnt="$("${B[@]}" mount "$ctr")"
+  # Trust the same extra CAs as this host (an egress proxy may re-sign crates.io's certificate).
+  if compgen -G "/usr/local/share/ca-certificates/*.crt" >/dev/null; then
+    cp /usr/local/share/ca-certificates/*.crt "$mnt/usr/local/share/ca-certificates/"
+    "${B[@]}" run --isolation chroot "$ctr" -- update-ca-certificates >&2
+  fi
   mkdir -p "$mnt/usr/local/rustup/toolchains/stable-x86_64-unknown-linux-gnu" "$mnt/usr/local/cargo/bin"
   # The toolchain without its HTML docs (share/doc is most of its size).
   tar -C "$tc_dir" --exclude=./share/doc -cf - . |
@@ -113,7 +118,8 @@ fi
 # --- 3. the image --------------------------------------------------------------------------------
 log "buildah bud docker/Dockerfile -> $IMAGE"
 start=$SECONDS
-"${B[@]}" bud --isolation chroot --layers \
+# --format docker: the OCI format drops SHELL and HEALTHCHECK, which Docker keeps.
+"${B[@]}" bud --isolation chroot --layers --format docker \
   --build-arg BUILDER_IMAGE="$BUILDER_BASE" \
   --build-arg RUNTIME_IMAGE="$RUNTIME_BASE" \
   --build-arg RUSTUP_WASM_TARGET=0 \
