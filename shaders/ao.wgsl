@@ -7,7 +7,7 @@
 const CONE_COUNT: u32 = 6u;
 // tan(half aperture): 0.55 ~ 57 degree cones, wide enough to overlap (seed 000 §5.6).
 const CONE_TAN: f32 = 0.55;
-const MAX_STEPS: u32 = 7u;
+const MAX_STEPS: u32 = 10u;
 // Falloff 1 / (1 + lambda * r) with r in occupancy cells.
 const FALLOFF: f32 = 0.04;
 
@@ -49,7 +49,7 @@ fn trace_cone(origin: vec3<f32>, dir: vec3<f32>, cell: f32, max_mip: f32, max_di
         let density = textureSampleLevel(occupancy, occupancy_sampler, p, mip).r;
         let weighted = density / (1.0 + FALLOFF * dist / cell);
         occlusion += (1.0 - occlusion) * weighted;
-        dist += max(diameter * 0.75, cell);
+        dist += max(diameter * 0.5, cell);
     }
     return occlusion;
 }
@@ -68,7 +68,7 @@ fn ambient_visibility(p: vec3<f32>, n: vec3<f32>) -> f32 {
     let b = cross(n, t);
     // Start 1.5 finest-cell diagonals off the surface to escape the surface's
     // own occupancy (seed 000 §5.2).
-    let origin = p + n * (1.5 * 1.7320508 * cell);
+    let origin = p + n * (1.5 * cell);
     let max_dist = 0.3 * grid;
     var occluded = 0.0;
     var total = 0.0;

@@ -75,6 +75,7 @@ impl OccupancyVolume {
                 }
             }
         }
+        fill_enclosed(&mut density, n);
         let mut mips = Vec::new();
         let mut level = density;
         let mut edge = n;
@@ -97,6 +98,60 @@ impl OccupancyVolume {
     pub fn value(&self, mip: usize, x: usize, y: usize, z: usize) -> f32 {
         let edge = (self.cells as usize) >> mip;
         self.mips[mip][(z * edge + y) * edge + x] as f32 / 255.0
+    }
+}
+
+/// Marks empty cells that the outside cannot reach (6-connected through empty
+/// cells) as full. The blocks hold surface voxels only, so without this a solid
+/// body would read as a thin shell and coarse mips (wide cones) would see
+/// through it. Where the shell has a gap (say, between blocks of different
+/// levels while streaming) the flood leaks in and that body simply stays hollow.
+fn fill_enclosed(density: &mut [f32], n: usize) {
+    let index = |x: usize, y: usize, z: usize| (z * n + y) * n + x;
+    let mut outside = vec![false; density.len()];
+    let mut stack = Vec::new();
+    for a in 0..n {
+        for b in 0..n {
+            for (x, y, z) in [(0, a, b), (n - 1, a, b), (a, 0, b), (a, n - 1, b), (a, b, 0), (a, b, n - 1)] {
+                let i = index(x, y, z);
+                if density[i] == 0.0 && !outside[i] {
+                    outside[i] = true;
+                    stack.push((x, y, z));
+                }
+            }
+        }
+    }
+    while let Some((x, y, z)) = stack.pop() {
+        let mut visit = |x: usize, y: usize, z: usize| {
+            let i = index(x, y, z);
+            if density[i] == 0.0 && !outside[i] {
+                outside[i] = true;
+                stack.push((x, y, z));
+            }
+        };
+        if x > 0 {
+            visit(x - 1, y, z);
+        }
+        if x + 1 < n {
+            visit(x + 1, y, z);
+        }
+        if y > 0 {
+            visit(x, y - 1, z);
+        }
+        if y + 1 < n {
+            visit(x, y + 1, z);
+        }
+        if z > 0 {
+            visit(x, y, z - 1);
+        }
+        if z + 1 < n {
+            visit(x, y, z + 1);
+        }
+    }
+    for (d, out) in density.iter_mut().zip(outside) {
+        if *d == 0.0 && !out {
+            *d = 1.0;
+        }
     }
 }
 
@@ -173,7 +228,11 @@ impl OccupancyTexture {
                     aspect: wgpu::TextureAspect::All,
                 },
                 bytes,
-                wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(edge), rows_per_image: Some(edge) },
+                wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(edge),
+                    rows_per_image: Some(edge),
+                },
                 wgpu::Extent3d { width: edge, height: edge, depth_or_array_layers: edge },
             );
         }
@@ -241,6 +300,36 @@ mod tests {
         for (mip, bytes) in vol.mips.iter().enumerate() {
             assert_eq!(bytes.len(), (128usize >> mip).pow(3));
         }
+    }
+
+    /// The surface voxels of a cube `lo..hi` (level 0, one block), optionally with a hole.
+    fn cube_shell(lo: u32, hi: u32, hole: bool) -> Block {
+        let mut locals = Vec::new();
+        for z in lo..hi {
+            for y in lo..hi {
+                for x in lo..hi {
+                    let on_surface = [x, y, z].iter().any(|&c| c == lo || c == hi - 1);
+                    let in_hole =
+                        hole && z == lo && (lo + 4..lo + 12).contains(&x) && (lo + 4..lo + 12).contains(&y);
+                    if on_surface && !in_hole {
+                        locals.push([x, y, z]);
+                    }
+                }
+            }
+        }
+        block(0, [0, 0, 0], &locals)
+    }
+
+    #[test]
+    fn closed_shells_are_filled_and_open_ones_are_not() {
+        // Grid 64, 64 cells: one cell per voxel.
+        let closed = OccupancyVolume::build(64, [&cube_shell(8, 40, false)]);
+        assert_eq!(closed.value(0, 20, 20, 20), 1.0, "inside a closed shell is solid");
+        assert_eq!(closed.value(0, 50, 20, 20), 0.0, "outside stays empty");
+        assert_eq!(closed.value(0, 2, 2, 2), 0.0);
+        let open = OccupancyVolume::build(64, [&cube_shell(8, 40, true)]);
+        assert_eq!(open.value(0, 20, 20, 20), 0.0, "a shell with a hole is not filled");
+        assert_eq!(open.value(0, 8, 20, 20), 1.0, "its walls are");
     }
 
     #[test]

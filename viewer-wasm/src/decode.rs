@@ -62,7 +62,10 @@ mod tests {
         let other = BlockKey::new(0, 0, 0, 0);
         assert!(matches!(decode_fetched(other, None, &bytes), Err(DecodeError::WrongKey { .. })));
         entry.voxels = 7;
-        assert!(matches!(decode_fetched(block.key, Some(&entry), &bytes), Err(DecodeError::WrongCount { .. })));
+        assert!(matches!(
+            decode_fetched(block.key, Some(&entry), &bytes),
+            Err(DecodeError::WrongCount { .. })
+        ));
         let err = decode_fetched(block.key, None, b"<html>not found</html>").unwrap_err();
         assert!(err.to_string().contains("1-0-1-0"), "{err}");
     }

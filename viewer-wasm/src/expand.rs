@@ -103,7 +103,11 @@ impl Expander {
     pub fn new(device: &wgpu::Device) -> Self {
         let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("expand"),
-            entries: &[storage_entry(0, true, 8), storage_entry(1, false, FACE_RECORD_BYTES), storage_entry(2, false, 16)],
+            entries: &[
+                storage_entry(0, true, 8),
+                storage_entry(1, false, FACE_RECORD_BYTES),
+                storage_entry(2, false, 16),
+            ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("expand"),
@@ -155,8 +159,13 @@ impl Expander {
         });
         let draw_args = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some(&label),
-            contents: wgpu::util::DrawIndirectArgs { vertex_count: 0, instance_count: 1, first_vertex: 0, first_instance: 0 }
-                .as_bytes(),
+            contents: wgpu::util::DrawIndirectArgs {
+                vertex_count: 0,
+                instance_count: 1,
+                first_vertex: 0,
+                first_instance: 0,
+            }
+            .as_bytes(),
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::INDIRECT | wgpu::BufferUsages::COPY_SRC,
         });
         let expand_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
@@ -169,8 +178,10 @@ impl Expander {
             ],
         });
         {
-            let mut pass =
-                encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(&label), timestamp_writes: None });
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some(&label),
+                timestamp_writes: None,
+            });
             pass.set_pipeline(&self.pipeline);
             pass.set_bind_group(0, &expand_group, &[]);
             pass.dispatch_workgroups((block.voxels.len() as u32).div_ceil(WORKGROUP_SIZE), 1, 1);
@@ -188,7 +199,14 @@ impl Expander {
                 wgpu::BindGroupEntry { binding: 1, resource: face_buffer.as_entire_binding() },
             ],
         });
-        Some(GpuBlock { key: block.key, faces, face_buffer, draw_args, bind_group, gpu_bytes: face_bytes + 16 + 16 })
+        Some(GpuBlock {
+            key: block.key,
+            faces,
+            face_buffer,
+            draw_args,
+            bind_group,
+            gpu_bytes: face_bytes + 16 + 16,
+        })
     }
 }
 

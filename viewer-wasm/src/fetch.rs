@@ -31,7 +31,9 @@ impl BlockSource {
             #[cfg(not(target_arch = "wasm32"))]
             BlockSource::SceneDir(dir) => read_file(&dir.join("manifest.json"), "manifest"),
             #[cfg(target_arch = "wasm32")]
-            BlockSource::Http { scene_url } => http::get_bytes(&format!("{scene_url}/manifest"), "manifest").await,
+            BlockSource::Http { scene_url } => {
+                http::get_bytes(&format!("{scene_url}/manifest"), "manifest").await
+            }
         }
     }
 

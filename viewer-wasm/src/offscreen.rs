@@ -116,8 +116,12 @@ impl Offscreen {
         let gpu = Gpu::new()?;
         let adapter = gpu.adapter_name();
         let (width, height) = (options.width.max(1), options.height.max(1));
-        let renderer =
-            Renderer::new(gpu.device, gpu.queue, crate::COLOR_FORMAT, cells_for_grid(manifest.grid.resolution));
+        let renderer = Renderer::new(
+            gpu.device,
+            gpu.queue,
+            crate::COLOR_FORMAT,
+            cells_for_grid(manifest.grid.resolution),
+        );
         let mut scene = Scene::new(manifest, (width, height));
         if let Some(camera) = options.camera {
             scene.camera = camera;
@@ -150,7 +154,8 @@ impl Offscreen {
 
     /// Fetches, decodes and expands `keys` whatever the view wants.
     pub fn load(&mut self, keys: &[BlockKey]) {
-        let results: Vec<_> = keys.iter().map(|&k| (k, pollster::block_on(self.source.block_bytes(k)))).collect();
+        let results: Vec<_> =
+            keys.iter().map(|&k| (k, pollster::block_on(self.source.block_bytes(k)))).collect();
         self.scene.insert_fetched(&self.renderer, results);
     }
 
@@ -171,7 +176,8 @@ impl Offscreen {
         self.scene.stats.frame_ms = times[1];
         let pixels = read_texture(&self.renderer, &self.target)?;
         let blocks = frame.drawn.iter().filter_map(|k| self.scene.block(k).cloned()).collect();
-        let mut failures: Vec<(BlockKey, String)> = self.scene.failures().map(|(k, e)| (*k, e.clone())).collect();
+        let mut failures: Vec<(BlockKey, String)> =
+            self.scene.failures().map(|(k, e)| (*k, e.clone())).collect();
         failures.sort();
         Ok(OffscreenFrame {
             width: self.target.width(),
@@ -213,7 +219,10 @@ pub fn render_scene(scene_dir: &Path, width: u32, height: u32) -> Result<Offscre
 }
 
 fn wait_idle(device: &wgpu::Device) -> Result<(), OffscreenError> {
-    device.poll(wgpu::PollType::wait_indefinitely()).map(|_| ()).map_err(|e| OffscreenError::Readback(e.to_string()))
+    device
+        .poll(wgpu::PollType::wait_indefinitely())
+        .map(|_| ())
+        .map_err(|e| OffscreenError::Readback(e.to_string()))
 }
 
 fn map_and_read(renderer: &Renderer, staging: &wgpu::Buffer) -> Result<Vec<u8>, OffscreenError> {
@@ -225,7 +234,8 @@ fn map_and_read(renderer: &Renderer, staging: &wgpu::Buffer) -> Result<Vec<u8>, 
     rx.recv()
         .map_err(|e| OffscreenError::Readback(e.to_string()))?
         .map_err(|e| OffscreenError::Readback(e.to_string()))?;
-    let bytes = staging.get_mapped_range(..).map_err(|e| OffscreenError::Readback(format!("{e:?}")))?.to_vec();
+    let bytes =
+        staging.get_mapped_range(..).map_err(|e| OffscreenError::Readback(format!("{e:?}")))?.to_vec();
     staging.unmap();
     Ok(bytes)
 }
@@ -265,7 +275,11 @@ fn read_texture(renderer: &Renderer, texture: &wgpu::Texture) -> Result<Vec<u8>,
         },
         wgpu::TexelCopyBufferInfo {
             buffer: &staging,
-            layout: wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(padded), rows_per_image: Some(height) },
+            layout: wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(padded),
+                rows_per_image: Some(height),
+            },
         },
         wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
     );

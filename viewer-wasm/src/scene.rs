@@ -136,7 +136,9 @@ impl Scene {
         let mut todo: Vec<BlockKey> = self
             .needed()
             .into_iter()
-            .filter(|k| !self.cache.contains_key(k) && !self.pending.contains(k) && !self.failed.contains_key(k))
+            .filter(|k| {
+                !self.cache.contains_key(k) && !self.pending.contains(k) && !self.failed.contains_key(k)
+            })
             .collect();
         let eye = self.camera.eye();
         let dist = |k: &BlockKey| {
@@ -164,9 +166,9 @@ impl Scene {
         renderer: &Renderer,
         results: impl IntoIterator<Item = (BlockKey, Result<Vec<u8>, FetchError>)>,
     ) {
-        let mut encoder = renderer.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-            label: Some("expand blocks"),
-        });
+        let mut encoder = renderer
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("expand blocks") });
         let mut expanded = 0;
         for (key, result) in results {
             self.pending.remove(&key);
@@ -185,7 +187,8 @@ impl Scene {
                     continue;
                 }
             };
-            let gpu = renderer.expander.expand(&renderer.device, &mut encoder, &block, &renderer.block_layout);
+            let gpu =
+                renderer.expander.expand(&renderer.device, &mut encoder, &block, &renderer.block_layout);
             expanded += 1;
             self.stats.blocks_loaded += 1;
             self.cache.insert(key, CachedBlock { block, gpu, last_drawn: self.frame_counter });
@@ -207,7 +210,8 @@ impl Scene {
     /// Every wanted block is settled (cached or failed) and nothing is in flight.
     pub fn is_settled(&mut self) -> bool {
         self.wanted();
-        self.pending.is_empty() && self.wanted.iter().all(|k| self.cache.contains_key(k) || self.failed.contains_key(k))
+        self.pending.is_empty()
+            && self.wanted.iter().all(|k| self.cache.contains_key(k) || self.failed.contains_key(k))
     }
 
     pub fn is_cached(&self, key: &BlockKey) -> bool {
@@ -239,9 +243,14 @@ impl Scene {
         let complete = settled && drawn == self.wanted;
 
         let stale = self.occupancy_for.as_ref() != Some(&drawn);
-        if self.ao_strength > 0.0 && stale && (settled || now_ms - self.occupancy_built_ms >= OCCUPANCY_REBUILD_MS) {
-            let volume =
-                OccupancyVolume::build(self.manifest.grid.resolution, drawn.iter().filter_map(|k| self.block(k)));
+        if self.ao_strength > 0.0
+            && stale
+            && (settled || now_ms - self.occupancy_built_ms >= OCCUPANCY_REBUILD_MS)
+        {
+            let volume = OccupancyVolume::build(
+                self.manifest.grid.resolution,
+                drawn.iter().filter_map(|k| self.block(k)),
+            );
             if volume.cells == renderer.occupancy_cells() {
                 renderer.upload_occupancy(&volume);
             }

@@ -129,7 +129,9 @@ pub fn select_blocks(manifest: &Manifest, view: &ViewParams, params: &SelectPara
     let frustum = Frustum::from_view_proj(view.view_proj);
     let visible = |key: &BlockKey| -> Option<Candidate> {
         let bounds = block_bounds(manifest, key)?;
-        frustum.intersects(&bounds).then(|| Candidate { key: *key, pixels: voxel_pixels(key.level, &bounds, view) })
+        frustum
+            .intersects(&bounds)
+            .then(|| Candidate { key: *key, pixels: voxel_pixels(key.level, &bounds, view) })
     };
     let coarsest = manifest.coarsest_level();
     let mut open: BinaryHeap<Candidate> =
@@ -164,7 +166,11 @@ pub fn select_blocks(manifest: &Manifest, view: &ViewParams, params: &SelectPara
 /// its ancestors (the ancestor already covers that space). This keeps the
 /// coarser block on screen until all of the children that replace it are ready,
 /// so nothing pops to empty while streaming.
-pub fn resolve_draw_set(wanted: &[BlockKey], max_level: u8, is_ready: impl Fn(&BlockKey) -> bool) -> Vec<BlockKey> {
+pub fn resolve_draw_set(
+    wanted: &[BlockKey],
+    max_level: u8,
+    is_ready: impl Fn(&BlockKey) -> bool,
+) -> Vec<BlockKey> {
     let mut chosen = BTreeSet::new();
     for key in wanted {
         let mut k = *key;
@@ -196,7 +202,9 @@ pub fn resolve_draw_set(wanted: &[BlockKey], max_level: u8, is_ready: impl Fn(&B
 mod tests {
     use super::*;
     use crate::camera::OrbitCamera;
-    use voxstream_format::{BLOCK_SIZE, BlockEntry, FORMAT_VERSION, GridFrame, LevelInfo, SourceInfo, VoxelBounds};
+    use voxstream_format::{
+        BLOCK_SIZE, BlockEntry, FORMAT_VERSION, GridFrame, LevelInfo, SourceInfo, VoxelBounds,
+    };
 
     /// A full pyramid over a `res`³ grid where every block is filled edge to edge.
     fn pyramid(res: u32) -> Manifest {
@@ -206,7 +214,13 @@ mod tests {
         loop {
             let level_res = res >> level;
             let per_edge = level_res.div_ceil(BLOCK_SIZE);
-            levels.push(LevelInfo { level, resolution: level_res, blocks: per_edge.pow(3), voxels: 0, bytes: 0 });
+            levels.push(LevelInfo {
+                level,
+                resolution: level_res,
+                blocks: per_edge.pow(3),
+                voxels: 0,
+                bytes: 0,
+            });
             for z in 0..per_edge {
                 for y in 0..per_edge {
                     for x in 0..per_edge {

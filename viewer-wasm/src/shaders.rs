@@ -46,7 +46,10 @@ mod tests {
         let voxel = validate("voxel.wgsl + ao.wgsl", &voxel_module_source());
         assert_eq!(
             entry_points(&voxel),
-            vec![("vs_main".to_string(), naga::ShaderStage::Vertex), ("fs_main".to_string(), naga::ShaderStage::Fragment)]
+            vec![
+                ("vs_main".to_string(), naga::ShaderStage::Vertex),
+                ("fs_main".to_string(), naga::ShaderStage::Fragment)
+            ]
         );
     }
 

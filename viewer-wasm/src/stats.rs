@@ -48,7 +48,14 @@ mod tests {
 
     #[test]
     fn json_uses_the_page_contract_names() {
-        let s = Stats { frame_ms: 1.5, blocks_drawn: 2, bytes_fetched: 3, blocks_loaded: 4, faces_drawn: 5, ..Default::default() };
+        let s = Stats {
+            frame_ms: 1.5,
+            blocks_drawn: 2,
+            bytes_fetched: 3,
+            blocks_loaded: 4,
+            faces_drawn: 5,
+            ..Default::default()
+        };
         let v: serde_json::Value = serde_json::to_value(&s).unwrap();
         let keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
         assert_eq!(keys.len(), 5);

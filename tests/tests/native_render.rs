@@ -1,0 +1,245 @@
+//! Native end-to-end render: data/koala.obj is built into a temporary store
+//! with the server library, then rendered by the viewer's own code paths
+//! (selection, decode, GPU face expansion, draw, AO) on Vulkan — lavapipe, a
+//! CPU driver, on machines without a GPU — and read back.
+//!
+//! The image's silhouette (pixels not the background colour) must match a CPU
+//! rasterisation of every exposed face of the drawn blocks under the same
+//! matrix: IoU ≥ 0.98 and (almost) no mismatch away from an edge
+//! (`coverage::MaskComparison::within_tolerance`). Pixel-centre sampling and
+//! fixed-point rasterisation can move an edge by one pixel, nothing more.
+//!
+//! The image is written to <target>/e2e/native.png for people to look at.
+
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+use std::time::Instant;
+
+use voxstream::build::{BuildOptions, build_scene};
+use voxstream_e2e::coverage::{self, compare_masks, coverage_mask, silhouette_from_rgba};
+use voxstream_format::{BlockKey, Face, Manifest};
+use voxstream_viewer::BACKGROUND_RGBA8;
+use voxstream_viewer::offscreen::{Offscreen, OffscreenError, OffscreenFrame, RenderOptions};
+
+const WIDTH: u32 = 512;
+const HEIGHT: u32 = 512;
+
+fn workspace_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("tests/ has a parent").to_path_buf()
+}
+
+/// `<workspace target dir>/e2e` (CARGO_TARGET_TMPDIR is `<target>/tmp`).
+fn artifacts_dir() -> PathBuf {
+    Path::new(env!("CARGO_TARGET_TMPDIR")).parent().expect("target/tmp has a parent").join("e2e")
+}
+
+/// The koala scene, built once per test binary run and shared by the tests.
+fn koala_scene() -> &'static Path {
+    static SCENE: OnceLock<PathBuf> = OnceLock::new();
+    SCENE.get_or_init(|| {
+        let store = Path::new(env!("CARGO_TARGET_TMPDIR"))
+            .join(format!("native-render-store-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&store);
+        let t = Instant::now();
+        let report = build_scene(&workspace_root().join("data/koala.obj"), &store, &BuildOptions::default())
+            .expect("build_scene(data/koala.obj)");
+        println!(
+            "built {:?}: {} voxels, {} blocks, {} levels, {} bytes in {:.1?}",
+            report.id,
+            report.voxels,
+            report.blocks,
+            report.levels,
+            report.bytes,
+            t.elapsed()
+        );
+        report.scene_dir
+    })
+}
+
+fn open(scene: &Path, options: &RenderOptions) -> Offscreen {
+    match Offscreen::open(scene, options) {
+        Ok(o) => o,
+        Err(e @ OffscreenError::NoAdapter(_)) => panic!(
+            "{e}\n(on Debian/Ubuntu: apt-get install mesa-vulkan-drivers; scripts/setup.sh installs it; \
+             set VK_DRIVER_FILES=/usr/share/vulkan/icd.d/lvp_icd.x86_64.json if several drivers are present)"
+        ),
+        Err(e) => panic!("opening {} for rendering: {e}", scene.display()),
+    }
+}
+
+fn write_png(path: &Path, frame: &OffscreenFrame) {
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    let file = std::fs::File::create(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let mut encoder = png::Encoder::new(std::io::BufWriter::new(file), frame.width, frame.height);
+    encoder.set_color(png::ColorType::Rgba);
+    encoder.set_depth(png::BitDepth::Eight);
+    let mut writer = encoder.write_header().unwrap();
+    writer.write_image_data(&frame.pixels).unwrap();
+}
+
+fn mean_luma(frame: &OffscreenFrame, mask: &[bool]) -> f64 {
+    let (sum, n) =
+        frame.pixels.chunks_exact(4).zip(mask).filter(|(_, m)| **m).fold((0.0, 0usize), |(s, n), (p, _)| {
+            (s + 0.299 * p[0] as f64 + 0.587 * p[1] as f64 + 0.114 * p[2] as f64, n + 1)
+        });
+    sum / n.max(1) as f64
+}
+
+#[test]
+fn native_render_matches_cpu_coverage_of_drawn_blocks() {
+    let scene = koala_scene();
+    let mut offscreen = open(scene, &RenderOptions::new(WIDTH, HEIGHT));
+    let frame = offscreen.render().expect("render");
+    let path = artifacts_dir().join("native.png");
+    write_png(&path, &frame);
+    println!(
+        "rendered on {}: {} blocks, {} faces, first frame {:.1} ms, frame {:.1} ms -> {}",
+        frame.adapter,
+        frame.drawn_blocks.len(),
+        frame.stats.faces_drawn,
+        frame.first_frame_ms,
+        frame.frame_ms,
+        path.display()
+    );
+
+    // Everything the selection wanted was loaded and is drawn as itself.
+    assert!(frame.failures.is_empty(), "blocks failed to load: {:?}", frame.failures);
+    assert!(!frame.drawn_blocks.is_empty(), "nothing drawn");
+    assert_eq!(frame.drawn_blocks, offscreen.scene.wanted().to_vec(), "drawn set is not the selection");
+    assert_eq!(frame.blocks.len(), frame.drawn_blocks.len());
+    let faces: u64 = frame.blocks.iter().map(|b| b.face_count() as u64).sum();
+    assert_eq!(frame.stats.faces_drawn, faces);
+
+    // A sane image: the koala covers a good part of it and never the whole.
+    let silhouette = silhouette_from_rgba(&frame.pixels, WIDTH, HEIGHT, BACKGROUND_RGBA8);
+    let covered = silhouette.iter().filter(|&&s| s).count();
+    let fraction = covered as f64 / silhouette.len() as f64;
+    assert!((0.05..0.9).contains(&fraction), "{:.1}% of the image is covered", fraction * 100.0);
+    // Shading is warm grey and bright enough: red >= blue, luma >= ~0.2.
+    for p in frame.pixels.chunks_exact(4).filter(|p| *p != BACKGROUND_RGBA8) {
+        assert!(p[0] >= p[2] && p[0] >= 50, "pixel {p:?} is not warm grey");
+    }
+
+    // The silhouette matches the CPU coverage of the drawn blocks' faces.
+    let expected = coverage_mask(&frame.blocks, &frame.view_proj, WIDTH, HEIGHT);
+    let cmp = compare_masks(&silhouette, &expected, WIDTH, HEIGHT);
+    println!("native silhouette vs CPU coverage: {cmp:?}");
+    assert!(
+        cmp.within_tolerance(),
+        "silhouette differs from the CPU coverage (need IoU >= {} and off-edge <= {}): {cmp:?}; see {}",
+        coverage::MIN_IOU,
+        coverage::MAX_OFF_EDGE_FRACTION,
+        path.display()
+    );
+
+    // ... and the comparison can fail: the same blocks under a slightly
+    // different camera, or with a row-major (transposed) matrix, do not match.
+    let mut moved = offscreen.scene.camera;
+    moved.orbit(12.0, 0.0);
+    let moved_vp = moved.view_proj(1.0).to_cols_array();
+    let wrong =
+        compare_masks(&silhouette, &coverage_mask(&frame.blocks, &moved_vp, WIDTH, HEIGHT), WIDTH, HEIGHT);
+    println!("against a camera orbited by 12 px: {wrong:?}");
+    assert!(!wrong.within_tolerance() && wrong.off_edge > 100, "a moved camera still matched: {wrong:?}");
+    let m = frame.view_proj;
+    let transposed: [f32; 16] = std::array::from_fn(|i| m[(i % 4) * 4 + i / 4]);
+    let wrong =
+        compare_masks(&silhouette, &coverage_mask(&frame.blocks, &transposed, WIDTH, HEIGHT), WIDTH, HEIGHT);
+    assert!(wrong.iou < 0.5, "a transposed matrix still matched: {wrong:?}");
+
+    // Ambient occlusion darkens the image (same geometry, AO off is brighter).
+    let with_ao = mean_luma(&frame, &silhouette);
+    offscreen.scene.ao_strength = 0.0;
+    let no_ao = offscreen.render().expect("render without AO");
+    assert_eq!(silhouette_from_rgba(&no_ao.pixels, WIDTH, HEIGHT, BACKGROUND_RGBA8), silhouette);
+    let without_ao = mean_luma(&no_ao, &silhouette);
+    println!("mean luma: {with_ao:.1} with AO, {without_ao:.1} without");
+    assert!(with_ao < without_ao - 2.0, "AO does not darken anything: {with_ao:.1} vs {without_ao:.1}");
+}
+
+#[test]
+fn gpu_expansion_writes_exactly_the_cpu_faces() {
+    let scene = koala_scene();
+    let mut offscreen = open(scene, &RenderOptions::new(256, 256));
+    offscreen.load_wanted();
+    let wanted = offscreen.scene.wanted().to_vec();
+    // The coarsest block and the block with the most faces of the selection.
+    let manifest: Manifest = offscreen.scene.manifest.clone();
+    let busiest = wanted.iter().max_by_key(|k| manifest.block(k).map_or(0, |e| e.faces)).copied().unwrap();
+    let root = manifest.blocks.iter().map(|b| b.key).find(|k| k.level == manifest.coarsest_level()).unwrap();
+    offscreen.load(&[root]);
+    for key in [busiest, root] {
+        let block = offscreen.scene.block(&key).cloned().unwrap_or_else(|| panic!("block {key} not loaded"));
+        let args = offscreen.draw_args(&key).unwrap().expect("block is on the GPU");
+        let records = offscreen.face_records(&key).unwrap();
+        let faces = block.face_count();
+        assert_eq!(faces, manifest.block(&key).unwrap().faces, "manifest face count of {key}");
+        assert_eq!(args, [faces * 6, 1, 0, 0], "indirect args of {key}");
+        let mut gpu: Vec<[u32; 2]> = records;
+        gpu.sort();
+        let mut cpu: Vec<[u32; 2]> = block
+            .voxels
+            .iter()
+            .flat_map(|v| {
+                Face::ALL
+                    .into_iter()
+                    .filter(move |f| v.faces() & f.bit() != 0)
+                    .map(move |f| [(v.pos_faces & 0x3ffff) | (f as u32) << 18, v.normal])
+            })
+            .collect();
+        cpu.sort();
+        assert_eq!(gpu.len(), cpu.len(), "face record count of {key}");
+        assert!(gpu == cpu, "face records of {key} differ from the CPU expansion");
+        println!("{key}: {faces} faces expanded on the GPU match the CPU");
+    }
+}
+
+#[test]
+fn corrupt_and_missing_blocks_fall_back_to_their_ancestor() {
+    let scene = koala_scene();
+    // A copy of the scene with one wanted fine block corrupted and another deleted.
+    let copy =
+        Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("native-render-damaged-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&copy);
+    std::fs::create_dir_all(copy.join("blocks")).unwrap();
+    std::fs::copy(scene.join("manifest.json"), copy.join("manifest.json")).unwrap();
+    for entry in std::fs::read_dir(scene.join("blocks")).unwrap() {
+        let entry = entry.unwrap();
+        std::fs::copy(entry.path(), copy.join("blocks").join(entry.file_name())).unwrap();
+    }
+    let mut offscreen = open(&copy, &RenderOptions::new(WIDTH, HEIGHT));
+    let wanted = offscreen.scene.wanted().to_vec();
+    let finest = wanted.iter().map(|k| k.level).min().unwrap();
+    let fine: Vec<BlockKey> = wanted.iter().filter(|k| k.level == finest).copied().collect();
+    assert!(fine.len() >= 2, "need two fine blocks to damage, selection: {wanted:?}");
+    let (corrupt, missing) = (fine[0], fine[fine.len() - 1]);
+    let path = |k: BlockKey| copy.join("blocks").join(format!("{k}.vxb"));
+    let mut bytes = std::fs::read(path(corrupt)).unwrap();
+    let mid = bytes.len() / 2;
+    bytes.truncate(mid);
+    std::fs::write(path(corrupt), &bytes).unwrap();
+    std::fs::remove_file(path(missing)).unwrap();
+
+    let frame = offscreen.render().expect("a damaged scene still renders");
+    let failed: Vec<BlockKey> = frame.failures.iter().map(|(k, _)| *k).collect();
+    assert_eq!(failed, {
+        let mut f = vec![corrupt, missing];
+        f.sort();
+        f
+    });
+    assert_eq!(frame.stats.errors, 2);
+    assert!(frame.stats.line().contains("error"), "the stats line shows errors: {}", frame.stats.line());
+    // Their parents stand in for them, so nothing pops to empty.
+    for broken in [corrupt, missing] {
+        assert!(!frame.drawn_blocks.contains(&broken), "{broken} drawn");
+        assert!(
+            frame.drawn_blocks.contains(&broken.parent()),
+            "parent of {broken} not drawn: {:?}",
+            frame.drawn_blocks
+        );
+    }
+    let covered =
+        silhouette_from_rgba(&frame.pixels, WIDTH, HEIGHT, BACKGROUND_RGBA8).iter().filter(|&&s| s).count();
+    assert!(covered > 0, "nothing drawn");
+    let _ = std::fs::remove_dir_all(&copy);
+}

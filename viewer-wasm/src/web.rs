@@ -1,0 +1,437 @@
+//! Browser entry point: canvas and WebGPU surface, fetch scheduling, pointer
+//! input, the stats line, `window.voxstream`, and `document.body.dataset.ready`.
+//!
+//! Frames are drawn on demand (a block arrived, the camera moved, the canvas
+//! resized), never continuously: SwiftShader, a CPU WebGPU, takes about a
+//! second per frame of a detailed scene.
+
+use std::cell::{Cell, RefCell};
+use std::collections::HashMap;
+
+use voxstream_format::{Manifest, SceneSummary};
+use wasm_bindgen::JsCast;
+use wasm_bindgen::prelude::*;
+use web_sys::{HtmlCanvasElement, PointerEvent, WheelEvent};
+
+use crate::ao::cells_for_grid;
+use crate::fetch::{BlockSource, FetchError, http};
+use crate::render::Renderer;
+use crate::scene::Scene;
+
+/// Block requests in flight at once (browsers allow ~6 HTTP/1.1 connections per origin).
+const MAX_IN_FLIGHT: usize = 6;
+const CANVAS_ID: &str = "voxstream-canvas";
+const STATS_ID: &str = "voxstream-stats";
+
+thread_local! {
+    // wasm is single-threaded; the app lives here so that wgpu callbacks
+    // (which must be Send) can reach it without capturing it.
+    static APP: RefCell<Option<App>> = const { RefCell::new(None) };
+    static FRAME_SCHEDULED: Cell<bool> = const { Cell::new(false) };
+}
+
+struct Pointer {
+    x: f32,
+    y: f32,
+    button: i16,
+    shift: bool,
+}
+
+struct App {
+    renderer: Renderer,
+    surface: wgpu::Surface<'static>,
+    config: wgpu::SurfaceConfiguration,
+    scene: Scene,
+    source: BlockSource,
+    canvas: HtmlCanvasElement,
+    pointers: HashMap<i32, Pointer>,
+    last_view_proj: [f32; 16],
+    ready: bool,
+    start_ms: f64,
+    frames: u64,
+}
+
+fn window() -> web_sys::Window {
+    web_sys::window().expect("a browser window")
+}
+
+fn now_ms() -> f64 {
+    window().performance().map_or(0.0, |p| p.now())
+}
+
+fn log(msg: &str) {
+    web_sys::console::log_1(&JsValue::from_str(msg));
+}
+
+fn show_status(text: &str) {
+    if let Some(el) = window().document().and_then(|d| d.get_element_by_id(STATS_ID)) {
+        el.set_text_content(Some(text));
+    }
+}
+
+fn fail(msg: &str) {
+    web_sys::console::error_1(&JsValue::from_str(msg));
+    show_status(&format!("error: {msg}"));
+}
+
+#[wasm_bindgen(start)]
+pub fn start() {
+    console_error_panic_hook::set_once();
+    wasm_bindgen_futures::spawn_local(async {
+        if let Err(e) = run().await {
+            fail(&e);
+        }
+    });
+}
+
+/// The scene id: `?scene=<id>`, else the first scene the server lists.
+async fn scene_id() -> Result<String, String> {
+    let search = window().location().search().map_err(|e| format!("{e:?}"))?;
+    let from_url = web_sys::UrlSearchParams::new_with_str(&search).ok().and_then(|p| p.get("scene"));
+    if let Some(id) = from_url.filter(|s| !s.is_empty()) {
+        return Ok(id);
+    }
+    let bytes = http::get_bytes("/api/scenes", "scene list").await.map_err(|e| e.to_string())?;
+    let scenes: Vec<SceneSummary> = serde_json::from_slice(&bytes).map_err(|e| format!("scene list: {e}"))?;
+    scenes.into_iter().next().map(|s| s.id).ok_or_else(|| "the server has no scenes".to_string())
+}
+
+/// Canvas drawing-buffer size: its CSS size in device pixels.
+fn canvas_pixels(canvas: &HtmlCanvasElement) -> (u32, u32) {
+    let dpr = window().device_pixel_ratio().max(1.0);
+    let w = (canvas.client_width().max(1) as f64 * dpr).round() as u32;
+    let h = (canvas.client_height().max(1) as f64 * dpr).round() as u32;
+    (w.clamp(1, 8192), h.clamp(1, 8192))
+}
+
+async fn run() -> Result<(), String> {
+    let start_ms = now_ms();
+    let document = window().document().ok_or("no document")?;
+    let canvas: HtmlCanvasElement = document
+        .get_element_by_id(CANVAS_ID)
+        .ok_or_else(|| format!("no #{CANVAS_ID} element"))?
+        .dyn_into()
+        .map_err(|_| format!("#{CANVAS_ID} is not a canvas"))?;
+    if !wgpu::util::is_browser_webgpu_supported().await {
+        return Err("this browser does not offer WebGPU".into());
+    }
+    show_status("starting WebGPU…");
+    let instance = wgpu::Instance::new(wgpu::InstanceDescriptor {
+        backends: wgpu::Backends::BROWSER_WEBGPU,
+        ..wgpu::InstanceDescriptor::new_without_display_handle()
+    });
+    let surface = instance
+        .create_surface(wgpu::SurfaceTarget::Canvas(canvas.clone()))
+        .map_err(|e| format!("surface: {e}"))?;
+    let adapter = instance
+        .request_adapter(&wgpu::RequestAdapterOptions {
+            compatible_surface: Some(&surface),
+            ..Default::default()
+        })
+        .await
+        .map_err(|e| format!("no WebGPU adapter: {e}"))?;
+    let (device, queue) = adapter
+        .request_device(&wgpu::DeviceDescriptor {
+            label: Some("voxstream"),
+            required_limits: wgpu::Limits::default().using_resolution(adapter.limits()),
+            ..Default::default()
+        })
+        .await
+        .map_err(|e| format!("no WebGPU device: {e}"))?;
+
+    let caps = surface.get_capabilities(&adapter);
+    let format = if caps.formats.contains(&crate::COLOR_FORMAT) {
+        crate::COLOR_FORMAT
+    } else {
+        *caps.formats.first().ok_or("the canvas offers no format")?
+    };
+    let (width, height) = canvas_pixels(&canvas);
+    canvas.set_width(width);
+    canvas.set_height(height);
+    let mut config =
+        surface.get_default_config(&adapter, width, height).ok_or("the canvas is not supported")?;
+    config.format = format;
+    if caps.alpha_modes.contains(&wgpu::CompositeAlphaMode::Opaque) {
+        config.alpha_mode = wgpu::CompositeAlphaMode::Opaque;
+    }
+    surface.configure(&device, &config);
+    log(&format!("voxstream: {} canvas {width}x{height} {format:?}", adapter.get_info().name));
+
+    let id = scene_id().await?;
+    show_status(&format!("loading scene {id}…"));
+    let source = BlockSource::Http { scene_url: format!("/api/scenes/{id}") };
+    let manifest_bytes = source.manifest_bytes().await.map_err(|e| e.to_string())?;
+    let manifest = Manifest::from_json(&manifest_bytes).map_err(|e| format!("scene {id}: {e}"))?;
+    let renderer = Renderer::new(device, queue, format, cells_for_grid(manifest.grid.resolution));
+    let mut scene = Scene::new(manifest, (width, height));
+    scene.record_bytes_fetched(manifest_bytes.len() as u64);
+
+    APP.with(|app| {
+        *app.borrow_mut() = Some(App {
+            renderer,
+            surface,
+            config,
+            scene,
+            source,
+            canvas: canvas.clone(),
+            pointers: HashMap::new(),
+            last_view_proj: [0.0; 16],
+            ready: false,
+            start_ms,
+            frames: 0,
+        })
+    });
+    install_input(&canvas)?;
+    install_js_api()?;
+    request_frame();
+    Ok(())
+}
+
+/// Runs `f` on the app unless it is missing or already borrowed (re-entrancy).
+fn with_app<R>(f: impl FnOnce(&mut App) -> R) -> Option<R> {
+    APP.with(|app| app.try_borrow_mut().ok().and_then(|mut a| a.as_mut().map(f)))
+}
+
+fn request_frame() {
+    if FRAME_SCHEDULED.with(|s| s.replace(true)) {
+        return;
+    }
+    let cb = Closure::once_into_js(move |now: f64| {
+        FRAME_SCHEDULED.with(|s| s.set(false));
+        with_app(|app| app.frame(now));
+    });
+    if window().request_animation_frame(cb.unchecked_ref()).is_err() {
+        FRAME_SCHEDULED.with(|s| s.set(false));
+    }
+}
+
+impl App {
+    fn frame(&mut self, now: f64) {
+        self.resize_if_needed();
+        self.start_fetches();
+
+        let texture = match self.surface.get_current_texture() {
+            wgpu::CurrentSurfaceTexture::Success(t) | wgpu::CurrentSurfaceTexture::Suboptimal(t) => t,
+            wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
+                self.surface.configure(&self.renderer.device, &self.config);
+                request_frame();
+                return;
+            }
+            other => {
+                log(&format!("voxstream: no canvas texture this frame ({other:?})"));
+                request_frame();
+                return;
+            }
+        };
+        let view = texture.texture.create_view(&Default::default());
+        let frame = self.scene.draw(&mut self.renderer, &view, now);
+        self.renderer.queue.present(texture);
+        self.last_view_proj = frame.view_proj.to_cols_array();
+        self.frames += 1;
+        let frame_number = self.frames;
+        let complete = frame.complete;
+        // Done on the GPU: time the frame, and mark the page ready after the first complete frame.
+        self.renderer.queue.on_submitted_work_done(move || {
+            with_app(|app| app.frame_done(frame_number, now, complete));
+        });
+        self.show_stats();
+    }
+
+    fn frame_done(&mut self, frame_number: u64, started: f64, complete: bool) {
+        let done = now_ms();
+        self.scene.stats.frame_ms = done - started;
+        if complete && !self.ready && frame_number == self.frames {
+            self.ready = true;
+            if let Some(body) = window().document().and_then(|d| d.body()) {
+                let _ = body.dataset().set("ready", "1");
+            }
+            log(&format!(
+                "voxstream: ready after {:.0} ms ({} blocks, {} faces, {} bytes)",
+                done - self.start_ms,
+                self.scene.stats.blocks_drawn,
+                self.scene.stats.faces_drawn,
+                self.scene.stats.bytes_fetched
+            ));
+        }
+        self.show_stats();
+    }
+
+    fn show_stats(&self) {
+        show_status(&self.scene.stats.line());
+    }
+
+    fn resize_if_needed(&mut self) {
+        let (w, h) = canvas_pixels(&self.canvas);
+        if (w, h) != (self.config.width, self.config.height) {
+            self.canvas.set_width(w);
+            self.canvas.set_height(h);
+            self.config.width = w;
+            self.config.height = h;
+            self.surface.configure(&self.renderer.device, &self.config);
+            self.scene.set_viewport(w, h);
+        }
+    }
+
+    fn start_fetches(&mut self) {
+        let free = MAX_IN_FLIGHT.saturating_sub(self.scene.in_flight());
+        for key in self.scene.next_fetches(free) {
+            let source = self.source.clone();
+            wasm_bindgen_futures::spawn_local(async move {
+                let result: Result<Vec<u8>, FetchError> = source.block_bytes(key).await;
+                with_app(|app| {
+                    let errors = app.scene.stats.errors;
+                    app.scene.insert_fetched(&app.renderer, [(key, result)]);
+                    if app.scene.stats.errors > errors {
+                        let e = app.scene.stats.last_error.as_deref().unwrap_or("");
+                        web_sys::console::warn_1(&JsValue::from_str(&format!("voxstream: {e}")));
+                    }
+                });
+                request_frame();
+            });
+        }
+    }
+
+    fn pointer_down(&mut self, e: &PointerEvent) {
+        let _ = self.canvas.set_pointer_capture(e.pointer_id());
+        self.pointers.insert(
+            e.pointer_id(),
+            Pointer {
+                x: e.client_x() as f32,
+                y: e.client_y() as f32,
+                button: e.button(),
+                shift: e.shift_key(),
+            },
+        );
+    }
+
+    fn pointer_move(&mut self, e: &PointerEvent) {
+        let (x, y) = (e.client_x() as f32, e.client_y() as f32);
+        let css_height = self.canvas.client_height().max(1) as f32;
+        let Some(p) = self.pointers.get(&e.pointer_id()) else { return };
+        let (dx, dy) = (x - p.x, y - p.y);
+        if self.pointers.len() == 1 {
+            if p.button == 0 && !p.shift {
+                self.scene.camera.orbit(dx, dy);
+            } else {
+                self.scene.camera.pan(dx, dy, css_height);
+            }
+        } else {
+            // Two fingers: spread to zoom, move together to pan.
+            let others: Vec<(f32, f32)> = self
+                .pointers
+                .iter()
+                .filter(|(id, _)| **id != e.pointer_id())
+                .map(|(_, q)| (q.x, q.y))
+                .collect();
+            if let Some(&(ox, oy)) = others.first() {
+                let before = ((p.x - ox).powi(2) + (p.y - oy).powi(2)).sqrt();
+                let after = ((x - ox).powi(2) + (y - oy).powi(2)).sqrt();
+                if before > 1.0 && after > 1.0 {
+                    self.scene.camera.zoom(before / after);
+                }
+                self.scene.camera.pan(dx * 0.5, dy * 0.5, css_height);
+            }
+        }
+        if let Some(p) = self.pointers.get_mut(&e.pointer_id()) {
+            p.x = x;
+            p.y = y;
+        }
+        request_frame();
+    }
+
+    fn pointer_up(&mut self, e: &PointerEvent) {
+        self.pointers.remove(&e.pointer_id());
+    }
+
+    fn wheel(&mut self, e: &WheelEvent) {
+        let pixels = match e.delta_mode() {
+            WheelEvent::DOM_DELTA_LINE => e.delta_y() * 16.0,
+            WheelEvent::DOM_DELTA_PAGE => e.delta_y() * 400.0,
+            _ => e.delta_y(),
+        };
+        self.scene.camera.zoom((pixels * 0.0015).clamp(-1.0, 1.0).exp() as f32);
+        request_frame();
+    }
+}
+
+fn listen<E: JsCast + 'static>(
+    target: &web_sys::EventTarget,
+    name: &str,
+    passive: bool,
+    mut handler: impl FnMut(&E) + 'static,
+) -> Result<(), String> {
+    let closure = Closure::<dyn FnMut(web_sys::Event)>::new(move |event: web_sys::Event| {
+        if let Some(e) = event.dyn_ref::<E>() {
+            handler(e);
+        }
+    });
+    let options = web_sys::AddEventListenerOptions::new();
+    options.set_passive(passive);
+    target
+        .add_event_listener_with_callback_and_add_event_listener_options(
+            name,
+            closure.as_ref().unchecked_ref(),
+            &options,
+        )
+        .map_err(|e| format!("listening for {name}: {e:?}"))?;
+    // Listeners live as long as the page.
+    closure.forget();
+    Ok(())
+}
+
+fn install_input(canvas: &HtmlCanvasElement) -> Result<(), String> {
+    let target: &web_sys::EventTarget = canvas.as_ref();
+    listen::<PointerEvent>(target, "pointerdown", true, |e| {
+        with_app(|app| app.pointer_down(e));
+    })?;
+    listen::<PointerEvent>(target, "pointermove", true, |e| {
+        with_app(|app| app.pointer_move(e));
+    })?;
+    for name in ["pointerup", "pointercancel"] {
+        listen::<PointerEvent>(target, name, true, |e| {
+            with_app(|app| app.pointer_up(e));
+        })?;
+    }
+    listen::<WheelEvent>(target, "wheel", false, |e| {
+        e.prevent_default();
+        with_app(|app| app.wheel(e));
+    })?;
+    listen::<web_sys::MouseEvent>(target, "contextmenu", false, |e| e.prevent_default())?;
+    listen::<web_sys::Event>(window().as_ref(), "resize", true, |_| request_frame())?;
+    Ok(())
+}
+
+fn json_to_js(value: &serde_json::Value) -> JsValue {
+    js_sys::JSON::parse(&value.to_string()).unwrap_or(JsValue::NULL)
+}
+
+fn install_js_api() -> Result<(), String> {
+    let api = js_sys::Object::new();
+    let stats = Closure::<dyn Fn() -> JsValue>::new(|| {
+        with_app(|app| json_to_js(&serde_json::to_value(&app.scene.stats).unwrap_or_default()))
+            .unwrap_or(JsValue::NULL)
+    });
+    let view = Closure::<dyn Fn() -> JsValue>::new(|| {
+        with_app(|app| {
+            let (width, height) = app.scene.viewport();
+            json_to_js(&serde_json::json!({
+                "viewProj": app.last_view_proj,
+                "width": width,
+                "height": height,
+                "drawnBlocks": app.scene.drawn().iter().map(|k| k.to_string()).collect::<Vec<_>>(),
+            }))
+        })
+        .unwrap_or(JsValue::NULL)
+    });
+    let set = |name: &str, f: &JsValue| {
+        js_sys::Reflect::set(&api, &JsValue::from_str(name), f)
+            .map_err(|e| format!("window.voxstream.{name}: {e:?}"))
+    };
+    set("stats", stats.as_ref())?;
+    set("view", view.as_ref())?;
+    stats.forget();
+    view.forget();
+    js_sys::Reflect::set(&window(), &JsValue::from_str("voxstream"), &api)
+        .map_err(|e| format!("window.voxstream: {e:?}"))?;
+    Ok(())
+}
