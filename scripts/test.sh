@@ -73,7 +73,10 @@ shell_syntax() {
 
 # In CI, Cargo.lock must already be complete (a dependency added without its lock entry fails).
 LOCKED=()
-[ "${CI:-}" = "true" ] && LOCKED=(--locked)
+if [ "${CI:-}" = "true" ]; then
+  LOCKED=(--locked)
+  export VOXSTREAM_LOCKED=1 # scripts/build-web.sh
+fi
 
 step "fmt" cargo fmt --all -- --check
 step "shell syntax" shell_syntax

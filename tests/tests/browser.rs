@@ -215,5 +215,12 @@ fn browser_renders_koala_matching_cpu_coverage() {
         out.join("browser.png").display()
     );
 
+    // The comparison must be able to fail: the same blocks under a camera moved by ~5% of the
+    // width must not match the screenshot.
+    let mut moved = view_proj;
+    moved[12] += 0.1 * moved[15];
+    let wrong = coverage::compare_masks(&silhouette, &coverage::coverage_mask(&blocks, &moved, w, h), w, h);
+    assert!(!wrong.within_tolerance(), "a moved camera still matched the screenshot: {wrong:?}");
+
     server.abort();
 }
