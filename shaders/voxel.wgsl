@@ -117,12 +117,13 @@ const BASE_COLOUR: vec3<f32> = vec3<f32>(0.86, 0.80, 0.72);
 
 @fragment
 fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
-    // The stored normal is the smooth surface normal; where it disagrees with
-    // the face we are drawing (thin features), lean on the face normal.
+    // The stored normal is the smooth surface normal, which hides the voxel
+    // staircase. Where it points away from the face we are drawing (thin
+    // features), bend it until it faces the same side as the face.
     var n = normalize(in.normal);
     let agreement = dot(n, in.face_normal);
-    if agreement < 0.2 {
-        n = normalize(n + in.face_normal * (1.2 - agreement));
+    if agreement < 0.0 {
+        n = normalize(n + in.face_normal * (0.3 - agreement));
     }
     let to_eye = normalize(frame.eye.xyz - in.grid_pos);
     let headlight = max(dot(n, to_eye), 0.0);

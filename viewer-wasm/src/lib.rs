@@ -1,13 +1,14 @@
 //! voxstream viewer: streams sparse voxel blocks and renders them with wgpu,
 //! as WebGPU in the browser (module `web`) and on Vulkan natively for tests
-//! (module `offscreen`). Both targets share every stage of the data flow:
+//! ([`offscreen`]). Both targets share every stage of the data flow:
 //!
-//! `fetch` (bytes from HTTP or a store directory) → `decode` (validated
-//! [`voxstream_format::Block`]) → `expand` (compute pass: voxels → face records
-//! + indirect draw args) → `render` (vertex pulling, shading) with `ao`
-//! (occupancy volume for cone-traced ambient occlusion). `camera` is the orbit
-//! camera, `select` the screen-space LOD rule and `scene` the state that ties
-//! them together (block cache, what to fetch, what to draw, stats).
+//! [`fetch`] (bytes from HTTP or a store directory) → [`decode`] (validated
+//! [`voxstream_format::Block`]) → [`expand`] (compute pass: voxels to face
+//! records and indirect draw args) → [`render`] (vertex pulling, shading) with
+//! [`ao`] (occupancy volume for cone-traced ambient occlusion). [`camera`] is
+//! the orbit camera, [`select`] the screen-space LOD rule and [`scene`] the
+//! state that ties them together (block cache, what to fetch, what to draw,
+//! stats).
 
 pub mod ao;
 pub mod camera;

@@ -84,11 +84,27 @@ pub fn start() {
     });
 }
 
+/// A query parameter of the page URL, if present and not empty.
+fn url_param(name: &str) -> Option<String> {
+    let search = window().location().search().ok()?;
+    web_sys::UrlSearchParams::new_with_str(&search).ok()?.get(name).filter(|s| !s.is_empty())
+}
+
+/// A numeric query parameter within `range`; anything else is ignored with a console note.
+fn url_number(name: &str, range: std::ops::RangeInclusive<f32>) -> Option<f32> {
+    let text = url_param(name)?;
+    match text.parse::<f32>() {
+        Ok(v) if range.contains(&v) => Some(v),
+        _ => {
+            log(&format!("voxstream: ignoring ?{name}={text} (expected a number in {range:?})"));
+            None
+        }
+    }
+}
+
 /// The scene id: `?scene=<id>`, else the first scene the server lists.
 async fn scene_id() -> Result<String, String> {
-    let search = window().location().search().map_err(|e| format!("{e:?}"))?;
-    let from_url = web_sys::UrlSearchParams::new_with_str(&search).ok().and_then(|p| p.get("scene"));
-    if let Some(id) = from_url.filter(|s| !s.is_empty()) {
+    if let Some(id) = url_param("scene") {
         return Ok(id);
     }
     let bytes = http::get_bytes("/api/scenes", "scene list").await.map_err(|e| e.to_string())?;
@@ -164,6 +180,13 @@ async fn run() -> Result<(), String> {
     let manifest = Manifest::from_json(&manifest_bytes).map_err(|e| format!("scene {id}: {e}"))?;
     let renderer = Renderer::new(device, queue, format, cells_for_grid(manifest.grid.resolution));
     let mut scene = Scene::new(manifest, (width, height));
+    // ?ao=0 turns ambient occlusion off, ?px=3 coarsens the LOD (max projected voxel size).
+    if let Some(ao) = url_number("ao", 0.0..=1.0) {
+        scene.ao_strength = ao;
+    }
+    if let Some(px) = url_number("px", 0.25..=64.0) {
+        scene.select_params.max_voxel_pixels = px;
+    }
     scene.record_bytes_fetched(manifest_bytes.len() as u64);
 
     APP.with(|app| {
