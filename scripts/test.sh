@@ -28,6 +28,14 @@ bash scripts/setup.sh || {
   exit 1
 }
 
+# Headless machines often lack a session runtime dir; Vulkan/Wayland probing then prints
+# "XDG_RUNTIME_DIR is invalid" errors into the log. Give the tests a private one.
+if [ -z "${XDG_RUNTIME_DIR:-}" ] || [ ! -d "${XDG_RUNTIME_DIR}" ]; then
+  XDG_RUNTIME_DIR="${CARGO_TARGET_DIR:-$ROOT/target}/xdg-runtime"
+  mkdir -p "$XDG_RUNTIME_DIR" && chmod 700 "$XDG_RUNTIME_DIR"
+  export XDG_RUNTIME_DIR
+fi
+
 PROFILE_ARGS=()
 case "${VOXSTREAM_TEST_PROFILE:-dev}" in
   dev) ;;
