@@ -167,6 +167,8 @@ fn browser_renders_koala_matching_cpu_coverage() {
         &std::fs::read(&json_path).unwrap_or_else(|e| panic!("{}: {e}\n{log}", json_path.display())),
     )
     .expect("browser.json is JSON");
+    let page_errors = result["pageErrors"].as_array().expect("browser.json has pageErrors");
+    assert!(page_errors.is_empty(), "uncaught exceptions on the page: {page_errors:?}\n{log}");
     let stats = &result["stats"];
     let view = &result["view"];
     let blocks_drawn = stats["blocksDrawn"].as_u64().unwrap_or_else(|| panic!("stats.blocksDrawn: {stats}"));
