@@ -247,12 +247,15 @@ impl Scene {
             && stale
             && (settled || now_ms - self.occupancy_built_ms >= OCCUPANCY_REBUILD_MS)
         {
-            let volume = OccupancyVolume::build(
-                self.manifest.grid.resolution,
-                drawn.iter().filter_map(|k| self.block(k)),
-            );
-            if volume.cells == renderer.occupancy_cells() {
-                renderer.upload_occupancy(&volume);
+            // Nothing drawn yet: the texture starts out empty, no need to splat nothing.
+            if !drawn.is_empty() || self.occupancy_for.is_some() {
+                let volume = OccupancyVolume::build(
+                    self.manifest.grid.resolution,
+                    drawn.iter().filter_map(|k| self.block(k)),
+                );
+                if volume.cells == renderer.occupancy_cells() {
+                    renderer.upload_occupancy(&volume);
+                }
             }
             self.occupancy_for = Some(drawn.clone());
             self.occupancy_built_ms = now_ms;

@@ -28,6 +28,10 @@ thread_local! {
     // (which must be Send) can reach it without capturing it.
     static APP: RefCell<Option<App>> = const { RefCell::new(None) };
     static FRAME_SCHEDULED: Cell<bool> = const { Cell::new(false) };
+    // At most one frame on the GPU at a time: on a slow (CPU) WebGPU, queueing
+    // frames only delays the one that shows the latest state.
+    static FRAME_IN_FLIGHT: Cell<bool> = const { Cell::new(false) };
+    static REDRAW_AFTER_FLIGHT: Cell<bool> = const { Cell::new(false) };
 }
 
 struct Pointer {
@@ -175,7 +179,9 @@ async fn run() -> Result<(), String> {
 
     let id = scene_id().await?;
     show_status(&format!("loading scene {id}…"));
-    let source = BlockSource::Http { scene_url: format!("/api/scenes/{id}") };
+    let source = BlockSource::Http {
+        scene_url: format!("/api/scenes/{}", String::from(js_sys::encode_uri_component(&id))),
+    };
     let manifest_bytes = source.manifest_bytes().await.map_err(|e| e.to_string())?;
     let manifest = Manifest::from_json(&manifest_bytes).map_err(|e| format!("scene {id}: {e}"))?;
     let renderer = Renderer::new(device, queue, format, cells_for_grid(manifest.grid.resolution));
@@ -216,6 +222,10 @@ fn with_app<R>(f: impl FnOnce(&mut App) -> R) -> Option<R> {
 }
 
 fn request_frame() {
+    if FRAME_IN_FLIGHT.with(Cell::get) {
+        REDRAW_AFTER_FLIGHT.with(|r| r.set(true));
+        return;
+    }
     if FRAME_SCHEDULED.with(|s| s.replace(true)) {
         return;
     }
@@ -253,9 +263,15 @@ impl App {
         self.frames += 1;
         let frame_number = self.frames;
         let complete = frame.complete;
-        // Done on the GPU: time the frame, and mark the page ready after the first complete frame.
+        FRAME_IN_FLIGHT.with(|f| f.set(true));
+        // Done on the GPU: time the frame, mark the page ready after the first
+        // complete frame, and draw again if anything changed meanwhile.
         self.renderer.queue.on_submitted_work_done(move || {
+            FRAME_IN_FLIGHT.with(|f| f.set(false));
             with_app(|app| app.frame_done(frame_number, now, complete));
+            if REDRAW_AFTER_FLIGHT.with(|r| r.replace(false)) {
+                request_frame();
+            }
         });
         self.show_stats();
     }
@@ -308,6 +324,8 @@ impl App {
                         let e = app.scene.stats.last_error.as_deref().unwrap_or("");
                         web_sys::console::warn_1(&JsValue::from_str(&format!("voxstream: {e}")));
                     }
+                    // Keep the connections busy; frames come at the GPU's pace.
+                    app.start_fetches();
                 });
                 request_frame();
             });
