@@ -15,7 +15,8 @@
 #    wait for it to build the default scan, then GET /api/scenes, / and one block.
 #
 # Environment: VX_BUILDAH_WORK (default /var/tmp/voxstream-buildah), SMOKE_PORT (default 18080),
-# BASES_ONLY=1 (stop after step 2), SKIP_SMOKE=1, REBUILD_BASES=1.
+# BASES_ONLY=1 (stop after step 2), SKIP_BUILD=1 (smoke-test the existing image), SKIP_SMOKE=1,
+# REBUILD_BASES=1.
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -116,47 +117,78 @@ fi
 [ "${BASES_ONLY:-0}" = 1 ] && exit 0
 
 # --- 3. the image --------------------------------------------------------------------------------
-log "buildah bud docker/Dockerfile -> $IMAGE"
-start=$SECONDS
-# --format docker: the OCI format drops SHELL and HEALTHCHECK, which Docker keeps.
-"${B[@]}" bud --isolation chroot --layers --format docker \
-  --build-arg BUILDER_IMAGE="$BUILDER_BASE" \
-  --build-arg RUNTIME_IMAGE="$RUNTIME_BASE" \
-  --build-arg RUSTUP_WASM_TARGET=0 \
-  -f "$ROOT/docker/Dockerfile" -t "$IMAGE" "$ROOT" >&2 || die "buildah bud failed"
-echo "buildah-local: built $IMAGE in $((SECONDS - start))s" >&2
+if [ "${SKIP_BUILD:-0}" = 1 ]; then
+  have_image "$IMAGE" || die "SKIP_BUILD=1 but $IMAGE does not exist"
+else
+  log "buildah bud docker/Dockerfile -> $IMAGE"
+  start=$SECONDS
+  # --format docker: the OCI format drops SHELL and HEALTHCHECK, which Docker keeps.
+  "${B[@]}" bud --isolation chroot --layers --format docker \
+    --build-arg BUILDER_IMAGE="$BUILDER_BASE" \
+    --build-arg RUNTIME_IMAGE="$RUNTIME_BASE" \
+    --build-arg RUSTUP_WASM_TARGET=0 \
+    -f "$ROOT/docker/Dockerfile" -t "$IMAGE" "$ROOT" >&2 || die "buildah bud failed"
+  echo "buildah-local: built $IMAGE in $((SECONDS - start))s" >&2
+fi
 "${B[@]}" inspect --type image --format '{{.OCIv1.Config.User}} {{.OCIv1.Config.Entrypoint}} {{.OCIv1.Config.ExposedPorts}} {{.OCIv1.Config.Volumes}}' "$IMAGE" >&2
 
 [ "${SKIP_SMOKE:-0}" = 1 ] && exit 0
 
 # --- 4. smoke test -------------------------------------------------------------------------------
-log "smoke test: entrypoint with an empty /store on 127.0.0.1:$SMOKE_PORT"
+# buildah 1.28's `run` gives an image-declared VOLUME its own anonymous volume even when -v names
+# the same path, so the host directory is mounted at /smoke-store and VOXSTREAM_STORE points there
+# (the entrypoint's knob). Under Docker/Podman, `-v NAME:/store` is the normal way.
+log "smoke test: entrypoint with an empty store on 127.0.0.1:$SMOKE_PORT"
 STORE_VOL="$WORK/smoke-store"
 rm -rf "$STORE_VOL"
 mkdir -p "$STORE_VOL"
 chown 10001:10001 "$STORE_VOL"
 ctr="$("${B[@]}" from "$IMAGE")"
+run_pid=""
 cleanup() {
-  [ -n "${run_pid:-}" ] && kill "$run_pid" 2>/dev/null && wait "$run_pid" 2>/dev/null
+  if [ -n "$run_pid" ]; then
+    kill "$run_pid" 2>/dev/null || true
+    wait "$run_pid" 2>/dev/null || true
+  fi
   "${B[@]}" rm "$ctr" >/dev/null 2>&1 || true
 }
 trap cleanup EXIT
+URL="http://127.0.0.1:$SMOKE_PORT"
 # chroot isolation shares the host network; the image's user, env and entrypoint apply.
-"${B[@]}" run --isolation chroot -v "$STORE_VOL:/store" --env VOXSTREAM_ADDR="127.0.0.1:$SMOKE_PORT" \
+"${B[@]}" run --isolation chroot -v "$STORE_VOL:/smoke-store" \
+  --env VOXSTREAM_STORE=/smoke-store --env VOXSTREAM_ADDR="127.0.0.1:$SMOKE_PORT" \
   "$ctr" -- /usr/local/bin/voxstream-entrypoint >"$WORK/smoke.log" 2>&1 &
 run_pid=$!
 for _ in $(seq 1 600); do
-  curl -fsS "http://127.0.0.1:$SMOKE_PORT/api/scenes" >"$WORK/scenes.json" 2>/dev/null && break
+  curl -fsS "$URL/api/scenes" >"$WORK/scenes.json" 2>/dev/null && break
   kill -0 "$run_pid" 2>/dev/null || die "the container exited early; $WORK/smoke.log:
 $(tail -40 "$WORK/smoke.log")"
   sleep 1
 done
-curl -fsS "http://127.0.0.1:$SMOKE_PORT/api/scenes" >"$WORK/scenes.json" || die "server never answered; see $WORK/smoke.log"
-grep -q '"koala"' "$WORK/scenes.json" || die "/api/scenes has no koala scene: $(cat "$WORK/scenes.json")"
-curl -fsS "http://127.0.0.1:$SMOKE_PORT/" | grep -qi '<html' || die "GET / did not return the viewer page"
-key="$(find "$STORE_VOL/koala/blocks" -name '*.vxb' | head -n1 | xargs -r basename | sed 's/\.vxb$//')"
-[ -n "$key" ] || die "no block files in the store volume"
-[ "$(stat -c %u "$STORE_VOL/koala/manifest.json")" = 10001 ] || die "store files are not owned by the image's user"
-curl -fsS "http://127.0.0.1:$SMOKE_PORT/api/scenes/koala/blocks/$key" -o "$WORK/block.vxb" || die "GET block $key failed"
+curl -fsS "$URL/api/scenes" >"$WORK/scenes.json" || die "server never answered; see $WORK/smoke.log"
+grep -Eq '"id": *"koala"' "$WORK/scenes.json" || die "/api/scenes has no koala scene: $(cat "$WORK/scenes.json")"
+curl -fsS "$URL/" >"$WORK/index.html" || die "GET / failed"
+grep -qi 'voxstream-canvas' "$WORK/index.html" || die "GET / did not return the viewer page"
+curl -fsS "$URL/api/scenes/koala/manifest" >"$WORK/manifest.json" || die "GET manifest failed"
+key="$(grep -Eo '"key": *"[0-9]+-[0-9]+-[0-9]+-[0-9]+"' "$WORK/manifest.json" | head -n1 | cut -d'"' -f4 || true)"
+[ -n "$key" ] || die "no block key in the manifest"
+curl -fsS "$URL/api/scenes/koala/blocks/$key" -o "$WORK/block.vxb" || die "GET block $key failed"
 [ "$(head -c4 "$WORK/block.vxb")" = VXB1 ] || die "block $key does not start with the VXB1 magic"
-echo "buildah-local: smoke test passed (scenes: $(head -c 200 "$WORK/scenes.json")...)" >&2
+cmp -s "$WORK/block.vxb" "$STORE_VOL/koala/blocks/$key.vxb" || die "served block differs from the one in the mounted store"
+[ "$(stat -c %u "$STORE_VOL/koala/manifest.json")" = 10001 ] || die "store files are not owned by the image's user (10001)"
+wasm="$(grep -o 'pkg/[A-Za-z0-9_.-]*\.js' "$WORK/index.html" | head -n1 || true)"
+if [ -n "$wasm" ]; then
+  curl -fsS "$URL/$wasm" -o /dev/null || die "GET /$wasm failed"
+fi
+curl -fsS "$URL/pkg/voxstream_viewer_bg.wasm" -o "$WORK/viewer.wasm" || die "GET the wasm module failed"
+[ "$(head -c4 "$WORK/viewer.wasm" | od -An -tx1 | tr -d ' ')" = 0061736d ] || die "the served wasm module has no wasm magic"
+# The image's HEALTHCHECK command, run in a second container of the same image (host network),
+# pointed at the smoke port.
+hc="$("${B[@]}" inspect --type image "$IMAGE" |
+  python3 -c 'import json,sys; t=json.load(sys.stdin)["Docker"]["config"]["Healthcheck"]["Test"]; assert t[0]=="CMD"; print(t[3])')"
+hc_ctr="$("${B[@]}" from "$IMAGE")"
+hc_ok=0
+"${B[@]}" run --isolation chroot "$hc_ctr" -- bash -c "${hc//8080/$SMOKE_PORT}" && hc_ok=1
+"${B[@]}" rm "$hc_ctr" >/dev/null
+[ "$hc_ok" = 1 ] || die "the image's HEALTHCHECK command failed against the running server"
+echo "buildah-local: smoke test passed: $(head -c 200 "$WORK/scenes.json"); block $key served from the mounted store" >&2
