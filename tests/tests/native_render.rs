@@ -154,7 +154,7 @@ fn native_render_matches_cpu_coverage_of_drawn_blocks() {
     assert_eq!(silhouette_from_rgba(&no_ao.pixels, WIDTH, HEIGHT, BACKGROUND_RGBA8), silhouette);
     let without_ao = mean_luma(&no_ao, &silhouette);
     println!("mean luma: {with_ao:.1} with AO, {without_ao:.1} without");
-    assert!(with_ao < without_ao - 2.0, "AO does not darken anything: {with_ao:.1} vs {without_ao:.1}");
+    assert!(with_ao < without_ao - 5.0, "AO does not darken anything: {with_ao:.1} vs {without_ao:.1}");
 }
 
 #[test]

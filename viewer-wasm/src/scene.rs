@@ -242,24 +242,7 @@ impl Scene {
         let drawn = resolve_draw_set(&self.wanted, max_level, |k| cache.contains_key(k));
         let complete = settled && drawn == self.wanted;
 
-        let stale = self.occupancy_for.as_ref() != Some(&drawn);
-        if self.ao_strength > 0.0
-            && stale
-            && (settled || now_ms - self.occupancy_built_ms >= OCCUPANCY_REBUILD_MS)
-        {
-            // Nothing drawn yet: the texture starts out empty, no need to splat nothing.
-            if !drawn.is_empty() || self.occupancy_for.is_some() {
-                let volume = OccupancyVolume::build(
-                    self.manifest.grid.resolution,
-                    drawn.iter().filter_map(|k| self.block(k)),
-                );
-                if volume.cells == renderer.occupancy_cells() {
-                    renderer.upload_occupancy(&volume);
-                }
-            }
-            self.occupancy_for = Some(drawn.clone());
-            self.occupancy_built_ms = now_ms;
-        }
+        self.update_occupancy(renderer, &drawn, settled, now_ms);
 
         let mut gpu_blocks = Vec::with_capacity(drawn.len());
         let mut faces = 0u64;
@@ -292,6 +275,54 @@ impl Scene {
         self.drawn = drawn.clone();
         self.evict();
         DrawnFrame { view_proj: params.view_proj, drawn, complete }
+    }
+
+    /// The blocks the occupancy volume is splatted from: the drawn blocks, each
+    /// finer than an occupancy cell replaced by its cached ancestor whose voxels
+    /// are one cell wide. Those ancestors are few, cheap to splat, and mostly
+    /// independent of the view, so orbiting and refining rarely rebuild the
+    /// volume and the AO does not change with the LOD.
+    fn occupancy_sources(&self, drawn: &[BlockKey], cells: u32) -> Vec<BlockKey> {
+        let cell_level = (self.manifest.grid.resolution / cells.max(1)).max(1).ilog2() as u8;
+        let mut sources: Vec<BlockKey> = drawn
+            .iter()
+            .map(|key| {
+                let mut a = *key;
+                while a.level < cell_level {
+                    a = a.parent();
+                }
+                if self.cache.contains_key(&a) { a } else { *key }
+            })
+            .collect();
+        sources.sort();
+        sources.dedup();
+        sources
+    }
+
+    /// Rebuilds and uploads the occupancy volume when its sources changed; at
+    /// most every [`OCCUPANCY_REBUILD_MS`] while blocks are still streaming in.
+    fn update_occupancy(&mut self, renderer: &Renderer, drawn: &[BlockKey], settled: bool, now_ms: f64) {
+        if self.ao_strength <= 0.0 {
+            return;
+        }
+        let sources = self.occupancy_sources(drawn, renderer.occupancy_cells());
+        if self.occupancy_for.as_ref() == Some(&sources)
+            || !(settled || now_ms - self.occupancy_built_ms >= OCCUPANCY_REBUILD_MS)
+        {
+            return;
+        }
+        // Nothing drawn yet: the texture starts out empty, no need to splat nothing.
+        if !sources.is_empty() || self.occupancy_for.is_some() {
+            let volume = OccupancyVolume::build(
+                self.manifest.grid.resolution,
+                sources.iter().filter_map(|k| self.block(k)),
+            );
+            if volume.cells == renderer.occupancy_cells() {
+                renderer.upload_occupancy(&volume);
+            }
+        }
+        self.occupancy_for = Some(sources);
+        self.occupancy_built_ms = now_ms;
     }
 
     /// Drops least recently drawn blocks beyond the budget, never one that is

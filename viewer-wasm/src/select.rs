@@ -139,18 +139,11 @@ pub fn select_blocks(manifest: &Manifest, view: &ViewParams, params: &SelectPara
     let mut done = Vec::new();
     while let Some(c) = open.pop() {
         if c.pixels > params.max_voxel_pixels {
-            let children: Vec<Candidate> = c
-                .key
-                .children()
-                .into_iter()
-                .flatten()
-                .filter(|k| manifest.block(k).is_some())
-                .filter_map(|k| visible(&k))
-                .collect();
-            let has_children = c.key.children().into_iter().flatten().any(|k| manifest.block(&k).is_some());
-            let total_after = done.len() + open.len() + children.len();
-            if has_children && total_after <= params.max_blocks {
-                // Children all outside the frustum: this region has nothing visible at finer levels.
+            let existing: Vec<BlockKey> =
+                c.key.children().into_iter().flatten().filter(|k| manifest.block(k).is_some()).collect();
+            // Existing children all outside the frustum: nothing visible here at finer levels.
+            let children: Vec<Candidate> = existing.iter().filter_map(visible).collect();
+            if !existing.is_empty() && done.len() + open.len() + children.len() <= params.max_blocks {
                 open.extend(children);
                 continue;
             }
