@@ -40,6 +40,26 @@ impl OrbitCamera {
         }
     }
 
+    /// Moves along the view direction until the box `min..max` just fits a
+    /// view of `aspect` (width / height), with a 5% margin: boxes of scans are
+    /// rarely full, so this frames them much tighter than their bounding sphere.
+    pub fn fit_box(&mut self, min: Vec3, max: Vec3, aspect: f32) {
+        let tan_v = (self.fov_y * 0.5).tan();
+        let tan_h = tan_v * aspect.max(1e-3);
+        let forward = self.forward();
+        let right = forward.cross(Vec3::Y).normalize_or(Vec3::X);
+        let up = right.cross(forward);
+        let needed = (0..8)
+            .map(|i| {
+                let corner = Vec3::select(glam::BVec3::new(i & 1 != 0, i & 2 != 0, i & 4 != 0), max, min);
+                let o = corner - self.target;
+                // Distance at which this corner sits on the edge of the view.
+                -o.dot(forward) + (o.dot(right).abs() / tan_h).max(o.dot(up).abs() / tan_v)
+            })
+            .fold(0f32, f32::max);
+        self.distance = (needed * 1.05).max(self.scene_radius * 0.05);
+    }
+
     pub fn forward(&self) -> Vec3 {
         -self.offset_direction()
     }
@@ -133,6 +153,25 @@ mod tests {
             let ndc = project(vp, corner);
             assert!(ndc.x.abs() <= 1.0 && ndc.y.abs() <= 1.0, "corner {corner} at {ndc}");
             assert!(ndc.z > 0.0 && ndc.z < 1.0, "corner {corner} depth {}", ndc.z);
+        }
+    }
+
+    #[test]
+    fn fit_box_is_tight_and_inside() {
+        let (min, max) = (Vec3::new(0.0, 0.0, 0.0), Vec3::new(200.0, 120.0, 400.0));
+        for aspect in [0.5, 1.0, 1.6] {
+            let mut cam = OrbitCamera::framing(min, max);
+            cam.fit_box(min, max, aspect);
+            let vp = cam.view_proj(aspect);
+            let mut widest: f32 = 0.0;
+            for i in 0..8 {
+                let corner = Vec3::select(glam::BVec3::new(i & 1 != 0, i & 2 != 0, i & 4 != 0), max, min);
+                let ndc = project(vp, corner);
+                assert!(ndc.x.abs() <= 1.0 && ndc.y.abs() <= 1.0, "aspect {aspect}: corner at {ndc}");
+                assert!(ndc.z > 0.0 && ndc.z < 1.0, "aspect {aspect}: corner depth {}", ndc.z);
+                widest = widest.max(ndc.x.abs()).max(ndc.y.abs());
+            }
+            assert!(widest > 0.9, "aspect {aspect}: the box only reaches {widest} of the view");
         }
     }
 

@@ -62,7 +62,7 @@ pub struct Scene {
 impl Scene {
     /// A scene framed by the default camera for a `viewport`-sized view.
     pub fn new(manifest: Manifest, viewport: (u32, u32)) -> Self {
-        let camera = default_camera(&manifest);
+        let camera = default_camera(&manifest, viewport.0.max(1) as f32 / viewport.1.max(1) as f32);
         Self {
             manifest,
             camera,
@@ -354,10 +354,14 @@ impl Scene {
     }
 }
 
-/// The default view: the scene's voxels framed from the front, slightly above.
-pub fn default_camera(manifest: &Manifest) -> OrbitCamera {
-    match scene_bounds(manifest) {
-        Some(b) => OrbitCamera::framing(b.min, b.max),
-        None => OrbitCamera::framing(Vec3::ZERO, Vec3::splat(manifest.grid.resolution as f32)),
-    }
+/// The default view: the scene's voxels framed from the front, slightly
+/// above, filling a view of `aspect` (width / height).
+pub fn default_camera(manifest: &Manifest, aspect: f32) -> OrbitCamera {
+    let (min, max) = match scene_bounds(manifest) {
+        Some(b) => (b.min, b.max),
+        None => (Vec3::ZERO, Vec3::splat(manifest.grid.resolution as f32)),
+    };
+    let mut camera = OrbitCamera::framing(min, max);
+    camera.fit_box(min, max, aspect);
+    camera
 }
