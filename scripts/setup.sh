@@ -121,7 +121,8 @@ fi
 
 # --- 3. browser, Vulkan on the CPU, node -----------------------------------------------------
 if have_apt; then
-  WANT+=(chromium chromium-driver mesa-vulkan-drivers)
+  # ca-certificates: cargo/npm fetch over HTTPS; gcc + libc6-dev: the linker for host builds.
+  WANT+=(ca-certificates gcc libc6-dev chromium chromium-driver mesa-vulkan-drivers)
   if ! command -v node >/dev/null 2>&1; then
     WANT+=(nodejs)
     command -v npm >/dev/null 2>&1 || WANT+=(npm)
