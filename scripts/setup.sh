@@ -47,6 +47,15 @@ pkg_installed() {
 }
 
 APT_UPDATED=0
+can_apt() {
+  have_apt && [ "$NO_INSTALL" != "1" ] && { [ "$(id -u)" -eq 0 ] || [ "${#SUDO[@]}" -gt 0 ]; }
+}
+apt_update_once() {
+  [ "$APT_UPDATED" -eq 0 ] || return 0
+  log "apt-get update"
+  "${SUDO[@]}" env DEBIAN_FRONTEND=noninteractive apt-get update -q >&2 || die "apt-get update failed"
+  APT_UPDATED=1
+}
 apt_install() {
   # apt_install PKG... : installs the given packages (callers pass only missing ones).
   [ "$#" -gt 0 ] || return 0
@@ -57,11 +66,7 @@ apt_install() {
   if [ "$(id -u)" -ne 0 ] && [ "${#SUDO[@]}" -eq 0 ]; then
     die "missing Debian packages: $* — not root and sudo is unavailable; run: apt-get install $*"
   fi
-  if [ "$APT_UPDATED" -eq 0 ]; then
-    log "apt-get update"
-    "${SUDO[@]}" env DEBIAN_FRONTEND=noninteractive apt-get update -q >&2 || die "apt-get update failed"
-    APT_UPDATED=1
-  fi
+  apt_update_once
   log "apt-get install $*"
   "${SUDO[@]}" env DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends "$@" >&2 ||
     die "apt-get install $* failed"
@@ -89,6 +94,10 @@ fi
 if ! command -v cargo >/dev/null 2>&1; then
   # No cargo at all: prefer rustup's stable toolchain (Debian ships a rustup package from trixie
   # on); on bookworm fall back to Debian's rust-web toolchain, which is new enough (1.85+).
+  # Package lists may be empty (fresh container): refresh them before asking what apt offers.
+  if can_apt && [ -z "$(apt_candidate cargo-web)" ] && [ -z "$(apt_candidate rustup)" ]; then
+    apt_update_once
+  fi
   if have_apt && [ -n "$(apt_candidate rustup)" ]; then
     mapfile -t miss < <(missing_pkgs rustup)
     apt_install "${miss[@]}"
