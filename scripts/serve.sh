@@ -5,7 +5,8 @@
 #
 # Steps: scripts/setup.sh (installs what is missing), release build of the server,
 # scripts/build-web.sh (wasm viewer into viewer-wasm/dist), `voxstream build data/koala.obj`
-# into ./store when store/koala/manifest.json is missing or older than the mesh, then exec
+# into ./store when store/koala/manifest.json is missing or older than the mesh (or the server
+# binary), then exec
 # `voxstream serve`.
 #
 # Environment:
@@ -44,9 +45,11 @@ bash scripts/build-web.sh || die "scripts/build-web.sh failed (see above)"
 
 [ -f "$MESH" ] || die "$MESH is missing"
 MANIFEST="$STORE/$SCENE/manifest.json"
-if [ ! -f "$MANIFEST" ] || [ "$MANIFEST" -ot "$MESH" ]; then
+# Also rebuilt when the server binary is newer: a build takes about a second, and a scene written
+# by an older build may not match the current format.
+if [ ! -f "$MANIFEST" ] || [ "$MANIFEST" -ot "$MESH" ] || [ "$MANIFEST" -ot "$BIN" ]; then
   if [ -e "$STORE/$SCENE" ]; then
-    log "$MANIFEST is older than $MESH: rebuilding the scene"
+    log "$MANIFEST is older than $MESH or $BIN: rebuilding the scene"
     rm -rf -- "${STORE:?}/${SCENE:?}"
   fi
   mkdir -p "$STORE"
