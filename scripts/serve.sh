@@ -6,8 +6,7 @@
 # Steps: scripts/setup.sh (installs what is missing), release build of the server,
 # scripts/build-web.sh (wasm viewer into viewer-wasm/dist), `voxstream build data/koala.obj`
 # into ./store when store/koala/manifest.json is missing or older than the mesh (or the server
-# binary), then exec
-# `voxstream serve`.
+# binary), then exec `voxstream serve`.
 #
 # Environment:
 #   VOXSTREAM_ADDR   listen address (default 127.0.0.1:8080)
