@@ -114,8 +114,8 @@ if ! command -v cargo >/dev/null 2>&1; then
   fi
 fi
 
-# If the only cargo is Debian's, clippy and rustfmt come from Debian too.
-if command -v cargo >/dev/null 2>&1 && ! command -v rustup >/dev/null 2>&1 && have_apt; then
+# If the only cargo is Debian's rust-web one, clippy and rustfmt come from Debian too.
+if ! command -v rustup >/dev/null 2>&1 && have_apt && pkg_installed cargo-web; then
   WANT+=(rust-web-clippy rustfmt-web)
 fi
 
@@ -149,6 +149,13 @@ else
 fi
 
 command -v cargo >/dev/null 2>&1 || die "cargo is still not on PATH after installing the toolchain"
+# The workspace needs Rust >= 1.87 (edition 2024, rust-version in Cargo.toml). Debian's plain
+# rustc/cargo packages on bookworm are 1.63: too old.
+rustc_minor="$(rustc --version 2>/dev/null | awk '{split($2, v, "."); print v[2] + 0}')"
+if [ "${rustc_minor:-0}" -lt 87 ]; then
+  die "$(rustc --version 2>/dev/null || echo 'rustc: missing') at $(command -v rustc || echo '?') is too old (need >= 1.87).
+       Use rustup (rustup update stable) or Debian's rustc-web/cargo-web packages instead of rustc/cargo."
+fi
 cargo clippy --version >/dev/null 2>&1 || die "cargo clippy is unavailable (rustup component add clippy)"
 cargo fmt --version >/dev/null 2>&1 || die "cargo fmt is unavailable (rustup component add rustfmt)"
 if [ "$RUSTUP_WASM" -eq 0 ]; then
