@@ -76,8 +76,13 @@ fn valid_triangle(tri: &[[f64; 3]; 3]) -> bool {
 }
 
 /// Chooses the bounding cube of the mesh's valid triangles, split into
-/// `resolution`³ voxels. The cube is centred on the bounds and enlarged by a
-/// hair so that no vertex lands exactly on the far faces.
+/// `resolution`³ voxels, with its corner at the bounds' minimum.
+///
+/// Translation invariance: the origin is an input coordinate itself, not a
+/// computed one, so for a mesh moved by an exactly representable offset every
+/// `p - origin` (and the extent) comes out bit-identical, and so does the voxel
+/// set, however far from zero the scan sits (georeferenced scans at 1e7 units).
+/// The cube is enlarged by a hair so that no vertex lands on its far faces.
 pub fn choose_frame(mesh: &TriangleMesh, resolution: u32) -> Result<GridFrame, VoxelizeError> {
     check_resolution(resolution)?;
     let mut lo = [f64::INFINITY; 3];
@@ -99,13 +104,10 @@ pub fn choose_frame(mesh: &TriangleMesh, resolution: u32) -> Result<GridFrame, V
     if lo[0] > hi[0] {
         return Err(VoxelizeError::NoValidTriangle { skipped });
     }
+    // Positive: a valid triangle has non-zero area, so some axis has extent.
     let extent = (0..3).map(|a| hi[a] - lo[a]).fold(0.0, f64::max);
-    // A flat or point-like mesh still gets a grid of finite, positive size.
-    let extent = if extent > 0.0 { extent } else { lo.iter().map(|v| v.abs()).fold(1.0, f64::max) * 1e-6 };
     let voxel_size = extent * (1.0 + 1e-6) / resolution as f64;
-    let half = voxel_size * resolution as f64 / 2.0;
-    let origin = std::array::from_fn(|a| (lo[a] + hi[a]) / 2.0 - half);
-    Ok(GridFrame { origin, voxel_size, resolution, units: None })
+    Ok(GridFrame { origin: lo, voxel_size, resolution, units: None })
 }
 
 /// Voxelizes every valid triangle into level-0 blocks, sorted by key.
