@@ -3,8 +3,10 @@
 //! Invariant of the output: every index is < `positions.len()`. Triangles may
 //! still be degenerate or non-finite; the voxelizer skips and counts those.
 
+mod gltf;
 mod obj;
 mod ply;
+mod stl;
 
 use std::fmt;
 use std::path::Path;
@@ -39,6 +41,11 @@ impl TriangleMesh {
 pub enum MeshFormat {
     Obj,
     Ply,
+    Stl,
+    /// glTF 2.0 JSON with embedded (`data:`) buffers.
+    Gltf,
+    /// Binary glTF 2.0.
+    Glb,
 }
 
 impl fmt::Display for MeshFormat {
@@ -46,6 +53,9 @@ impl fmt::Display for MeshFormat {
         f.write_str(match self {
             MeshFormat::Obj => "obj",
             MeshFormat::Ply => "ply",
+            MeshFormat::Stl => "stl",
+            MeshFormat::Gltf => "gltf",
+            MeshFormat::Glb => "glb",
         })
     }
 }
@@ -54,10 +64,12 @@ impl fmt::Display for MeshFormat {
 pub enum IngestError {
     #[error("cannot read {path}: {source}")]
     Io { path: String, source: std::io::Error },
-    #[error("unsupported mesh format {0:?}: expected .obj or .ply")]
+    #[error("unsupported mesh format {0:?}: expected .obj, .ply, .stl, .gltf or .glb")]
     UnsupportedFormat(String),
     #[error("not a valid {format} file: {message}")]
     Parse { format: MeshFormat, message: String },
+    #[error("unsupported {format} content: {message}")]
+    Unsupported { format: MeshFormat, message: String },
     #[error("invalid mesh: {0}")]
     Invalid(String),
 }
@@ -65,6 +77,10 @@ pub enum IngestError {
 impl MeshFormat {
     /// Picks the parser from the file's magic bytes, falling back to its extension.
     pub fn detect(path: &Path, head: &[u8]) -> Result<Self, IngestError> {
+        // STL and glTF JSON have no reliable magic: "solid" also opens binary STL headers.
+        if head.starts_with(b"glTF") {
+            return Ok(MeshFormat::Glb);
+        }
         if head.starts_with(b"ply\n") || head.starts_with(b"ply\r\n") {
             return Ok(MeshFormat::Ply);
         }
@@ -72,6 +88,9 @@ impl MeshFormat {
         match ext.as_str() {
             "obj" => Ok(MeshFormat::Obj),
             "ply" => Ok(MeshFormat::Ply),
+            "stl" => Ok(MeshFormat::Stl),
+            "gltf" => Ok(MeshFormat::Gltf),
+            "glb" => Ok(MeshFormat::Glb),
             _ => Err(IngestError::UnsupportedFormat(path.display().to_string())),
         }
     }
@@ -90,9 +109,41 @@ pub fn read_mesh_bytes(bytes: &[u8], format: MeshFormat) -> Result<TriangleMesh,
     let mesh = match format {
         MeshFormat::Obj => obj::read(bytes)?,
         MeshFormat::Ply => ply::read(bytes)?,
+        MeshFormat::Stl => stl::read(bytes)?,
+        // The glTF reader tells JSON from GLB by the magic itself.
+        MeshFormat::Gltf | MeshFormat::Glb => gltf::read(bytes)?,
     };
     if mesh.triangles.is_empty() {
         return Err(IngestError::Invalid("the file holds no triangles".into()));
     }
     Ok(mesh)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn detect_by_magic_then_extension() {
+        let detect = |name: &str, head: &[u8]| MeshFormat::detect(Path::new(name), head);
+        assert_eq!(detect("scan.bin", b"glTF\x02\0\0\0").unwrap(), MeshFormat::Glb);
+        assert_eq!(detect("scan.obj", b"ply\nform").unwrap(), MeshFormat::Ply);
+        assert_eq!(detect("part.STL", b"solid x").unwrap(), MeshFormat::Stl);
+        assert_eq!(detect("a.gltf", b"{").unwrap(), MeshFormat::Gltf);
+        assert_eq!(detect("a.glb", b"").unwrap(), MeshFormat::Glb);
+        assert_eq!(detect("a.obj", b"v 0 0 0").unwrap(), MeshFormat::Obj);
+        let e = detect("notes.txt", b"hello").unwrap_err().to_string();
+        for ext in [".obj", ".ply", ".stl", ".gltf", ".glb"] {
+            assert!(e.contains(ext), "{e}");
+        }
+    }
+
+    #[test]
+    fn formats_display_as_their_extension() {
+        let names: Vec<String> =
+            [MeshFormat::Obj, MeshFormat::Ply, MeshFormat::Stl, MeshFormat::Gltf, MeshFormat::Glb]
+                .map(|f| f.to_string())
+                .into();
+        assert_eq!(names, ["obj", "ply", "stl", "gltf", "glb"]);
+    }
 }
