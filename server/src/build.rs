@@ -7,6 +7,7 @@ use voxstream_format::SourceInfo;
 
 use crate::ingest::{self, IngestError};
 use crate::lod;
+use crate::progress::{Progress, ProgressSink, Stage};
 use crate::store::{self, SceneContent, StoreError};
 use crate::voxelize::{self, VoxelizeError};
 
@@ -50,7 +51,18 @@ pub enum BuildError {
 }
 
 pub fn build_scene(input: &Path, store_dir: &Path, opts: &BuildOptions) -> Result<BuildReport, BuildError> {
+    build_scene_reporting(input, store_dir, opts, &|_| {})
+}
+
+/// [`build_scene`], calling `report` as the build moves through its stages.
+pub fn build_scene_reporting(
+    input: &Path,
+    store_dir: &Path,
+    opts: &BuildOptions,
+    report: &(dyn Fn(Progress) + Sync),
+) -> Result<BuildReport, BuildError> {
     let start = Instant::now();
+    let progress = ProgressSink::new(report);
     let id = match &opts.name {
         Some(n) => {
             store::validate_id(n)?;
@@ -59,11 +71,16 @@ pub fn build_scene(input: &Path, store_dir: &Path, opts: &BuildOptions) -> Resul
         None => store::id_from_file_stem(input),
     };
     voxelize::check_resolution(opts.resolution)?; // before reading a large file
+    progress.stage(Stage::Read, 0.0);
     let (mesh, format) = ingest::read_mesh(input)?;
+    progress.set_triangles(mesh.triangles.len() as u64);
+    progress.stage(Stage::Read, 1.0);
     let frame = voxelize::choose_frame(&mesh, opts.resolution)?;
-    let (level0, stats) = voxelize::voxelize(&mesh, &frame)?;
+    let (level0, stats) = voxelize::voxelize_reporting(&mesh, &frame, &progress)?;
     drop(mesh);
+    progress.stage(Stage::Lod, 0.0);
     let levels = lod::build_levels(level0, frame.resolution);
+    progress.stage(Stage::Lod, 1.0);
     let content = SceneContent {
         name: id.clone(),
         source: SourceInfo {
@@ -75,7 +92,7 @@ pub fn build_scene(input: &Path, store_dir: &Path, opts: &BuildOptions) -> Resul
         grid: frame,
         levels: &levels,
     };
-    let manifest = store::write_scene(store_dir, &id, &content)?;
+    let manifest = store::write_scene_reporting(store_dir, &id, &content, &progress)?;
     Ok(BuildReport {
         scene_dir: store_dir.join(&id),
         id,

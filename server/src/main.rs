@@ -3,8 +3,9 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
-use voxstream::build::{BuildOptions, build_scene};
+use voxstream::build::{BuildOptions, build_scene_reporting};
 use voxstream::http::{AppState, router};
+use voxstream::progress::Progress;
 
 /// voxstream: huge 3D scans as streamed voxel blocks.
 #[derive(Parser)]
@@ -29,6 +30,14 @@ enum Command {
         /// Scene id (a-z, 0-9, '-', '_'); defaults to the file name.
         #[arg(long)]
         name: Option<String>,
+    },
+    /// Write a synthetic scan (a displaced, finely tessellated sphere) as binary PLY.
+    Synth {
+        /// At least this many triangles (rounded up to a whole tessellation).
+        #[arg(long)]
+        triangles: u64,
+        #[arg(long)]
+        out: PathBuf,
     },
     /// Serve a store's scenes and the viewer over HTTP.
     Serve {
@@ -62,7 +71,21 @@ fn main() -> ExitCode {
 fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Build { mesh, out, resolution, name } => {
-            let r = build_scene(&mesh, &out, &BuildOptions { resolution, name })?;
+            // indicatif draws only on a terminal, so scripts and CI logs stay clean.
+            let bar = indicatif::ProgressBar::new(1000).with_style(
+                indicatif::ProgressStyle::with_template(
+                    "{spinner} {msg:28} [{bar:32}] {percent:>3}% eta {eta}",
+                )
+                .expect("static template")
+                .progress_chars("=> "),
+            );
+            let report = |p: Progress| {
+                bar.set_position((p.fraction * 1000.0) as u64);
+                bar.set_message(format!("{} {:.2} Mtri/s", p.stage.name(), p.triangles_per_second / 1e6));
+            };
+            let result = build_scene_reporting(&mesh, &out, &BuildOptions { resolution, name }, &report);
+            bar.finish_and_clear();
+            let r = result?;
             println!(
                 "built scene {:?} in {:.2} s: {} triangles ({} skipped), {} level-0 voxels, {} blocks on {} levels, {} bytes -> {}",
                 r.id,
@@ -74,6 +97,18 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 r.levels,
                 r.bytes,
                 r.scene_dir.display()
+            );
+            Ok(())
+        }
+        Command::Synth { triangles, out } => {
+            let r = voxstream::synth::write_sphere_ply(&out, triangles)
+                .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", out.display()))?;
+            println!(
+                "wrote {}: {} triangles, {} vertices, {} bytes",
+                out.display(),
+                r.triangles,
+                r.vertices,
+                r.bytes
             );
             Ok(())
         }

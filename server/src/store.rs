@@ -17,6 +17,7 @@ use voxstream_format::{
 };
 
 use crate::lod::local_position;
+use crate::progress::{ProgressSink, Stage, StageCounter};
 use crate::voxelize::SparseBlock;
 
 #[derive(Debug, thiserror::Error)]
@@ -98,6 +99,16 @@ fn write_synced(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
 /// Encodes and writes a scene, then publishes it as `<store>/<id>`, replacing
 /// any previous scene of that id. Returns the manifest written.
 pub fn write_scene(store: &Path, id: &str, content: &SceneContent) -> Result<Manifest, StoreError> {
+    write_scene_reporting(store, id, content, &ProgressSink::new(&|_| {}))
+}
+
+/// [`write_scene`], reporting each block written to `progress`.
+pub fn write_scene_reporting(
+    store: &Path,
+    id: &str,
+    content: &SceneContent,
+    progress: &ProgressSink,
+) -> Result<Manifest, StoreError> {
     validate_id(id)?;
     fs::create_dir_all(store).map_err(io("create directory", store))?;
     let tmp = store.join(format!(
@@ -105,7 +116,7 @@ pub fn write_scene(store: &Path, id: &str, content: &SceneContent) -> Result<Man
         std::process::id(),
         std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos())
     ));
-    let result = write_scene_dir(&tmp, content).and_then(|manifest| {
+    let result = write_scene_dir(&tmp, content, progress).and_then(|manifest| {
         publish(store, id, &tmp)?;
         Ok(manifest)
     });
@@ -115,7 +126,12 @@ pub fn write_scene(store: &Path, id: &str, content: &SceneContent) -> Result<Man
     result
 }
 
-fn write_scene_dir(dir: &Path, content: &SceneContent) -> Result<Manifest, StoreError> {
+fn write_scene_dir(
+    dir: &Path,
+    content: &SceneContent,
+    progress: &ProgressSink,
+) -> Result<Manifest, StoreError> {
+    let counter = StageCounter::new(progress, Stage::Write, content.levels.iter().map(Vec::len).sum());
     let blocks_dir = dir.join("blocks");
     fs::create_dir_all(&blocks_dir).map_err(io("create directory", &blocks_dir))?;
     let mut levels = Vec::new();
@@ -128,6 +144,7 @@ fn write_scene_dir(dir: &Path, content: &SceneContent) -> Result<Manifest, Store
                 let bytes = encode_block(&packed);
                 let path = blocks_dir.join(format!("{}.vxb", b.key));
                 write_synced(&path, &bytes)?;
+                counter.tick();
                 Ok(BlockEntry {
                     key: b.key,
                     bounds: tight_bounds(b),

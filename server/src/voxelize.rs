@@ -13,6 +13,7 @@ use rayon::prelude::*;
 use voxstream_format::{BLOCK_SIZE, BLOCK_VOXELS, BlockKey, GridFrame, morton3};
 
 use crate::ingest::TriangleMesh;
+use crate::progress::{ProgressSink, Stage, StageCounter};
 
 /// A voxel while the store is being built.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -115,6 +116,15 @@ pub fn voxelize(
     mesh: &TriangleMesh,
     frame: &GridFrame,
 ) -> Result<(Vec<SparseBlock>, VoxelizeStats), VoxelizeError> {
+    voxelize_reporting(mesh, frame, &ProgressSink::new(&|_| {}))
+}
+
+/// [`voxelize`], reporting each finished block to `progress`.
+pub fn voxelize_reporting(
+    mesh: &TriangleMesh,
+    frame: &GridFrame,
+    progress: &ProgressSink,
+) -> Result<(Vec<SparseBlock>, VoxelizeStats), VoxelizeError> {
     let res = frame.resolution as i64;
     let mut stats = VoxelizeStats::default();
     let mut tris: Vec<[[f64; 3]; 3]> = Vec::with_capacity(mesh.triangles.len());
@@ -140,10 +150,13 @@ pub fn voxelize(
     if tris.is_empty() {
         return Err(VoxelizeError::NoValidTriangle { skipped: stats.skipped });
     }
+    let counter = StageCounter::new(progress, Stage::Voxelize, bins.len());
     let blocks: Vec<SparseBlock> = bins
         .into_par_iter()
         .filter_map(|(coord, list)| {
-            voxelize_block(BlockKey::new(0, coord[0], coord[1], coord[2]), &list, &tris, res)
+            let block = voxelize_block(BlockKey::new(0, coord[0], coord[1], coord[2]), &list, &tris, res);
+            counter.tick();
+            block
         })
         .collect();
     Ok((blocks, stats))
