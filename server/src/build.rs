@@ -9,7 +9,7 @@ use crate::ingest::{self, IngestError};
 use crate::lod;
 use crate::progress::{Progress, ProgressSink, Stage};
 use crate::store::{self, SceneContent, StoreError};
-use crate::voxelize::{self, VoxelizeError};
+use crate::voxelize::{self, Topology, VoxelizeError};
 
 #[derive(Debug, Clone)]
 pub struct BuildOptions {
@@ -17,11 +17,13 @@ pub struct BuildOptions {
     pub resolution: u32,
     /// Scene id; derived from the input's file name when `None`.
     pub name: Option<String>,
+    /// Which voxels a triangle sets.
+    pub topology: Topology,
 }
 
 impl Default for BuildOptions {
     fn default() -> Self {
-        Self { resolution: 512, name: None }
+        Self { resolution: 512, name: None, topology: Topology::Conservative }
     }
 }
 
@@ -76,7 +78,7 @@ pub fn build_scene_reporting(
     progress.set_triangles(mesh.triangles.len() as u64);
     progress.stage(Stage::Read, 1.0);
     let frame = voxelize::choose_frame(&mesh, opts.resolution)?;
-    let (level0, stats) = voxelize::voxelize_reporting(&mesh, &frame, &progress)?;
+    let (level0, stats) = voxelize::voxelize_reporting(&mesh, &frame, opts.topology, &progress)?;
     drop(mesh);
     progress.stage(Stage::Lod, 0.0);
     let levels = lod::build_levels(level0, frame.resolution);

@@ -6,6 +6,7 @@ use clap::{Parser, Subcommand};
 use voxstream::build::{BuildOptions, build_scene_reporting};
 use voxstream::http::{AppState, router};
 use voxstream::progress::Progress;
+use voxstream::voxelize::Topology;
 
 /// voxstream: huge 3D scans as streamed voxel blocks.
 #[derive(Parser)]
@@ -30,6 +31,10 @@ enum Command {
         /// Scene id (a-z, 0-9, '-', '_'); defaults to the file name.
         #[arg(long)]
         name: Option<String>,
+        /// Which voxels a triangle sets: every voxel it touches, or the thinner
+        /// sets that still block 26- or 6-connected paths through a closed surface.
+        #[arg(long, value_enum, default_value_t = TopologyArg::Conservative)]
+        topology: TopologyArg,
     },
     /// Write a synthetic scan (a displaced, finely tessellated sphere) as binary PLY.
     Synth {
@@ -51,6 +56,15 @@ enum Command {
     },
 }
 
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum TopologyArg {
+    Conservative,
+    #[value(name = "26-separating")]
+    Separating26,
+    #[value(name = "6-separating")]
+    Separating6,
+}
+
 fn main() -> ExitCode {
     tracing_subscriber::fmt()
         .with_env_filter(
@@ -70,7 +84,12 @@ fn main() -> ExitCode {
 
 fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
-        Command::Build { mesh, out, resolution, name } => {
+        Command::Build { mesh, out, resolution, name, topology } => {
+            let topology = match topology {
+                TopologyArg::Conservative => Topology::Conservative,
+                TopologyArg::Separating26 => Topology::Separating26,
+                TopologyArg::Separating6 => Topology::Separating6,
+            };
             // indicatif draws only on a terminal, so scripts and CI logs stay clean.
             let bar = indicatif::ProgressBar::new(1000).with_style(
                 indicatif::ProgressStyle::with_template(
@@ -83,7 +102,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 bar.set_position((p.fraction * 1000.0) as u64);
                 bar.set_message(format!("{} {:.2} Mtri/s", p.stage.name(), p.triangles_per_second / 1e6));
             };
-            let result = build_scene_reporting(&mesh, &out, &BuildOptions { resolution, name }, &report);
+            let result =
+                build_scene_reporting(&mesh, &out, &BuildOptions { resolution, name, topology }, &report);
             bar.finish_and_clear();
             let r = result?;
             println!(

@@ -116,13 +116,14 @@ pub fn voxelize(
     mesh: &TriangleMesh,
     frame: &GridFrame,
 ) -> Result<(Vec<SparseBlock>, VoxelizeStats), VoxelizeError> {
-    voxelize_reporting(mesh, frame, &ProgressSink::new(&|_| {}))
+    voxelize_reporting(mesh, frame, Topology::Conservative, &ProgressSink::new(&|_| {}))
 }
 
-/// [`voxelize`], reporting each finished block to `progress`.
+/// [`voxelize`] with a chosen output topology, reporting each finished block to `progress`.
 pub fn voxelize_reporting(
     mesh: &TriangleMesh,
     frame: &GridFrame,
+    topology: Topology,
     progress: &ProgressSink,
 ) -> Result<(Vec<SparseBlock>, VoxelizeStats), VoxelizeError> {
     let res = frame.resolution as i64;
@@ -154,7 +155,8 @@ pub fn voxelize_reporting(
     let blocks: Vec<SparseBlock> = bins
         .into_par_iter()
         .filter_map(|(coord, list)| {
-            let block = voxelize_block(BlockKey::new(0, coord[0], coord[1], coord[2]), &list, &tris, res);
+            let key = BlockKey::new(0, coord[0], coord[1], coord[2]);
+            let block = voxelize_block(key, &list, &tris, res, topology);
             counter.tick();
             block
         })
@@ -205,7 +207,13 @@ impl DenseBrick {
     }
 }
 
-fn voxelize_block(key: BlockKey, list: &[u32], tris: &[[[f64; 3]; 3]], res: i64) -> Option<SparseBlock> {
+fn voxelize_block(
+    key: BlockKey,
+    list: &[u32],
+    tris: &[[[f64; 3]; 3]],
+    res: i64,
+    topology: Topology,
+) -> Option<SparseBlock> {
     let base = key.coord().map(|c| c as i64 * BLOCK_SIZE as i64);
     let mut brick = DenseBrick::new();
     for &t in list {
@@ -215,7 +223,7 @@ fn voxelize_block(key: BlockKey, list: &[u32], tris: &[[[f64; 3]; 3]], res: i64)
         let (lo, hi) = voxel_range(tri, res);
         let lo: [i64; 3] = std::array::from_fn(|a| lo[a].max(base[a]));
         let hi: [i64; 3] = std::array::from_fn(|a| hi[a].min(base[a] + BLOCK_SIZE as i64 - 1));
-        for_each_touched_voxel(tri, n, lo, hi, |v| {
+        for_each_touched_voxel(tri, n, lo, hi, topology, |v| {
             let l = [v[0] - base[0], v[1] - base[1], v[2] - base[2]].map(|c| c as u32);
             brick.add(morton3(l[0], l[1], l[2]), nf);
         });
@@ -224,8 +232,104 @@ fn voxelize_block(key: BlockKey, list: &[u32], tris: &[[[f64; 3]; 3]], res: i64)
     (!voxels.is_empty()).then_some(SparseBlock { key, voxels })
 }
 
-/// Calls `hit` for every voxel in the closed index box `[lo, hi]` whose cube
-/// the triangle touches. Columns along the dominant normal axis are narrowed
+/// Which voxels a triangle sets (Laine, "A topological approach to
+/// voxelization", via seed 003 §3.1.2). Each voxel has a *target* inside its
+/// closed cube; the voxel is set iff the triangle meets the target.
+///
+/// - `Conservative`: the whole cube. Every voxel the surface touches.
+/// - `Separating26`: the 13 segments through the centre to the 26 neighbours'
+///   directions. A 26-connected path of unset voxels steps between centres
+///   along exactly those segments, so it cannot cross a closed surface.
+/// - `Separating6`: the 3 axis segments through the centre; blocks 6-paths.
+///
+/// Targets nest, so 6-separating ⊆ 26-separating ⊆ conservative.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Topology {
+    #[default]
+    Conservative,
+    Separating26,
+    Separating6,
+}
+
+impl Topology {
+    pub fn name(self) -> &'static str {
+        match self {
+            Topology::Conservative => "conservative",
+            Topology::Separating26 => "26-separating",
+            Topology::Separating6 => "6-separating",
+        }
+    }
+}
+
+/// Half-extents (in voxels) of the target segments through a voxel centre:
+/// 3 axes, then 6 face diagonals, then 4 body diagonals.
+const TARGET_SEGMENTS: [[f64; 3]; 13] = [
+    [0.5, 0.0, 0.0],
+    [0.0, 0.5, 0.0],
+    [0.0, 0.0, 0.5],
+    [0.5, 0.5, 0.0],
+    [0.5, -0.5, 0.0],
+    [0.5, 0.0, 0.5],
+    [0.5, 0.0, -0.5],
+    [0.0, 0.5, 0.5],
+    [0.0, 0.5, -0.5],
+    [0.5, 0.5, 0.5],
+    [0.5, 0.5, -0.5],
+    [0.5, -0.5, 0.5],
+    [0.5, -0.5, -0.5],
+];
+
+fn orient(a: [f64; 3], b: [f64; 3], c: [f64; 3], d: [f64; 3]) -> f64 {
+    dot(cross(sub(b, a), sub(c, a)), sub(d, a))
+}
+
+fn norm(a: [f64; 3]) -> f64 {
+    dot(a, a).sqrt()
+}
+
+/// Closed segment–triangle test by signed volumes, with a tolerance that only
+/// ever adds hits. A segment lying in the triangle's plane counts as a hit:
+/// keeping such a voxel can only thicken the surface, never open a hole.
+pub fn segment_meets_triangle(p0: [f64; 3], p1: [f64; 3], t: &[[f64; 3]; 3]) -> bool {
+    const REL: f64 = 1e-10;
+    let n = norm(cross(sub(t[1], t[0]), sub(t[2], t[0])));
+    let seg = norm(sub(p1, p0));
+    let (d0, d1) = (orient(t[0], t[1], t[2], p0), orient(t[0], t[1], t[2], p1));
+    let eps_d = REL * n * (1.0 + seg);
+    if (d0 > eps_d && d1 > eps_d) || (d0 < -eps_d && d1 < -eps_d) {
+        return false;
+    }
+    if d0.abs() <= eps_d && d1.abs() <= eps_d {
+        return true;
+    }
+    let r = t.iter().map(|&q| norm(sub(q, p0))).fold(0.0, f64::max);
+    let eps_s = REL * seg * r * r;
+    let s = [orient(p0, p1, t[0], t[1]), orient(p0, p1, t[1], t[2]), orient(p0, p1, t[2], t[0])];
+    let any_neg = s.iter().any(|&v| v < -eps_s);
+    let any_pos = s.iter().any(|&v| v > eps_s);
+    !(any_neg && any_pos)
+}
+
+/// Whether the triangle meets voxel `c`'s target for `topology`.
+pub fn triangle_meets_target(tri: &[[f64; 3]; 3], c: [i64; 3], topology: Topology) -> bool {
+    if !triangle_touches_voxel(tri, c) {
+        return false; // every target lies inside the closed cube
+    }
+    let segments = match topology {
+        Topology::Conservative => return true,
+        Topology::Separating26 => &TARGET_SEGMENTS[..],
+        Topology::Separating6 => &TARGET_SEGMENTS[..3],
+    };
+    let m = c.map(|v| v as f64 + 0.5);
+    segments.iter().any(|h| {
+        let p0 = [m[0] - h[0], m[1] - h[1], m[2] - h[2]];
+        let p1 = [m[0] + h[0], m[1] + h[1], m[2] + h[2]];
+        segment_meets_triangle(p0, p1, tri)
+    })
+}
+
+/// Calls `hit` for every voxel in the closed index box `[lo, hi]` whose
+/// `topology` target the triangle meets. Columns along the dominant normal axis are narrowed
 /// to the slab the triangle's plane crosses, so large triangles cost their
 /// area, not their bounding volume.
 pub fn for_each_touched_voxel(
@@ -233,6 +337,7 @@ pub fn for_each_touched_voxel(
     n: [f64; 3],
     lo: [i64; 3],
     hi: [i64; 3],
+    topology: Topology,
     mut hit: impl FnMut([i64; 3]),
 ) {
     let w = (0..3).max_by(|&a, &b| n[a].abs().total_cmp(&n[b].abs())).unwrap_or(2);
@@ -255,7 +360,7 @@ pub fn for_each_touched_voxel(
                 c[u] = cu;
                 c[v] = cv;
                 c[w] = cw;
-                if triangle_touches_voxel(tri, c) {
+                if triangle_meets_target(tri, c, topology) {
                     hit(c);
                 }
             }

@@ -48,7 +48,7 @@ async fn serves_what_the_store_holds() {
     let mesh = dir.path().join("Box Scan.obj");
     write_test_mesh(&mesh);
     let store = dir.path().join("store");
-    let report = build_scene(&mesh, &store, &BuildOptions { resolution: 256, name: None }).unwrap();
+    let report = build_scene(&mesh, &store, &BuildOptions { resolution: 256, ..Default::default() }).unwrap();
     assert_eq!(report.id, "box-scan");
     assert_eq!(report.levels, 3);
     let base = start(&store).await;
@@ -120,9 +120,9 @@ async fn rebuild_replaces_a_scene_atomically_and_bad_input_leaves_no_trace() {
     let mesh = dir.path().join("box.obj");
     write_test_mesh(&mesh);
     let store = dir.path().join("store");
-    build_scene(&mesh, &store, &BuildOptions { resolution: 64, name: None }).unwrap();
+    build_scene(&mesh, &store, &BuildOptions { resolution: 64, ..Default::default() }).unwrap();
     let first = std::fs::read(store.join("box/manifest.json")).unwrap();
-    build_scene(&mesh, &store, &BuildOptions { resolution: 128, name: None }).unwrap();
+    build_scene(&mesh, &store, &BuildOptions { resolution: 128, ..Default::default() }).unwrap();
     let second = Manifest::from_json(&std::fs::read(store.join("box/manifest.json")).unwrap()).unwrap();
     assert_ne!(first, second.to_json());
     assert_eq!(second.grid.resolution, 128);

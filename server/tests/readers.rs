@@ -185,7 +185,7 @@ fn build_scene_accepts_stl_and_glb() {
     std::fs::write(&stl, write_binary_stl(&mesh)).unwrap();
 
     for (input, format, triangles, skipped) in [(&stl, "stl", 5, 1), (&glb, "glb", 4, 0)] {
-        let opts = BuildOptions { resolution: 64, name: None };
+        let opts = BuildOptions { resolution: 64, ..Default::default() };
         let report = build_scene(input, &store, &opts).unwrap_or_else(|e| panic!("{format}: {e}"));
         assert_eq!((report.triangles, report.skipped_triangles), (triangles, skipped), "{format}");
         assert!(report.voxels > 0 && report.blocks > 0, "{format}: {report:?}");
