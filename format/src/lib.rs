@@ -18,7 +18,7 @@ pub use manifest::{
     BlockEntry, FORMAT_VERSION, GridFrame, LevelInfo, Manifest, ManifestError, SceneSummary, SourceInfo,
     VoxelBounds,
 };
-pub use voxel::{Block, Face, PackedVoxel, morton3, oct_decode, oct_encode};
+pub use voxel::{Block, Face, PackedVoxel, demorton3, morton3, oct_decode, oct_encode};
 
 /// Voxels per block edge (seed 003 uses 64³ blocks).
 pub const BLOCK_SIZE: u32 = 64;

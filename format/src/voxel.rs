@@ -92,6 +92,20 @@ pub fn morton3(x: u32, y: u32, z: u32) -> u32 {
     spread3(x) | spread3(y) << 1 | spread3(z) << 2
 }
 
+fn squash3(v: u32) -> u32 {
+    // Inverse of spread3: keep every third bit and pack them together.
+    let mut x = v & 0x0924_9249;
+    x = (x | (x >> 2)) & 0x030c_30c3;
+    x = (x | (x >> 4)) & 0x0300_f00f;
+    x = (x | (x >> 8)) & 0x0300_00ff;
+    (x | (x >> 16)) & 0x3ff
+}
+
+/// Inverse of [`morton3`].
+pub fn demorton3(m: u32) -> [u32; 3] {
+    [squash3(m), squash3(m >> 1), squash3(m >> 2)]
+}
+
 fn snorm16(v: f32) -> u32 {
     ((v.clamp(-1.0, 1.0) * 32767.0).round() as i16) as u16 as u32
 }
@@ -138,6 +152,13 @@ mod tests {
         assert_eq!(morton3(0, 1, 0), 2);
         assert_eq!(morton3(0, 0, 1), 4);
         assert_eq!(morton3(63, 63, 63), (1 << 18) - 1);
+    }
+
+    #[test]
+    fn demorton_inverts_morton() {
+        for p in [[0, 0, 0], [63, 0, 5], [17, 42, 63], [1023, 1, 512]] {
+            assert_eq!(demorton3(morton3(p[0], p[1], p[2])), p);
+        }
     }
 
     #[test]

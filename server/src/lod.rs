@@ -9,24 +9,13 @@
 use std::collections::BTreeMap;
 
 use rayon::prelude::*;
-use voxstream_format::{BLOCK_SIZE, BLOCK_VOXELS, BlockKey, Face, morton3};
+use voxstream_format::{BLOCK_SIZE, BLOCK_VOXELS, BlockKey, Face, demorton3, morton3};
 
 use crate::voxelize::{BuildVoxel, SparseBlock};
 
-fn demorton(m: u32) -> [u32; 3] {
-    let squash = |mut x: u32| {
-        x &= 0x0924_9249;
-        x = (x | (x >> 2)) & 0x030c_30c3;
-        x = (x | (x >> 4)) & 0x0300_f00f;
-        x = (x | (x >> 8)) & 0x0300_00ff;
-        (x | (x >> 16)) & 0x3ff
-    };
-    [squash(m), squash(m >> 1), squash(m >> 2)]
-}
-
 /// Block-local position of a voxel.
 pub fn local_position(v: &BuildVoxel) -> [u32; 3] {
-    demorton(v.morton)
+    demorton3(v.morton)
 }
 
 /// Marks each voxel's faces whose neighbour inside the block is empty, and
@@ -41,7 +30,7 @@ pub fn mark_exposed_faces(block: &mut SparseBlock) {
         occupied[m as usize / 64] & (1 << (m % 64)) != 0
     };
     for v in &mut block.voxels {
-        let p = demorton(v.morton);
+        let p = demorton3(v.morton);
         let mut mask = 0u8;
         for f in Face::ALL {
             let a = f.axis();
@@ -77,7 +66,7 @@ pub fn merge_children(key: BlockKey, children: &[&SparseBlock]) -> Option<Sparse
         debug_assert_eq!(child.key.parent(), key);
         let octant = child.key.coord().map(|c| (c & 1) * (BLOCK_SIZE / 2));
         for v in &child.voxels {
-            let p = demorton(v.morton);
+            let p = demorton3(v.morton);
             let q = [0, 1, 2].map(|a| octant[a] + p[a] / 2);
             let m = morton3(q[0], q[1], q[2]) as usize;
             faces[m] |= v.faces;
@@ -137,13 +126,6 @@ mod tests {
             .collect();
         voxels.sort_by_key(|v| v.morton);
         SparseBlock { key, voxels }
-    }
-
-    #[test]
-    fn demorton_inverts_morton() {
-        for p in [[0, 0, 0], [63, 0, 5], [17, 42, 63], [1023, 1, 512]] {
-            assert_eq!(demorton(morton3(p[0], p[1], p[2])), p);
-        }
     }
 
     #[test]

@@ -62,11 +62,7 @@ pub fn check_resolution(resolution: u32) -> Result<(), VoxelizeError> {
 /// A triangle in grid units, or `None` when it is degenerate or non-finite.
 fn to_grid(tri: [[f64; 3]; 3], frame: &GridFrame) -> Option<[[f64; 3]; 3]> {
     let t = tri.map(|p| std::array::from_fn(|a| (p[a] - frame.origin[a]) / frame.voxel_size));
-    if t.iter().flatten().any(|c: &f64| !c.is_finite()) {
-        return None;
-    }
-    let n = cross(sub(t[1], t[0]), sub(t[2], t[0]));
-    (dot(n, n) > 0.0).then_some(t)
+    valid_triangle(&t).then_some(t)
 }
 
 fn valid_triangle(tri: &[[f64; 3]; 3]) -> bool {

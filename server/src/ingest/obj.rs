@@ -21,8 +21,14 @@ pub(super) fn read(bytes: &[u8]) -> Result<TriangleMesh, IngestError> {
         let count = m.positions.len() / 3;
         mesh.positions.extend(m.positions.chunks_exact(3).map(|p| [p[0], p[1], p[2]]));
         let mut start = 0usize;
-        let arities: Vec<u32> =
-            if m.face_arities.is_empty() { vec![3; m.indices.len() / 3] } else { m.face_arities.clone() };
+        // tobj leaves face_arities empty when every face is a triangle.
+        let all_triangles;
+        let arities: &[u32] = if m.face_arities.is_empty() {
+            all_triangles = vec![3; m.indices.len() / 3];
+            &all_triangles
+        } else {
+            &m.face_arities
+        };
         for (face, &arity) in arities.iter().enumerate() {
             let end = start + arity as usize;
             let Some(poly) = m.indices.get(start..end) else {
