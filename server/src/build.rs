@@ -1,6 +1,8 @@
 //! The build pipeline: ingest → voxelize → lod → store, as one call.
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use voxstream_format::SourceInfo;
@@ -19,11 +21,23 @@ pub struct BuildOptions {
     pub name: Option<String>,
     /// Which voxels a triangle sets.
     pub topology: Topology,
+    /// Set to true from another thread to stop the build; it then returns
+    /// [`BuildError::Cancelled`] and publishes nothing.
+    pub cancel: Option<Arc<AtomicBool>>,
+}
+
+impl BuildOptions {
+    pub fn check_cancelled(&self) -> Result<(), BuildError> {
+        match &self.cancel {
+            Some(flag) if flag.load(Ordering::Relaxed) => Err(BuildError::Cancelled),
+            _ => Ok(()),
+        }
+    }
 }
 
 impl Default for BuildOptions {
     fn default() -> Self {
-        Self { resolution: 512, name: None, topology: Topology::Conservative }
+        Self { resolution: 512, name: None, topology: Topology::Conservative, cancel: None }
     }
 }
 
@@ -50,6 +64,8 @@ pub enum BuildError {
     Voxelize(#[from] VoxelizeError),
     #[error(transparent)]
     Store(#[from] StoreError),
+    #[error("the build was cancelled")]
+    Cancelled,
 }
 
 pub fn build_scene(input: &Path, store_dir: &Path, opts: &BuildOptions) -> Result<BuildReport, BuildError> {
@@ -77,12 +93,15 @@ pub fn build_scene_reporting(
     let (mesh, format) = ingest::read_mesh(input)?;
     progress.set_triangles(mesh.triangles.len() as u64);
     progress.stage(Stage::Read, 1.0);
+    opts.check_cancelled()?;
     let frame = voxelize::choose_frame(&mesh, opts.resolution)?;
     let (level0, stats) = voxelize::voxelize_reporting(&mesh, &frame, opts.topology, &progress)?;
     drop(mesh);
+    opts.check_cancelled()?;
     progress.stage(Stage::Lod, 0.0);
     let levels = lod::build_levels(level0, frame.resolution);
     progress.stage(Stage::Lod, 1.0);
+    opts.check_cancelled()?;
     let content = SceneContent {
         name: id.clone(),
         source: SourceInfo {

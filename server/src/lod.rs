@@ -59,8 +59,9 @@ pub fn mark_exposed_faces(block: &mut SparseBlock) {
 
 /// Builds the parent block `key` from its children (any may be missing).
 pub fn merge_children(key: BlockKey, children: &[&SparseBlock]) -> Option<SparseBlock> {
-    let mut faces = vec![0u8; BLOCK_VOXELS];
-    let mut normals = vec![[0f32; 3]; BLOCK_VOXELS];
+    // Dense accumulator indexed by parent-local Morton; `faces == 0` marks an empty slot
+    // because merged children only ever hold voxels with exposed faces.
+    let mut acc = vec![BuildVoxel::EMPTY; BLOCK_VOXELS];
     let mut any = false;
     for child in children {
         debug_assert_eq!(child.key.parent(), key);
@@ -68,21 +69,22 @@ pub fn merge_children(key: BlockKey, children: &[&SparseBlock]) -> Option<Sparse
         for v in &child.voxels {
             let p = demorton3(v.morton);
             let q = [0, 1, 2].map(|a| octant[a] + p[a] / 2);
-            let m = morton3(q[0], q[1], q[2]) as usize;
-            faces[m] |= v.faces;
-            for (sum, n) in normals[m].iter_mut().zip(v.normal_sum) {
-                *sum += n;
+            let m = morton3(q[0], q[1], q[2]);
+            let slot = &mut acc[m as usize];
+            slot.morton = m;
+            slot.faces |= v.faces;
+            for a in 0..3 {
+                slot.normal_sum[a] += v.normal_sum[a];
+                slot.color_sum[a] += v.color_sum[a];
             }
+            slot.color_weight += v.color_weight;
             any = true;
         }
     }
     if !any {
         return None;
     }
-    let voxels = (0..BLOCK_VOXELS as u32)
-        .filter(|&m| faces[m as usize] != 0)
-        .map(|m| BuildVoxel { morton: m, normal_sum: normals[m as usize], faces: faces[m as usize] })
-        .collect();
+    let voxels = acc.into_iter().filter(|v| v.faces != 0).collect();
     Some(SparseBlock { key, voxels })
 }
 
@@ -122,7 +124,11 @@ mod tests {
     fn block_of(key: BlockKey, points: &[[u32; 3]]) -> SparseBlock {
         let mut voxels: Vec<BuildVoxel> = points
             .iter()
-            .map(|p| BuildVoxel { morton: morton3(p[0], p[1], p[2]), normal_sum: [0.0, 0.0, 1.0], faces: 0 })
+            .map(|p| BuildVoxel {
+                morton: morton3(p[0], p[1], p[2]),
+                normal_sum: [0.0, 0.0, 1.0],
+                ..BuildVoxel::EMPTY
+            })
             .collect();
         voxels.sort_by_key(|v| v.morton);
         SparseBlock { key, voxels }

@@ -102,8 +102,12 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 bar.set_position((p.fraction * 1000.0) as u64);
                 bar.set_message(format!("{} {:.2} Mtri/s", p.stage.name(), p.triangles_per_second / 1e6));
             };
-            let result =
-                build_scene_reporting(&mesh, &out, &BuildOptions { resolution, name, topology }, &report);
+            let result = build_scene_reporting(
+                &mesh,
+                &out,
+                &BuildOptions { resolution, name, topology, cancel: None },
+                &report,
+            );
             bar.finish_and_clear();
             let r = result?;
             println!(

@@ -22,8 +22,17 @@ pub struct BuildVoxel {
     pub morton: u32,
     /// Area-weighted sum of the normals of the triangles touching the voxel.
     pub normal_sum: [f32; 3],
+    /// Area-weighted sum of linear RGB colours in [0, 1]; all zero when the input has none.
+    pub color_sum: [f32; 3],
+    /// Total area behind `color_sum`; 0 means "no colour".
+    pub color_weight: f32,
     /// Exposed-face mask; filled in by the LOD stage.
     pub faces: u8,
+}
+
+impl BuildVoxel {
+    pub const EMPTY: BuildVoxel =
+        BuildVoxel { morton: 0, normal_sum: [0.0; 3], color_sum: [0.0; 3], color_weight: 0.0, faces: 0 };
 }
 
 /// One block's voxels in strictly increasing Morton order.
@@ -196,7 +205,7 @@ impl DenseBrick {
             while bits != 0 {
                 let m = (w * 64) as u32 + bits.trailing_zeros();
                 bits &= bits - 1;
-                out.push(BuildVoxel { morton: m, normal_sum: self.normals[m as usize], faces: 0 });
+                out.push(BuildVoxel { morton: m, normal_sum: self.normals[m as usize], ..BuildVoxel::EMPTY });
             }
         }
         out
