@@ -167,8 +167,16 @@ impl VoxelColumns {
             morton: v.iter().map(PackedVoxel::morton).collect(),
             faces: v.iter().map(PackedVoxel::faces).collect(),
             normal: v.iter().map(|v| v.normal as u16).collect(),
-            coverage: if block.key.level == 0 { Vec::new() } else { v.iter().map(|v| v.coverage()).collect() },
-            color: if has_color { v.iter().map(|v| v.color().unwrap_or([0; 3])).collect() } else { Vec::new() },
+            coverage: if block.key.level == 0 {
+                Vec::new()
+            } else {
+                v.iter().map(|v| v.coverage()).collect()
+            },
+            color: if has_color {
+                v.iter().map(|v| v.color().unwrap_or([0; 3])).collect()
+            } else {
+                Vec::new()
+            },
         }
     }
 
@@ -184,7 +192,8 @@ impl VoxelColumns {
     fn sections(&self) -> [Vec<u8>; 5] {
         let n = self.len();
         let occupancy = octree_masks(self.depth, &self.morton);
-        let faces = self.faces.iter().zip(predicted_faces(self.depth, &self.morton)).map(|(f, p)| f ^ p).collect();
+        let faces =
+            self.faces.iter().zip(predicted_faces(self.depth, &self.morton)).map(|(f, p)| f ^ p).collect();
         let mut normals = Vec::with_capacity(2 * n);
         delta_plane(self.normal.iter().map(|n| *n as u8), &mut normals);
         delta_plane(self.normal.iter().map(|n| (n >> 8) as u8), &mut normals);
@@ -551,7 +560,8 @@ mod tests {
             any::<bool>(),
         )
             .prop_map(|(level, v, colored)| {
-                let mut v: Vec<_> = v.into_iter().map(|((x, y, z), f, n, c, rgb)| (morton3(x, y, z), f, n, c, rgb)).collect();
+                let mut v: Vec<_> =
+                    v.into_iter().map(|((x, y, z), f, n, c, rgb)| (morton3(x, y, z), f, n, c, rgb)).collect();
                 v.sort_by_key(|t| t.0);
                 v.dedup_by_key(|t| t.0);
                 let voxels = v

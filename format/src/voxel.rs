@@ -219,7 +219,10 @@ mod tests {
         assert_eq!(v.coverage(), FULL_COVERAGE);
         assert_eq!(v.color(), None);
         let v = v.with_coverage(9).with_color([1, 2, 250]);
-        assert_eq!((v.local(), v.faces(), v.coverage(), v.color()), ([63, 5, 17], 0b101101, 9, Some([1, 2, 250])));
+        assert_eq!(
+            (v.local(), v.faces(), v.coverage(), v.color()),
+            ([63, 5, 17], 0b101101, 9, Some([1, 2, 250]))
+        );
     }
 
     #[test]
