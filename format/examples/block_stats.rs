@@ -89,7 +89,11 @@ fn measure_block_size(levels: &[Vec<Voxel>], depth: u32) -> SizeStats {
                 faces: vs.iter().map(|(_, v)| v.faces).collect(),
                 normal: vs.iter().map(|(_, v)| v.normal).collect(),
                 coverage: if level == 0 { Vec::new() } else { vs.iter().map(|(_, v)| v.coverage).collect() },
-                color: if has_color { vs.iter().map(|(_, v)| v.color.unwrap_or([0; 3])).collect() } else { Vec::new() },
+                color: if has_color {
+                    vs.iter().map(|(_, v)| v.color.unwrap_or([0; 3])).collect()
+                } else {
+                    Vec::new()
+                },
             };
             let (packed, raw_len) = encode_columns(&c);
             encoded.push((packed, raw_len, c.len(), level > 0, has_color));
@@ -162,8 +166,7 @@ fn main() {
             });
         }
     }
-    let sizes: Vec<SizeStats> =
-        [5, 6, 7].iter().map(|&d| measure_block_size(&levels, d)).collect();
+    let sizes: Vec<SizeStats> = [5, 6, 7].iter().map(|&d| measure_block_size(&levels, d)).collect();
 
     let triangles = manifest.source.triangles as f64;
     let size_rows: Vec<serde_json::Value> = sizes

@@ -207,7 +207,10 @@ impl Offscreen {
     pub fn face_records(&self, key: &BlockKey) -> Result<Vec<[u32; 3]>, OffscreenError> {
         let Some(gpu) = self.scene.gpu_block(key) else { return Ok(Vec::new()) };
         let bytes = read_buffer(&self.renderer, &gpu.face_buffer)?;
-        Ok(bytes.chunks_exact(crate::expand::FACE_RECORD_BYTES as usize).map(bytemuck::pod_read_unaligned).collect())
+        Ok(bytes
+            .chunks_exact(crate::expand::FACE_RECORD_BYTES as usize)
+            .map(bytemuck::pod_read_unaligned)
+            .collect())
     }
 }
 
