@@ -157,7 +157,11 @@ pub fn median_u64(values: &[u64]) -> Option<u64> {
     let mut v = values.to_vec();
     v.sort_unstable();
     let mid = v.len() / 2;
-    Some(if v.len() % 2 == 1 { v[mid] } else { v[mid - 1] / 2 + v[mid] / 2 + (v[mid - 1] % 2 + v[mid] % 2) / 2 })
+    Some(if v.len() % 2 == 1 {
+        v[mid]
+    } else {
+        v[mid - 1] / 2 + v[mid] / 2 + (v[mid - 1] % 2 + v[mid] % 2) / 2
+    })
 }
 
 #[cfg(test)]
@@ -211,8 +215,8 @@ mod tests {
         assert!(run.stderr.contains("records in"), "{}", run.stderr);
         assert!(run.wall_seconds > 0.0);
 
-        let run = run_child(Command::new("sh").args(["-c", "echo hi; echo oops >&2; exit 3"]), dir.path())
-            .unwrap();
+        let run =
+            run_child(Command::new("sh").args(["-c", "echo hi; echo oops >&2; exit 3"]), dir.path()).unwrap();
         assert!(!run.succeeded());
         assert_eq!((run.exit_code, run.signal), (Some(3), None));
         assert_eq!(run.stdout, "hi\n");

@@ -45,7 +45,10 @@ impl ClodStats {
     /// reference per cluster vertex, 3 u8 local indices per triangle, and a
     /// 20-byte bounds record (centre, radius, error) per cluster and per group.
     pub fn stored_bytes_estimate(&self, vertices: u64) -> u64 {
-        12 * vertices + 4 * self.cluster_vertex_refs + 3 * self.cluster_triangles + 20 * (self.clusters + self.groups)
+        12 * vertices
+            + 4 * self.cluster_vertex_refs
+            + 3 * self.cluster_triangles
+            + 20 * (self.clusters + self.groups)
     }
 }
 
@@ -198,8 +201,7 @@ pub fn run_peer(input: &std::path::Path, threads: usize) -> anyhow::Result<PeerR
         let vertices_stored = slabs.iter().map(|(v, _)| v.len() as u64).sum();
         let t = Instant::now();
         let dags: Vec<ClodStats> = std::thread::scope(|s| {
-            let handles: Vec<_> =
-                slabs.iter().map(|(v, i)| s.spawn(move || clod_dag(v, i))).collect();
+            let handles: Vec<_> = slabs.iter().map(|(v, i)| s.spawn(move || clod_dag(v, i))).collect();
             handles.into_iter().map(|h| h.join().expect("clod thread panicked")).collect()
         });
         let mut dag = ClodStats::default();

@@ -82,9 +82,7 @@ pub fn summarize_runs(
         cpu_utilization_median: median(&utilization),
         peak_rss_bytes_median: median_u64(&rss),
         peak_rss_bytes: rss,
-        peak_rss_over_budget: budget_bytes
-            .zip(peak_rss_bytes_max)
-            .map(|(b, m)| m as f64 / b.max(1) as f64),
+        peak_rss_over_budget: budget_bytes.zip(peak_rss_bytes_max).map(|(b, m)| m as f64 / b.max(1) as f64),
         within_budget: budget_bytes.zip(peak_rss_bytes_max).map(|(b, m)| m <= b),
         peak_rss_bytes_max,
     }
@@ -125,7 +123,11 @@ pub struct PeerThreadSummary {
     pub self_reported_peak_rss_bytes_max: Option<u64>,
 }
 
-pub fn summarize_peer(threads: usize, runs: &[(RunSample, PeerRun)], failures: Vec<String>) -> PeerThreadSummary {
+pub fn summarize_peer(
+    threads: usize,
+    runs: &[(RunSample, PeerRun)],
+    failures: Vec<String>,
+) -> PeerThreadSummary {
     let pick = |f: &dyn Fn(&(RunSample, PeerRun)) -> f64| median(&runs.iter().map(f).collect::<Vec<_>>());
     let tri_per_s_median = pick(&|(s, p)| p.input_triangles as f64 / s.wall_seconds);
     let rss: Vec<u64> = runs.iter().map(|(s, _)| s.peak_rss_bytes).collect();
@@ -353,7 +355,8 @@ mod tests {
         let mut v = VoxstreamReport::default();
         for &(n, wall) in rates {
             let budget = within.map(|ok| if ok { 1 << 30 } else { 1 });
-            v.threads.insert(n.to_string(), summarize_runs(4_000_000, n, &[sample(wall, 64)], vec![], budget));
+            v.threads
+                .insert(n.to_string(), summarize_runs(4_000_000, n, &[sample(wall, 64)], vec![], budget));
         }
         v
     }
@@ -392,7 +395,8 @@ mod tests {
         assert_eq!(g2.faster_than_meshopt, None);
 
         let failed = summarize_runs(4_000_000, 1, &[], vec!["killed".into()], None);
-        let broken = VoxstreamReport { threads: BTreeMap::from([("1".into(), failed)]), ..Default::default() };
+        let broken =
+            VoxstreamReport { threads: BTreeMap::from([("1".into(), failed)]), ..Default::default() };
         let g3 = evaluate_goals(&broken, &PeerReport::default());
         assert_eq!(g3.tri_per_s_per_core_2m, Some(false));
         assert!(!g3.all_runs_succeeded);
@@ -407,7 +411,8 @@ mod tests {
 
     #[test]
     fn peer_summary_separates_clod_time() {
-        let runs = [(sample(5.0, 512), peer_run(10_000_000, 2.0)), (sample(3.0, 256), peer_run(10_000_000, 4.0))];
+        let runs =
+            [(sample(5.0, 512), peer_run(10_000_000, 2.0)), (sample(3.0, 256), peer_run(10_000_000, 4.0))];
         let s = summarize_peer(1, &runs, vec![]);
         assert_eq!(s.wall_seconds_median, Some(4.0));
         assert_eq!(s.clod_seconds_median, Some(3.0));
