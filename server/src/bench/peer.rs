@@ -182,13 +182,17 @@ pub struct PeerRun {
 pub fn run_peer(input: &std::path::Path, threads: usize) -> anyhow::Result<PeerRun> {
     let threads = threads.max(1);
     let start = Instant::now();
-    let (mesh, _) = crate::ingest::read_mesh(input)?;
+    let (mut mesh, _) = crate::ingest::read_mesh(input)?;
     let parse_seconds = start.elapsed().as_secs_f64();
     let input_triangles = mesh.triangles.len() as u64;
     let vertices_in = mesh.positions.len() as u64;
 
+    let partitions = threads.min(mesh.triangles.len().max(1));
     let t = Instant::now();
     let positions = to_f32_relative(&mesh.positions);
+    // The peer keeps only what meshoptimizer reads (f32 positions, u32 indices), so its
+    // peak RSS is not inflated by our f64 copy.
+    mesh.positions = Vec::new();
     let (dag, prepare_seconds, clod_seconds, vertices_stored) = if threads == 1 {
         let prepare_seconds = t.elapsed().as_secs_f64();
         let t = Instant::now();
@@ -197,6 +201,7 @@ pub fn run_peer(input: &std::path::Path, threads: usize) -> anyhow::Result<PeerR
     } else {
         let slabs = partition_by_slabs(&positions, &mesh.triangles, threads);
         drop(positions);
+        mesh.triangles = Vec::new();
         let prepare_seconds = t.elapsed().as_secs_f64();
         let vertices_stored = slabs.iter().map(|(v, _)| v.len() as u64).sum();
         let t = Instant::now();
@@ -212,7 +217,7 @@ pub fn run_peer(input: &std::path::Path, threads: usize) -> anyhow::Result<PeerR
         input_triangles,
         vertices: vertices_in,
         threads,
-        partitions: threads.min(mesh.triangles.len().max(1)),
+        partitions,
         cluster_triangles_max: CLUSTER_TRIANGLES,
         parse_seconds,
         prepare_seconds,
