@@ -15,7 +15,10 @@ fn read_without_panic(bytes: &[u8], format: MeshFormat) -> Result<TriangleMesh, 
                 .cloned()
                 .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
                 .unwrap_or_default();
-            panic!("read_mesh_bytes({format}) panicked: {message}\ninput: {:?}", String::from_utf8_lossy(bytes))
+            panic!(
+                "read_mesh_bytes({format}) panicked: {message}\ninput: {:?}",
+                String::from_utf8_lossy(bytes)
+            )
         }
     }
 }
