@@ -8,7 +8,9 @@
 # RUSTC_BOOTSTRAP=1 for -Zsanitizer=address. Inputs that crash land in fuzz/artifacts/<target>/,
 # the growing corpus in fuzz/corpus/<target>/ (neither is committed); the committed seeds are
 # fuzz/seeds/<target>/. Prints executions, run time and crashes per target; exits non-zero when
-# any target found something.
+# any target found something. libFuzzer stops at the first crash; FUZZ_KEEP_GOING=1 runs in fork
+# mode instead (-fork=1 -ignore_crashes=1 ...), so one known crash does not end the run and every
+# crashing input is written.
 set -uo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -39,6 +41,11 @@ fi
 
 cargo fuzz build --fuzz-dir fuzz --target-dir "$FUZZ_TARGET" || exit 1
 
+KEEP_GOING=()
+if [ "${FUZZ_KEEP_GOING:-0}" = "1" ]; then
+  KEEP_GOING=(-fork=1 -ignore_crashes=1 -ignore_timeouts=1 -ignore_ooms=1)
+fi
+
 LOGS="$FUZZ_TARGET/logs"
 mkdir -p "$LOGS"
 FOUND=()
@@ -48,14 +55,16 @@ for t in "${TARGETS[@]}"; do
   before=$(find "fuzz/artifacts/$t" -type f | wc -l)
   echo "fuzz: $t for ${DURATION}s" >&2
   # -timeout: an input that takes 10 s is a finding (quadratic parsing) on these small inputs.
+  start=$SECONDS
   cargo fuzz run --fuzz-dir fuzz --target-dir "$FUZZ_TARGET" --jobs 1 "$t" "fuzz/corpus/$t" "fuzz/seeds/$t" -- \
-    -max_total_time="$DURATION" -max_len=16384 -timeout=10 -print_final_stats=1 \
+    -max_total_time="$DURATION" -max_len=16384 -timeout=10 -print_final_stats=1 "${KEEP_GOING[@]}" \
     >"$LOGS/$t.log" 2>&1
   rc=$?
   after=$(find "fuzz/artifacts/$t" -type f | wc -l)
-  runs=$(grep -oE 'Done [0-9]+ runs in [0-9]+ second' "$LOGS/$t.log" | tail -1)
+  # "#N" opens every libFuzzer status line, in plain and in fork mode: N = executions so far.
+  runs=$(grep -oE '^#[0-9]+' "$LOGS/$t.log" | tail -1 | tr -d '#')
   crashes=$((after - before))
-  SUMMARY+=("$t: ${runs:-no final stats (exit $rc)}; new crash files: $crashes; log $LOGS/$t.log")
+  SUMMARY+=("$t: ${runs:-?} executions in $((SECONDS - start)) s, exit $rc, new crash files: $crashes; log $LOGS/$t.log")
   if [ "$rc" -ne 0 ] || [ "$crashes" -gt 0 ]; then
     FOUND+=("$t")
     grep -E 'panicked|ERROR: |SUMMARY|Test unit written' "$LOGS/$t.log" | head -20 >&2

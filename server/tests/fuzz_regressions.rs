@@ -33,6 +33,15 @@ fn obj_negative_normal_index_before_the_first_normal_is_an_error() {
     assert!(matches!(e, IngestError::Parse { format: MeshFormat::Obj, .. }), "{e}");
 }
 
+/// fuzz target ingest_obj: the same underflow for texture coordinates (`vt * 2`
+/// overflows at tobj 4.0.5 lib.rs:1055).
+#[test]
+fn obj_negative_texcoord_index_before_the_first_texcoord_is_an_error() {
+    let obj = b"v 0 0 0\nv 0 1 0\nv 0 0 1\nvt 0 0\nf 1/-3 2/1 3/1\n";
+    let e = read_without_panic(obj, MeshFormat::Obj).unwrap_err();
+    assert!(matches!(e, IngestError::Parse { format: MeshFormat::Obj, .. }), "{e}");
+}
+
 /// fuzz target ingest_gltf: a primitive whose POSITION names an accessor that
 /// does not exist; gltf-json 1.4.1's own validation indexes `root.accessors`
 /// with it before checking (mesh.rs:151), called from ingest/gltf.rs `validate`.
