@@ -6,6 +6,7 @@
 #   1. scripts/setup.sh          installs what is missing (quick when all is there)
 #   2. cargo fmt --check         formatting (rustfmt.toml at the root)
 #   3. cargo clippy -D warnings  all targets of the workspace
+#      cargo check fuzz/          the fuzz targets still compile (not run: scripts/fuzz.sh)
 #   4. scripts/build-web.sh      wasm viewer bundle into viewer-wasm/dist (the browser test serves it)
 #   5. cargo test --workspace    unit, property, server integration, native render on lavapipe,
 #                                browser end-to-end (headless Chromium, SwiftShader WebGPU)
@@ -90,6 +91,10 @@ step "fmt" cargo fmt --all -- --check
 step "shell syntax" shell_syntax
 step "node syntax" node --check tests/browser/e2e.mjs
 step "clippy" cargo clippy --workspace --all-targets "${LOCKED[@]}" -- -D warnings
+# The fuzz crate is outside the workspace; type-check its targets against the current APIs
+# (stable rustc, no libFuzzer C++ build: see DEVELOPERS.md, "Fuzzing"). Running them is scripts/fuzz.sh.
+# Not --locked: fuzz/Cargo.lock follows the server's dependencies, which change without it.
+step "fuzz targets compile" cargo check --manifest-path fuzz/Cargo.toml --no-default-features --bins
 step "build-web" build_web
 step "cargo test" cargo test --workspace "${LOCKED[@]}" "${PROFILE_ARGS[@]}" "$@"
 

@@ -2,8 +2,10 @@
 //!
 //! Data flows one way: [`ingest`] → [`voxelize`] → [`lod`] → [`store`] → [`http`];
 //! [`build`] runs the first four as one call, reporting [`progress`];
-//! [`synth`] writes synthetic scans for benchmarks.
+//! [`synth`] writes synthetic scans for benchmarks; [`bench`] measures builds
+//! against a peer (`voxstream bench`).
 
+pub mod bench;
 pub mod build;
 pub mod http;
 pub mod ingest;

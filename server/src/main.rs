@@ -44,6 +44,12 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Measure build throughput, peak memory and size against meshoptimizer's
+    /// cluster-LOD build; prints JSON (see DEVELOPERS.md, "Benchmarks").
+    Bench(voxstream::bench::BenchArgs),
+    /// One meshoptimizer peer run for `bench`, as JSON.
+    #[command(hide = true)]
+    BenchMeshopt(voxstream::bench::BenchMeshoptArgs),
     /// Serve a store's scenes and the viewer over HTTP.
     Serve {
         #[arg(long, env = "VOXSTREAM_STORE")]
@@ -136,6 +142,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             );
             Ok(())
         }
+        Command::Bench(args) => voxstream::bench::bench_main(&args),
+        Command::BenchMeshopt(args) => voxstream::bench::bench_meshopt_main(&args),
         Command::Serve { store, addr, web } => {
             if let Some(w) = &web
                 && !w.join("index.html").is_file()
