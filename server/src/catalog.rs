@@ -264,12 +264,25 @@ fn sync_dir(dir: &Path) {
 
 /// Removes what interrupted work leaves in a store: build temp dirs
 /// (`.tmp-*`, unless their builder process still runs), scenes moved aside for
-/// replacement (`.old-*`) and deleted scenes (`.trash-*`). Returns the names removed.
+/// replacement (`.old-*`; restored when the replacement never arrived) and
+/// deleted scenes (`.trash-*`). Returns the names handled.
 pub fn remove_stale(store: &Path) -> Vec<String> {
     let Ok(entries) = fs::read_dir(store) else { return Vec::new() };
     let mut removed = Vec::new();
     for entry in entries.flatten() {
         let Some(name) = entry.file_name().to_str().map(str::to_string) else { continue };
+        // A crash between publish's two renames leaves the previous scene only in `.old-<id>-<pid>`:
+        // put it back rather than lose it.
+        if let Some(id) = name.strip_prefix(".old-").and_then(|rest| rest.rsplit_once('-')).map(|(id, _)| id)
+            && store::validate_id(id).is_ok()
+            && !store.join(id).exists()
+            && !written_by_other_live_process(&name)
+        {
+            if fs::rename(entry.path(), store.join(id)).is_ok() {
+                removed.push(format!("{name} (restored as {id})"));
+            }
+            continue;
+        }
         let stale = if name.starts_with(".tmp-") || name.starts_with(".old-") {
             !written_by_other_live_process(&name)
         } else {

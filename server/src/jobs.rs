@@ -207,7 +207,10 @@ impl JobManager {
         records.sort_by_key(|j| j.created_at);
         for mut job in records {
             known.insert(job.id.clone());
-            if !job.state.is_final() {
+            if job.state.is_final() {
+                // A crash between recording the end and removing the upload.
+                self.uploads.remove(&job.id);
+            } else {
                 let reason = if !self.input_path(&job).is_file() {
                     Some("the server stopped during the build and the upload is gone".to_string())
                 } else if job.attempts >= MAX_ATTEMPTS {
