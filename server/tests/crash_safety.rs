@@ -22,18 +22,22 @@ struct Server {
 }
 
 fn start(store: &Path) -> Server {
+    let log = store.with_extension("log");
     let mut child = Command::new(env!("CARGO_BIN_EXE_voxstream"))
         .args(["serve", "--addr", "127.0.0.1:0", "--token", TOKEN, "--resolution", "64"])
         .args(["--build-workers", "2", "--uploads-per-minute", "0", "--store"])
         .arg(store)
         .env("RUST_LOG", "warn")
         .stdout(Stdio::piped())
-        .stderr(Stdio::null())
+        .stderr(std::fs::File::create(&log).unwrap())
         .spawn()
         .unwrap();
     let mut line = String::new();
     BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-    let base = line.trim().strip_prefix("listening on ").unwrap_or_else(|| panic!("unexpected: {line:?}"));
+    let Some(base) = line.trim().strip_prefix("listening on ") else {
+        let status = child.wait().unwrap();
+        panic!("the server did not start ({status}): {}", std::fs::read_to_string(&log).unwrap_or_default());
+    };
     Server { child, base: base.to_string() }
 }
 
