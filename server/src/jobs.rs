@@ -126,6 +126,8 @@ pub struct JobManager {
     uploads: Uploads,
     metrics: Arc<Metrics>,
     jobs: Mutex<HashMap<String, Arc<JobHandle>>>,
+    /// One build per scene id at a time: two publishes of one id must not interleave.
+    scene_locks: Mutex<HashMap<String, Arc<tokio::sync::Mutex<()>>>>,
     workers: Arc<Semaphore>,
     tracker: TaskTracker,
     shutdown: CancellationToken,
@@ -152,6 +154,7 @@ impl JobManager {
             catalog,
             metrics,
             jobs: Mutex::new(HashMap::new()),
+            scene_locks: Mutex::new(HashMap::new()),
             workers: Arc::new(Semaphore::new(workers.max(1))),
             tracker: TaskTracker::new(),
             shutdown,
@@ -319,6 +322,12 @@ impl JobManager {
     }
 
     async fn run(self: Arc<Self>, h: Arc<JobHandle>) {
+        let scene_id = h.tx.borrow().scene_id.clone();
+        let scene_lock = self.scene_locks.lock().expect("scene locks").entry(scene_id).or_default().clone();
+        let _scene = tokio::select! {
+            g = scene_lock.lock_owned() => g,
+            _ = self.shutdown.cancelled() => { self.metrics.jobs_queued.dec(); return }
+        };
         let permit = tokio::select! {
             p = self.workers.clone().acquire_owned() => p.expect("the worker semaphore is never closed"),
             _ = self.shutdown.cancelled() => { self.metrics.jobs_queued.dec(); return } // stays queued on disk

@@ -981,3 +981,45 @@ async fn shutdown_ends_open_event_streams() {
     .unwrap();
     assert_eq!(rec["state"], "queued", "a build stopped by shutdown resumes on the next start");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_uploads_of_one_scene_build_one_after_the_other() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let mut c = config(&store);
+    c.build_workers = 2;
+    let s = start_with(c).await;
+    let base = &s.base;
+    let koala = std::fs::read(koala()).unwrap();
+    // Both are created before either has a job, so both are accepted.
+    let mut locations = Vec::new();
+    for res in ["1024", "256"] {
+        let created = tus(http().post(format!("{base}/api/uploads")))
+            .header("upload-length", koala.len().to_string())
+            .header("upload-metadata", format!("filename {},resolution {}", b64("same.obj"), b64(res)))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(created.status(), 201);
+        locations.push(created.headers()["location"].to_str().unwrap().to_string());
+    }
+    let mut jobs = Vec::new();
+    for loc in &locations {
+        let resp = tus(http().patch(format!("{base}{loc}")))
+            .header("content-type", "application/offset+octet-stream")
+            .header("upload-offset", "0")
+            .body(koala.clone())
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(resp.status(), 204);
+        jobs.push(resp.headers()["voxstream-job"].to_str().unwrap().to_string());
+    }
+    let second: serde_json::Value =
+        http().get(format!("{base}/api/jobs/{}", jobs[1])).send().await.unwrap().json().await.unwrap();
+    assert_eq!(second["state"], "queued", "the second build of scene same waits for the first: {second}");
+    let (a, b) = (wait_job(base, &jobs[0]).await, wait_job(base, &jobs[1]).await);
+    assert_eq!((a["state"].as_str(), b["state"].as_str()), (Some("done"), Some("done")));
+    assert!(b["started_at"].as_u64() >= a["finished_at"].as_u64());
+    assert_eq!(assert_scene_complete(&store, "same").grid.resolution, 256, "the last build wins");
+}

@@ -374,6 +374,12 @@ fn upload_lock(state: &AppState, id: &str) -> Arc<tokio::sync::Mutex<()>> {
     state.upload_locks.lock().expect("upload locks").entry(id.to_string()).or_default().clone()
 }
 
+/// Drops a finished upload's lock entry; a request still waiting on it will
+/// find the upload gone.
+fn forget_lock(state: &AppState, id: &str) {
+    state.upload_locks.lock().expect("upload locks").remove(id);
+}
+
 /// Waits for a PATCH still running on the same upload (e.g. one whose client
 /// vanished and whose last bytes are being synced).
 async fn lock_upload(state: &AppState, id: &str) -> Result<tokio::sync::OwnedMutexGuard<()>, ApiError> {
@@ -484,7 +490,9 @@ pub async fn tus_patch(
     if offset < length {
         return Ok((StatusCode::NO_CONTENT, tus_headers(), offset_headers(offset, length)).into_response());
     }
-    let job = start_job(&state, record, offset).await?;
+    let job = start_job(&state, record, offset).await;
+    forget_lock(&state, &id);
+    let job = job?;
     Ok((
         StatusCode::NO_CONTENT,
         tus_headers(),
@@ -509,5 +517,6 @@ pub async fn tus_delete(
         return Err(ApiError::not_found(format!("no unfinished upload with id {id:?}")));
     }
     state.uploads.remove(&id);
+    forget_lock(&state, &id);
     Ok((StatusCode::NO_CONTENT, tus_headers()).into_response())
 }
