@@ -31,6 +31,8 @@ pub const JOBS_DIR: &str = ".jobs";
 /// Starts of one job that may be cut short by a crash before it is given up:
 /// a build that kills the server every time must not loop forever.
 pub const MAX_ATTEMPTS: u32 = 5;
+/// Unfinished resumable uploads older than this are removed at start.
+pub const UPLOAD_EXPIRY_SECS: u64 = 7 * 24 * 3600;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "lowercase")]
@@ -184,7 +186,8 @@ impl JobManager {
 
     /// Reads the job records of the store: queued and interrupted jobs start
     /// again, the rest are listed. Uploads that belong to no job and cannot
-    /// be resumed are removed. Call inside the runtime.
+    /// be resumed (plain POSTs cut short, tus uploads older than a week) are
+    /// removed. Call inside the runtime.
     pub fn recover(self: &Arc<Self>) -> Recovery {
         let mut recovery = Recovery::default();
         let mut known = std::collections::HashSet::new();
@@ -249,7 +252,9 @@ impl JobManager {
                 continue;
             }
             match self.uploads.load(&id) {
-                Some(record) if record.resumable => {}
+                Some(record)
+                    if record.resumable
+                        && now_unix().saturating_sub(record.created_at) < UPLOAD_EXPIRY_SECS => {}
                 _ => {
                     self.uploads.remove(&id);
                     recovery.removed_uploads.push(id);

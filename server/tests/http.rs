@@ -929,6 +929,19 @@ async fn restart_resumes_or_fails_interrupted_jobs_and_cleans_leftovers() {
     std::fs::create_dir_all(store.join(".trash-x-1")).unwrap();
     std::fs::create_dir_all(store.join(".uploads/00000000deadbeef")).unwrap();
     std::fs::write(store.join(".jobs/garbage.json"), b"{").unwrap();
+    // Two unfinished tus uploads: a fresh one stays resumable, one from last month expires.
+    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_secs();
+    for (id, created_at) in [("00000000000f1e54", now), ("00000000000001d0", now - 30 * 24 * 3600)] {
+        let up = store.join(".uploads").join(id);
+        std::fs::create_dir_all(&up).unwrap();
+        std::fs::write(up.join("data"), b"v 0 0 0\n").unwrap();
+        let record = serde_json::json!({
+            "id": id, "length": 1000, "file_name": "x.obj", "content_type": null, "scene_id": "x",
+            "resolution": 64, "topology": "conservative", "replace": false, "resumable": true,
+            "created_at": created_at,
+        });
+        std::fs::write(up.join("upload.json"), record.to_string()).unwrap();
+    }
 
     let mut c = config(&store);
     c.resolution = 64;
@@ -944,7 +957,12 @@ async fn restart_resumes_or_fails_interrupted_jobs_and_cleans_leftovers() {
         std::fs::read_dir(&store).unwrap().map(|e| e.unwrap().file_name().into_string().unwrap()).collect();
     names.sort();
     assert_eq!(names, vec![".jobs", ".uploads", "a"]);
-    assert_eq!(std::fs::read_dir(store.join(".uploads")).unwrap().count(), 0);
+    let uploads: Vec<String> = std::fs::read_dir(store.join(".uploads"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    assert_eq!(uploads, vec!["00000000000f1e54".to_string()], "only the fresh unfinished upload is kept");
+    assert_eq!(head_offset(&s.base, "/api/uploads/00000000000f1e54").await, 8);
     assert!(!store.join(".jobs/garbage.json").exists());
 }
 
