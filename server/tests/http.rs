@@ -1041,3 +1041,68 @@ async fn two_uploads_of_one_scene_build_one_after_the_other() {
     assert!(b["started_at"].as_u64() >= a["finished_at"].as_u64());
     assert_eq!(assert_scene_complete(&store, "same").grid.resolution, 256, "the last build wins");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn upload_format_comes_from_magic_name_header_or_content_type() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let s = start_with(config(&store)).await;
+    let verts: Vec<[f64; 3]> = box_obj()
+        .lines()
+        .filter_map(|l| l.strip_prefix("v "))
+        .map(|l| {
+            let p: Vec<f64> = l.split(' ').map(|x| x.parse().unwrap()).collect();
+            [p[0], p[1], p[2]]
+        })
+        .collect();
+    let faces: Vec<[usize; 3]> = box_obj()
+        .lines()
+        .filter_map(|l| l.strip_prefix("f "))
+        .map(|l| {
+            let f: Vec<usize> = l.split(' ').map(|x| x.parse::<usize>().unwrap() - 1).collect();
+            [f[0], f[1], f[2]]
+        })
+        .collect();
+    let mut stl = String::from("solid box\n");
+    for f in &faces {
+        stl += "facet normal 0 0 0\nouter loop\n";
+        for &i in f {
+            stl += &format!("vertex {} {} {}\n", verts[i][0], verts[i][1], verts[i][2]);
+        }
+        stl += "endloop\nendfacet\n";
+    }
+    stl += "endsolid box\n";
+    let mut ply = format!(
+        "ply\nformat ascii 1.0\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\n\
+         element face {}\nproperty list uchar int vertex_indices\nend_header\n",
+        verts.len(),
+        faces.len()
+    );
+    for v in &verts {
+        ply += &format!("{} {} {}\n", v[0], v[1], v[2]);
+    }
+    for f in &faces {
+        ply += &format!("3 {} {} {}\n", f[0], f[1], f[2]);
+    }
+    let cases = [
+        ("", vec![("x-filename", "Boxy.OBJ")], box_obj(), "boxy", "obj", "boxy.obj"),
+        ("id=stl-box", vec![("content-type", "model/stl")], stl, "stl-box", "stl", "stl-box.stl"),
+        ("id=ply-box", vec![], ply, "ply-box", "ply", "ply-box.ply"),
+    ];
+    for (query, headers, body, id, format, file) in cases {
+        let mut req = auth(http().post(format!("{}/api/scenes?{query}", s.base))).body(body);
+        for (k, v) in headers {
+            req = req.header(k, v);
+        }
+        let resp = req.send().await.unwrap();
+        assert_eq!(resp.status(), 202, "{id}");
+        let job: serde_json::Value = resp.json().await.unwrap();
+        assert_eq!(job["input_file"], file);
+        let job = wait_job(&s.base, job["id"].as_str().unwrap()).await;
+        assert_eq!(job["state"], "done", "{job}");
+        let meta: serde_json::Value =
+            http().get(format!("{}/api/scenes/{id}", s.base)).send().await.unwrap().json().await.unwrap();
+        assert_eq!(meta["source_format"], format);
+        assert_eq!(meta["triangles"], 12);
+    }
+}
