@@ -1,7 +1,10 @@
 #!/bin/sh
 # Container entrypoint for voxstream.
 #   no arguments: build the default scan into $VOXSTREAM_STORE if it holds no scene yet, then
-#                 serve it on $VOXSTREAM_ADDR with the viewer from $VOXSTREAM_WEB
+#                 serve it on $VOXSTREAM_ADDR with the viewer from $VOXSTREAM_WEB. Uploads,
+#                 renames and deletes need $VOXSTREAM_TOKEN; without one the server is read-only
+#                 (it refuses to open writing to the network without a token). Every other
+#                 `voxstream serve` flag has a VOXSTREAM_* variable too (see docker/README.md).
 #   arguments:    run the voxstream binary with them (e.g. `build /in/scan.ply --out /store`)
 set -eu
 
@@ -33,5 +36,12 @@ if [ "$has_scene" -eq 0 ]; then
   "$BIN" build "$MESH" --out "$STORE"
 fi
 
+READ_ONLY=""
+if [ -z "${VOXSTREAM_TOKEN:-}" ]; then
+  echo "voxstream-entrypoint: no VOXSTREAM_TOKEN: serving read-only (set it to allow uploads)" >&2
+  READ_ONLY="--read-only"
+fi
+
 echo "voxstream-entrypoint: serving $STORE on $ADDR" >&2
-exec "$BIN" serve --store "$STORE" --addr "$ADDR" --web "$WEB"
+# shellcheck disable=SC2086 # READ_ONLY is one flag or nothing
+exec "$BIN" serve --store "$STORE" --addr "$ADDR" --web "$WEB" $READ_ONLY

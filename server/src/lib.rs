@@ -3,14 +3,22 @@
 //! Data flows one way: [`ingest`] → [`voxelize`] → [`lod`] → [`store`] → [`http`];
 //! [`build`] runs the first four as one call, reporting [`progress`];
 //! [`synth`] writes synthetic scans for benchmarks; [`bench`] measures builds
-//! against a peer (`voxstream bench`).
+//! against a peer (`voxstream bench`). The server side of
+//! [`http`] keeps its state in [`catalog`] (published scenes), [`uploads`]
+//! and [`jobs`] (builds of uploads), configured by [`config`], measured by
+//! [`metrics`].
 
 pub mod bench;
 pub mod build;
+pub mod catalog;
+pub mod config;
 pub mod http;
 pub mod ingest;
+pub mod jobs;
 pub mod lod;
+pub mod metrics;
 pub mod progress;
 pub mod store;
 pub mod synth;
+pub mod uploads;
 pub mod voxelize;

@@ -1,10 +1,8 @@
-use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 use voxstream::build::{BuildOptions, build_scene_reporting};
-use voxstream::http::{AppState, router};
 use voxstream::progress::Progress;
 use voxstream::voxelize::Topology;
 
@@ -50,16 +48,8 @@ enum Command {
     /// One meshoptimizer peer run for `bench`, as JSON.
     #[command(hide = true)]
     BenchMeshopt(voxstream::bench::BenchMeshoptArgs),
-    /// Serve a store's scenes and the viewer over HTTP.
-    Serve {
-        #[arg(long, env = "VOXSTREAM_STORE")]
-        store: PathBuf,
-        #[arg(long, env = "VOXSTREAM_ADDR", default_value = "127.0.0.1:8080")]
-        addr: SocketAddr,
-        /// Directory of the built viewer (index.html, pkg/).
-        #[arg(long, env = "VOXSTREAM_WEB")]
-        web: Option<PathBuf>,
-    },
+    /// Serve a store's scenes and the viewer over HTTP; take uploads and build them.
+    Serve(voxstream::config::ServeArgs),
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -144,29 +134,6 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Bench(args) => voxstream::bench::bench_main(&args),
         Command::BenchMeshopt(args) => voxstream::bench::bench_meshopt_main(&args),
-        Command::Serve { store, addr, web } => {
-            if let Some(w) = &web
-                && !w.join("index.html").is_file()
-            {
-                anyhow::bail!(
-                    "{} has no index.html: build the viewer with scripts/build-web.sh",
-                    w.display()
-                );
-            }
-            let state = AppState::load(&store, web.as_deref())?;
-            let ids: Vec<&str> = state.scene_ids().collect();
-            tracing::info!(store = %store.display(), scenes = ?ids, "catalog loaded");
-            let rt = tokio::runtime::Runtime::new()?;
-            rt.block_on(async move {
-                let listener = tokio::net::TcpListener::bind(addr).await?;
-                tracing::info!("serving on http://{}", listener.local_addr()?);
-                axum::serve(listener, router(state))
-                    .with_graceful_shutdown(async {
-                        let _ = tokio::signal::ctrl_c().await;
-                    })
-                    .await?;
-                anyhow::Ok(())
-            })
-        }
+        Command::Serve(args) => voxstream::http::serve_command(args),
     }
 }

@@ -20,7 +20,8 @@ pub enum BlockSource {
     /// `<store>/<scene-id>/`: `manifest.json` and `blocks/<key>.vxb`.
     #[cfg(not(target_arch = "wasm32"))]
     SceneDir(std::path::PathBuf),
-    /// `.../api/scenes/<id>`: `/manifest` and `/blocks/<key>`.
+    /// `.../api/scenes/<id>`: `/manifest` and `/blocks/<key>.<hash>` (content-addressed,
+    /// cached by the browser as immutable).
     #[cfg(target_arch = "wasm32")]
     Http { scene_url: String },
 }
@@ -37,15 +38,22 @@ impl BlockSource {
         }
     }
 
-    pub async fn block_bytes(&self, key: BlockKey) -> Result<Vec<u8>, FetchError> {
+    /// A block's bytes; `hash` is its blake3 from the manifest, which makes the
+    /// URL immutable (without it the server answers with a revalidated URL).
+    pub async fn block_bytes(&self, key: BlockKey, hash: Option<&str>) -> Result<Vec<u8>, FetchError> {
         match self {
             #[cfg(not(target_arch = "wasm32"))]
             BlockSource::SceneDir(dir) => {
+                let _ = hash; // the store path has no hash; decode checks the block against the manifest
                 read_file(&dir.join("blocks").join(format!("{key}.vxb")), &format!("block {key}"))
             }
             #[cfg(target_arch = "wasm32")]
             BlockSource::Http { scene_url } => {
-                http::get_bytes(&format!("{scene_url}/blocks/{key}"), &format!("block {key}")).await
+                let url = match hash {
+                    Some(h) => format!("{scene_url}/blocks/{key}.{h}"),
+                    None => format!("{scene_url}/blocks/{key}"),
+                };
+                http::get_bytes(&url, &format!("block {key}")).await
             }
         }
     }
@@ -99,8 +107,11 @@ mod tests {
         std::fs::write(dir.join("blocks/2-0-1-0.vxb"), b"xyz").unwrap();
         let src = BlockSource::SceneDir(dir.clone());
         assert_eq!(pollster::block_on(src.manifest_bytes()).unwrap(), b"{}");
-        assert_eq!(pollster::block_on(src.block_bytes(BlockKey::new(2, 0, 1, 0))).unwrap(), b"xyz");
-        let missing = pollster::block_on(src.block_bytes(BlockKey::new(0, 0, 0, 0))).unwrap_err();
+        assert_eq!(
+            pollster::block_on(src.block_bytes(BlockKey::new(2, 0, 1, 0), Some("ab"))).unwrap(),
+            b"xyz"
+        );
+        let missing = pollster::block_on(src.block_bytes(BlockKey::new(0, 0, 0, 0), None)).unwrap_err();
         assert!(matches!(missing, FetchError::NotFound { .. }), "{missing}");
         std::fs::remove_dir_all(dir).unwrap();
     }

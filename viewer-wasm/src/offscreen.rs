@@ -155,7 +155,7 @@ impl Offscreen {
     /// Fetches, decodes and expands `keys` whatever the view wants.
     pub fn load(&mut self, keys: &[BlockKey]) {
         let results: Vec<_> =
-            keys.iter().map(|&k| (k, pollster::block_on(self.source.block_bytes(k)))).collect();
+            keys.iter().map(|&k| (k, pollster::block_on(self.source.block_bytes(k, None)))).collect();
         self.scene.insert_fetched(&self.renderer, results);
     }
 

@@ -315,8 +315,9 @@ impl App {
         let free = MAX_IN_FLIGHT.saturating_sub(self.scene.in_flight());
         for key in self.scene.next_fetches(free) {
             let source = self.source.clone();
+            let hash = self.scene.manifest.block(&key).map(|e| e.hash.clone());
             wasm_bindgen_futures::spawn_local(async move {
-                let result: Result<Vec<u8>, FetchError> = source.block_bytes(key).await;
+                let result: Result<Vec<u8>, FetchError> = source.block_bytes(key, hash.as_deref()).await;
                 with_app(|app| {
                     let errors = app.scene.stats.errors;
                     app.scene.insert_fetched(&app.renderer, [(key, result)]);

@@ -1,0 +1,328 @@
+//! The server's view of a store: published scenes held in memory (manifest and
+//! metadata), renamed and deleted atomically on disk, refreshed when a build
+//! publishes.
+//!
+//! Beside `manifest.json` a scene built by the server has `scene.json`
+//! ([`BuildInfo`]: when and how long it was built, display name), written by
+//! temp file + rename so it is either absent or whole.
+
+use std::collections::BTreeMap;
+use std::fs;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::{SystemTime, UNIX_EPOCH};
+
+use axum::body::Bytes;
+use serde::{Deserialize, Serialize};
+use voxstream_format::Manifest;
+
+use crate::store::{self, StoreError, StoredScene};
+
+pub const BUILD_INFO_FILE: &str = "scene.json";
+
+/// Written beside the manifest by the server after a build, rewritten on rename.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct BuildInfo {
+    /// Unix seconds when the build finished.
+    #[serde(default)]
+    pub built_at: Option<u64>,
+    #[serde(default)]
+    pub build_seconds: Option<f64>,
+    /// Shown instead of the manifest's name when set.
+    #[serde(default)]
+    pub display_name: Option<String>,
+}
+
+/// A catalog row: what a scene is, where it came from and what it costs.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct SceneMeta {
+    pub id: String,
+    pub name: String,
+    /// Input file name and format (obj, ply, stl, gltf, glb).
+    pub source_file: String,
+    pub source_format: String,
+    pub triangles: u64,
+    pub skipped_triangles: u64,
+    /// Level-0 voxels stored.
+    pub voxels: u64,
+    pub blocks: u32,
+    pub levels: u32,
+    /// Level-0 voxels per grid edge.
+    pub resolution: u32,
+    /// Edge of a level-0 voxel in source units.
+    pub voxel_size: f64,
+    /// Tight bounds of the voxels in source coordinates.
+    pub bounds_min: [f64; 3],
+    pub bounds_max: [f64; 3],
+    /// Source units when the input says (e.g. "m"); null when unknown.
+    pub units: Option<String>,
+    /// Unix seconds; null for scenes built by the CLI.
+    pub built_at: Option<u64>,
+    pub build_seconds: Option<f64>,
+    /// Encoded block bytes (all levels).
+    pub bytes: u64,
+    /// Manifest plus block files, in bytes.
+    pub bytes_on_disk: u64,
+}
+
+pub struct LoadedScene {
+    pub stored: StoredScene,
+    pub manifest_json: Bytes,
+    pub meta: SceneMeta,
+}
+
+impl LoadedScene {
+    fn load(stored: StoredScene) -> LoadedScene {
+        let info = read_build_info(&stored.dir);
+        let manifest_json = Bytes::from(stored.manifest.to_json());
+        let meta = scene_meta(&stored.id, &stored.manifest, &info, manifest_json.len() as u64);
+        LoadedScene { stored, manifest_json, meta }
+    }
+}
+
+fn scene_meta(id: &str, m: &Manifest, info: &BuildInfo, manifest_bytes: u64) -> SceneMeta {
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for b in m.blocks.iter().filter(|b| b.key.level == 0) {
+        let (bmin, bmax) = b.bounds.grid_units(0);
+        for a in 0..3 {
+            lo[a] = lo[a].min(bmin[a]);
+            hi[a] = hi[a].max(bmax[a]);
+        }
+    }
+    if lo[0] > hi[0] {
+        (lo, hi) = ([0.0; 3], [0.0; 3]);
+    }
+    let to_source = |g: [f64; 3]| std::array::from_fn(|a| m.grid.origin[a] + g[a] * m.grid.voxel_size);
+    SceneMeta {
+        id: id.to_string(),
+        name: info.display_name.clone().unwrap_or_else(|| m.name.clone()),
+        source_file: m.source.file.clone(),
+        source_format: m.source.format.clone(),
+        triangles: m.source.triangles,
+        skipped_triangles: m.source.skipped_triangles,
+        voxels: m.levels.first().map_or(0, |l| l.voxels),
+        blocks: m.blocks.len() as u32,
+        levels: m.levels.len() as u32,
+        resolution: m.grid.resolution,
+        voxel_size: m.grid.voxel_size,
+        bounds_min: to_source(lo),
+        bounds_max: to_source(hi),
+        units: m.grid.units.clone(),
+        built_at: info.built_at,
+        build_seconds: info.build_seconds,
+        bytes: m.blocks.iter().map(|b| b.bytes as u64).sum::<u64>(),
+        bytes_on_disk: m.blocks.iter().map(|b| b.bytes as u64).sum::<u64>() + manifest_bytes,
+    }
+}
+
+fn read_build_info(scene_dir: &Path) -> BuildInfo {
+    fs::read(scene_dir.join(BUILD_INFO_FILE))
+        .ok()
+        .and_then(|b| serde_json::from_slice(&b).ok())
+        .unwrap_or_default()
+}
+
+/// Writes `scene.json` into a scene directory by temp file + rename.
+pub fn write_build_info(scene_dir: &Path, info: &BuildInfo) -> std::io::Result<()> {
+    let tmp = scene_dir.join(format!(".{BUILD_INFO_FILE}.tmp"));
+    fs::write(&tmp, serde_json::to_vec_pretty(info).expect("build info serialises"))?;
+    fs::File::open(&tmp)?.sync_all()?;
+    fs::rename(&tmp, scene_dir.join(BUILD_INFO_FILE))
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum CatalogError {
+    #[error("no scene with id {0:?}")]
+    NotFound(String),
+    #[error("a scene with id {0:?} already exists")]
+    Exists(String),
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    #[error("{action} {path}: {source}")]
+    Io { action: &'static str, path: PathBuf, source: std::io::Error },
+}
+
+pub fn now_unix() -> u64 {
+    SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs())
+}
+
+fn nanos() -> u128 {
+    SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos())
+}
+
+/// The published scenes of one store.
+pub struct Catalog {
+    store: PathBuf,
+    scenes: RwLock<BTreeMap<String, Arc<LoadedScene>>>,
+    /// Serialises renames and deletes against each other.
+    edits: Mutex<()>,
+}
+
+impl Catalog {
+    /// Reads every published scene. A damaged scene stops start-up with its
+    /// name rather than being served half-readable.
+    pub fn open(store: &Path) -> Result<Catalog, StoreError> {
+        let scenes = store::list_scenes(store)?
+            .into_iter()
+            .map(|s| (s.id.clone(), Arc::new(LoadedScene::load(s))))
+            .collect();
+        Ok(Catalog { store: store.to_path_buf(), scenes: RwLock::new(scenes), edits: Mutex::new(()) })
+    }
+
+    pub fn store(&self) -> &Path {
+        &self.store
+    }
+
+    pub fn list(&self) -> Vec<Arc<LoadedScene>> {
+        self.scenes.read().expect("catalog lock").values().cloned().collect()
+    }
+
+    pub fn get(&self, id: &str) -> Option<Arc<LoadedScene>> {
+        self.scenes.read().expect("catalog lock").get(id).cloned()
+    }
+
+    pub fn contains(&self, id: &str) -> bool {
+        self.scenes.read().expect("catalog lock").contains_key(id) || self.store.join(id).exists()
+    }
+
+    /// Re-reads one scene from disk after a build published it.
+    pub fn refresh(&self, id: &str) -> Result<Arc<LoadedScene>, StoreError> {
+        let loaded = Arc::new(LoadedScene::load(store::open_scene(&self.store, id)?));
+        self.scenes.write().expect("catalog lock").insert(id.to_string(), loaded.clone());
+        Ok(loaded)
+    }
+
+    /// Renames a scene's id (one directory rename) and/or sets its display name.
+    pub fn rename(
+        &self,
+        id: &str,
+        new_id: Option<&str>,
+        display_name: Option<&str>,
+    ) -> Result<Arc<LoadedScene>, CatalogError> {
+        let _edits = self.edits.lock().expect("catalog edit lock");
+        if self.get(id).is_none() {
+            return Err(CatalogError::NotFound(id.into()));
+        }
+        let mut current = id.to_string();
+        if let Some(to) = new_id.filter(|to| *to != id) {
+            store::validate_id(to)?;
+            let (from_dir, to_dir) = (self.store.join(id), self.store.join(to));
+            if self.contains(to) {
+                return Err(CatalogError::Exists(to.into()));
+            }
+            fs::rename(&from_dir, &to_dir).map_err(|source| CatalogError::Io {
+                action: "rename",
+                path: from_dir.clone(),
+                source,
+            })?;
+            sync_dir(&self.store);
+            self.scenes.write().expect("catalog lock").remove(id);
+            current = to.to_string();
+        }
+        if let Some(name) = display_name {
+            let dir = self.store.join(&current);
+            let mut info = read_build_info(&dir);
+            info.display_name = Some(name.to_string());
+            write_build_info(&dir, &info).map_err(|source| CatalogError::Io {
+                action: "write",
+                path: dir.join(BUILD_INFO_FILE),
+                source,
+            })?;
+        }
+        Ok(self.refresh(&current)?)
+    }
+
+    /// Deletes a scene atomically: one rename out of the listing (to
+    /// `.trash-*`), then the files are removed.
+    pub fn delete(&self, id: &str) -> Result<(), CatalogError> {
+        let _edits = self.edits.lock().expect("catalog edit lock");
+        if self.get(id).is_none() {
+            return Err(CatalogError::NotFound(id.into()));
+        }
+        let dir = self.store.join(id);
+        let trash = self.store.join(format!(".trash-{id}-{}", nanos()));
+        fs::rename(&dir, &trash).map_err(|source| CatalogError::Io {
+            action: "delete",
+            path: dir,
+            source,
+        })?;
+        sync_dir(&self.store);
+        self.scenes.write().expect("catalog lock").remove(id);
+        if let Err(e) = fs::remove_dir_all(&trash) {
+            tracing::warn!(path = %trash.display(), error = %e, "deleted scene's files remain; removed on next start");
+        }
+        Ok(())
+    }
+}
+
+fn sync_dir(dir: &Path) {
+    if let Err(e) = fs::File::open(dir).and_then(|d| d.sync_all()) {
+        tracing::warn!(dir = %dir.display(), error = %e, "cannot sync directory");
+    }
+}
+
+/// Removes what interrupted work leaves in a store: build temp dirs
+/// (`.tmp-*`, unless their builder process still runs), scenes moved aside for
+/// replacement (`.old-*`; restored when the replacement never arrived) and
+/// deleted scenes (`.trash-*`). Returns the names handled.
+pub fn remove_stale(store: &Path) -> Vec<String> {
+    let Ok(entries) = fs::read_dir(store) else { return Vec::new() };
+    let mut removed = Vec::new();
+    for entry in entries.flatten() {
+        let Some(name) = entry.file_name().to_str().map(str::to_string) else { continue };
+        // A crash between publish's two renames leaves the previous scene only in `.old-<id>-<pid>`:
+        // put it back rather than lose it.
+        if let Some(id) = name.strip_prefix(".old-").and_then(|rest| rest.rsplit_once('-')).map(|(id, _)| id)
+            && store::validate_id(id).is_ok()
+            && !store.join(id).exists()
+            && !written_by_other_live_process(&name)
+        {
+            if fs::rename(entry.path(), store.join(id)).is_ok() {
+                removed.push(format!("{name} (restored as {id})"));
+            }
+            continue;
+        }
+        let stale = if name.starts_with(".tmp-") || name.starts_with(".old-") {
+            !written_by_other_live_process(&name)
+        } else {
+            name.starts_with(".trash-")
+        };
+        if stale && fs::remove_dir_all(entry.path()).is_ok() {
+            removed.push(name);
+        }
+    }
+    removed
+}
+
+/// `.tmp-<id>-<pid>-<nanos>` / `.old-<id>-<pid>`: a `voxstream build` may be
+/// writing into the same store right now.
+fn written_by_other_live_process(name: &str) -> bool {
+    let mut parts = name.rsplit('-');
+    let pid = if name.starts_with(".tmp-") { parts.nth(1) } else { parts.next() };
+    let Some(pid) = pid.and_then(|p| p.parse::<u32>().ok()) else { return false };
+    pid != std::process::id() && Path::new("/proc").join(pid.to_string()).exists()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stale_dirs_of_dead_processes_are_removed() {
+        let dir = tempfile::tempdir().unwrap();
+        let own = std::process::id();
+        // pid 1 is alive (init) and not us: kept; a pid far beyond pid_max is dead: removed.
+        for name in [".tmp-a-1-5", ".tmp-b-4194399999-5", ".trash-c-7", &format!(".tmp-d-{own}-1"), "keep"] {
+            fs::create_dir(dir.path().join(name)).unwrap();
+        }
+        let mut removed = remove_stale(dir.path());
+        removed.sort();
+        assert_eq!(
+            removed,
+            vec![".tmp-b-4194399999-5".to_string(), format!(".tmp-d-{own}-1"), ".trash-c-7".into()]
+        );
+        assert!(dir.path().join(".tmp-a-1-5").exists());
+        assert!(dir.path().join("keep").exists());
+    }
+}

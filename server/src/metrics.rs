@@ -1,0 +1,92 @@
+//! Prometheus metrics (prometheus-client, OpenMetrics text at `GET /metrics`).
+
+use std::sync::atomic::AtomicI64;
+
+use prometheus_client::encoding::text::encode;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
+use prometheus_client::registry::Registry;
+
+type Labels = Vec<(String, String)>;
+type HistogramFamily = Family<Labels, Histogram, fn() -> Histogram>;
+
+pub struct Metrics {
+    registry: Registry,
+    /// By method, route template and status.
+    pub http_requests: Family<Labels, Counter>,
+    pub http_request_seconds: HistogramFamily,
+    /// Response body bytes with a known length.
+    pub http_response_bytes: Counter,
+    pub blocks_served: Counter,
+    pub block_bytes_served: Counter,
+    pub upload_bytes: Counter,
+    /// Build durations by outcome (done, failed, cancelled).
+    pub job_seconds: HistogramFamily,
+    pub jobs_running: Gauge<i64, AtomicI64>,
+    pub jobs_queued: Gauge<i64, AtomicI64>,
+    pub sse_streams: Gauge<i64, AtomicI64>,
+}
+
+fn request_histogram() -> Histogram {
+    Histogram::new(exponential_buckets(0.0005, 2.0, 16))
+}
+
+fn job_histogram() -> Histogram {
+    Histogram::new(exponential_buckets(0.1, 2.0, 16))
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Metrics {
+    pub fn new() -> Self {
+        let mut registry = Registry::with_prefix("voxstream");
+        let m = Metrics {
+            http_requests: Family::default(),
+            http_request_seconds: Family::new_with_constructor(request_histogram),
+            http_response_bytes: Counter::default(),
+            blocks_served: Counter::default(),
+            block_bytes_served: Counter::default(),
+            upload_bytes: Counter::default(),
+            job_seconds: Family::new_with_constructor(job_histogram),
+            jobs_running: Gauge::default(),
+            jobs_queued: Gauge::default(),
+            sse_streams: Gauge::default(),
+            registry: Registry::default(),
+        };
+        registry.register(
+            "http_requests",
+            "HTTP requests by method, route and status",
+            m.http_requests.clone(),
+        );
+        registry.register(
+            "http_request_seconds",
+            "HTTP request handling time by route (until the response head)",
+            m.http_request_seconds.clone(),
+        );
+        registry.register("http_response_bytes", "Response body bytes served", m.http_response_bytes.clone());
+        registry.register("blocks_served", "Blocks served (single and batch)", m.blocks_served.clone());
+        registry.register("block_bytes_served", "Block bytes served", m.block_bytes_served.clone());
+        registry.register("upload_bytes", "Upload bytes received", m.upload_bytes.clone());
+        registry.register("job_seconds", "Build job durations by outcome", m.job_seconds.clone());
+        registry.register("jobs_running", "Builds running now", m.jobs_running.clone());
+        registry.register("jobs_queued", "Builds waiting for a worker", m.jobs_queued.clone());
+        registry.register("sse_streams", "Open job event streams", m.sse_streams.clone());
+        Metrics { registry, ..m }
+    }
+
+    pub fn labels(pairs: &[(&str, &str)]) -> Labels {
+        pairs.iter().map(|(k, v)| (k.to_string(), v.to_string())).collect()
+    }
+
+    pub fn render(&self) -> String {
+        let mut out = String::new();
+        encode(&mut out, &self.registry).expect("writing to a String cannot fail");
+        out
+    }
+}

@@ -1,0 +1,210 @@
+//! Crash safety of the real `voxstream serve` binary: uploads are built while
+//! the server is SIGKILLed at random moments, again and again. After every
+//! restart each listed scene must be complete (manifest valid, every block
+//! decodes and matches its hash), no half-written scene may be visible, and
+//! at the end every job has ended: built from its kept upload, or failed with
+//! a reason.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use rand::{Rng, SeedableRng};
+use voxstream_format::{Manifest, decode_block};
+
+const TOKEN: &str = "crash-test-token";
+const KILLS: usize = 22;
+
+struct Server {
+    child: Child,
+    base: String,
+}
+
+fn start(store: &Path) -> Server {
+    let log = store.with_extension("log");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_voxstream"))
+        .args(["serve", "--addr", "127.0.0.1:0", "--token", TOKEN, "--resolution", "64"])
+        .args(["--build-workers", "2", "--uploads-per-minute", "0", "--store"])
+        .arg(store)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::piped())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    let Some(base) = line.trim().strip_prefix("listening on ") else {
+        let status = child.wait().unwrap();
+        panic!("the server did not start ({status}): {}", std::fs::read_to_string(&log).unwrap_or_default());
+    };
+    Server { child, base: base.to_string() }
+}
+
+fn sphere_obj(path: &Path, n: usize) {
+    let mut obj = String::new();
+    for i in 0..=n {
+        let t = std::f64::consts::PI * i as f64 / n as f64;
+        for j in 0..2 * n {
+            let p = std::f64::consts::PI * j as f64 / n as f64;
+            let r = 1.0 + 0.1 * (5.0 * t).sin() * (3.0 * p).cos();
+            obj += &format!("v {} {} {}\n", r * t.sin() * p.cos(), r * t.sin() * p.sin(), r * t.cos());
+        }
+    }
+    let idx = |i: usize, j: usize| i * 2 * n + (j % (2 * n)) + 1;
+    for i in 0..n {
+        for j in 0..2 * n {
+            obj += &format!(
+                "f {} {} {}\nf {} {} {}\n",
+                idx(i, j),
+                idx(i + 1, j),
+                idx(i + 1, j + 1),
+                idx(i, j),
+                idx(i + 1, j + 1),
+                idx(i, j + 1)
+            );
+        }
+    }
+    std::fs::write(path, obj).unwrap();
+}
+
+/// Every listed scene is complete on disk and served as it is on disk.
+async fn check_store(base: &str, store: &Path, http: &reqwest::Client) -> usize {
+    let scenes: Vec<serde_json::Value> =
+        http.get(format!("{base}/api/scenes")).send().await.unwrap().json().await.unwrap();
+    for s in &scenes {
+        let id = s["id"].as_str().unwrap();
+        let dir = store.join(id);
+        let manifest = Manifest::from_json(&std::fs::read(dir.join("manifest.json")).unwrap())
+            .unwrap_or_else(|e| panic!("scene {id}: {e}"));
+        for e in &manifest.blocks {
+            let bytes = std::fs::read(dir.join("blocks").join(format!("{}.vxb", e.key)))
+                .unwrap_or_else(|err| panic!("scene {id} block {}: {err}", e.key));
+            assert_eq!(blake3::hash(&bytes).to_hex().as_str(), e.hash, "scene {id} block {}", e.key);
+            let block =
+                decode_block(&bytes).unwrap_or_else(|err| panic!("scene {id} block {}: {err}", e.key));
+            assert_eq!(block.key, e.key);
+            assert_eq!(block.voxels.len() as u32, e.voxels);
+        }
+        let served = http.get(format!("{base}/api/scenes/{id}/manifest")).send().await.unwrap();
+        assert_eq!(Manifest::from_json(&served.bytes().await.unwrap()).unwrap(), manifest);
+        if let Some(e) = manifest.blocks.first() {
+            let r =
+                http.get(format!("{base}/api/scenes/{id}/blocks/{}.{}", e.key, e.hash)).send().await.unwrap();
+            assert_eq!(r.status(), 200, "scene {id}");
+        }
+    }
+    // Directories that are not scenes are the server's own or a build in progress of this process.
+    for entry in std::fs::read_dir(store).unwrap() {
+        let name = entry.unwrap().file_name().into_string().unwrap();
+        assert!(
+            name.starts_with(".tmp-")
+                || name.starts_with(".old-")
+                || name == ".jobs"
+                || name == ".uploads"
+                || scenes.iter().any(|s| s["id"] == name),
+            "unexpected entry {name:?} in the store"
+        );
+    }
+    scenes.len()
+}
+
+async fn jobs(base: &str, http: &reqwest::Client) -> Vec<serde_json::Value> {
+    http.get(format!("{base}/api/jobs")).send().await.unwrap().json().await.unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn killed_servers_never_show_partial_scenes_and_resume_their_jobs() {
+    let seed: u64 =
+        std::env::var("CRASH_SEED").ok().and_then(|s| s.parse().ok()).unwrap_or_else(rand::random);
+    eprintln!("crash test seed {seed} (rerun with CRASH_SEED={seed})");
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let sphere = dir.path().join("sphere.obj");
+    sphere_obj(&sphere, 120);
+    let synth = dir.path().join("synth.ply");
+    voxstream::synth::write_sphere_ply(&synth, 40_000).unwrap();
+    let meshes: Vec<(PathBuf, &str)> = vec![
+        (Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/koala.obj"), "koala.obj"),
+        (sphere, "sphere.obj"),
+        (synth, "synth.ply"),
+    ];
+    let bodies: Vec<Vec<u8>> = meshes.iter().map(|(p, _)| std::fs::read(p).unwrap()).collect();
+    let ids = ["koala", "sphere", "synth", "alt"];
+    let http = reqwest::Client::new();
+    let started = Instant::now();
+    let mut killed_while_running = 0;
+    let mut uploads = 0;
+
+    for round in 0..KILLS {
+        let mut server = start(&store);
+        let base = server.base.clone();
+        check_store(&base, &store, &http).await;
+        for _ in 0..rng.random_range(1..=2) {
+            let m = rng.random_range(0..meshes.len());
+            let id = ids[rng.random_range(0..ids.len())];
+            let resolution = [128, 256, 512][rng.random_range(0..3)];
+            let resp = http
+                .post(format!(
+                    "{base}/api/scenes?filename={}&id={id}&replace=true&resolution={resolution}",
+                    meshes[m].1
+                ))
+                .bearer_auth(TOKEN)
+                .body(bodies[m].clone())
+                .send()
+                .await;
+            // 409: a resumed job is already building that id. The server says so before reading the
+            // body and closes the connection, which the client may see as a broken pipe instead.
+            match resp {
+                Ok(resp) => {
+                    assert!([202, 409].contains(&resp.status().as_u16()), "round {round}: {}", resp.status());
+                    uploads += (resp.status() == 202) as usize;
+                }
+                Err(e) => assert!(e.is_request(), "round {round}: {e}"),
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(rng.random_range(0..500))).await;
+        if jobs(&base, &http).await.iter().any(|j| j["state"] == "running") {
+            killed_while_running += 1;
+        }
+        server.child.kill().unwrap(); // SIGKILL
+        server.child.wait().unwrap();
+    }
+
+    // The last start: every job ends, every listed scene is complete.
+    let mut server = start(&store);
+    let base = server.base.clone();
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let all = loop {
+        let all = jobs(&base, &http).await;
+        if all.iter().all(|j| ["done", "failed", "cancelled"].contains(&j["state"].as_str().unwrap())) {
+            break all;
+        }
+        assert!(Instant::now() < deadline, "jobs did not end: {all:?}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    let scenes = check_store(&base, &store, &http).await;
+    let done = all.iter().filter(|j| j["state"] == "done").count();
+    let resumed = all.iter().filter(|j| j["state"] == "done" && j["attempts"].as_u64().unwrap() > 1).count();
+    for j in all.iter().filter(|j| j["state"] == "failed") {
+        let e = j["error"].as_str().unwrap();
+        assert!(e.contains("interrupted") || e.contains("upload is gone"), "{j}");
+    }
+    assert_eq!(all.len(), uploads, "every accepted upload has its job");
+    assert!(scenes >= 1 && done >= 1, "{scenes} scenes, {done} jobs done");
+    assert!(resumed >= 1, "no job was resumed after a kill: {all:?}");
+    assert!(killed_while_running >= KILLS / 4, "only {killed_while_running} kills hit a running build");
+    assert_eq!(std::fs::read_dir(store.join(".uploads")).unwrap().count(), 0, "ended jobs leave no uploads");
+    let no_tmp = std::fs::read_dir(&store)
+        .unwrap()
+        .all(|e| !e.unwrap().file_name().to_string_lossy().starts_with(".tmp-"));
+    assert!(no_tmp, "no build temp dir is left once all jobs ended");
+    eprintln!(
+        "{KILLS} kills ({killed_while_running} during a build), {uploads} uploads, {done} jobs done ({resumed} after a \
+         resume), {scenes} scenes, {:.1} s",
+        started.elapsed().as_secs_f64()
+    );
+    server.child.kill().unwrap();
+    server.child.wait().unwrap();
+}
