@@ -4,16 +4,19 @@
 // slots is the vertex count of the indirect draw that follows (6 vertices per
 // face, pulled from the face buffer in voxel.wgsl).
 
-// voxstream_format::PackedVoxel: x | y << 6 | z << 12 | faces << 18, octahedral normal.
+// voxstream_format::PackedVoxel: x | y << 6 | z << 12 | faces << 18 | coverage << 24,
+// octahedral snorm8 normal, sRGB8 colour with alpha 255 (0 = no colour).
 struct Voxel {
     pos_faces: u32,
     normal: u32,
+    color: u32,
 }
 
-// One exposed face: x | y << 6 | z << 12 | face index (0..6) << 18, normal as in Voxel.
+// One exposed face: x | y << 6 | z << 12 | face index (0..6) << 18; normal and colour as in Voxel.
 struct FaceRecord {
     pos_face: u32,
     normal: u32,
+    color: u32,
 }
 
 // Layout of wgpu::util::DrawIndirectArgs. The CPU initialises it to (0, 1, 0, 0).
@@ -53,7 +56,7 @@ fn expand_faces(@builtin(global_invocation_id) id: vec3<u32>) {
             // The CPU sizes the buffer from the popcount; the guard only keeps
             // a wrong size from writing out of bounds.
             if slot < capacity {
-                faces[slot] = FaceRecord(position | (face << 18u), voxel.normal);
+                faces[slot] = FaceRecord(position | (face << 18u), voxel.normal, voxel.color);
             }
             slot += 1u;
         }

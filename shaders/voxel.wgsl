@@ -25,6 +25,8 @@ struct BlockInfo {
 struct FaceRecord {
     pos_face: u32,
     normal: u32,
+    // sRGB8 r | g << 8 | b << 16 | 255 << 24, or 0 when the block has no colour.
+    color: u32,
 }
 
 @group(0) @binding(0) var<uniform> frame: Frame;
@@ -39,12 +41,14 @@ struct VertexOut {
     @location(0) grid_pos: vec3<f32>,
     @location(1) @interpolate(flat) normal: vec3<f32>,
     @location(2) @interpolate(flat) face_normal: vec3<f32>,
+    // rgb: base colour, as displayed (the canvas has no sRGB conversion).
+    @location(3) @interpolate(flat) base_colour: vec3<f32>,
 }
 
-// Inverse of voxstream_format::oct_encode (two snorm16 halves, x low).
+// Inverse of voxstream_format::oct_encode (two snorm8 bytes, x low).
 fn oct_decode(e: u32) -> vec3<f32> {
-    let u = max(f32(bitcast<i32>(e << 16u) >> 16u) / 32767.0, -1.0);
-    let v = max(f32(bitcast<i32>(e) >> 16u) / 32767.0, -1.0);
+    let u = max(f32(bitcast<i32>(e << 24u) >> 24u) / 127.0, -1.0);
+    let v = max(f32(bitcast<i32>(e << 16u) >> 24u) / 127.0, -1.0);
     let z = 1.0 - abs(u) - abs(v);
     let t = max(-z, 0.0);
     let x = u - t * sign(u);
@@ -110,6 +114,8 @@ fn vs_main(@builtin(vertex_index) vertex_index: u32) -> VertexOut {
     out.grid_pos = grid_pos;
     out.normal = oct_decode(record.normal);
     out.face_normal = normal;
+    let rgba = unpack4x8unorm(record.color);
+    out.base_colour = select(BASE_COLOUR, rgba.rgb, rgba.a > 0.5);
     return out;
 }
 
@@ -130,8 +136,9 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     let key = max(dot(n, frame.key_light.xyz), 0.0);
     let diffuse = 0.65 * headlight + 0.35 * key;
     let visibility = ambient_visibility(in.grid_pos, n);
-    // Warm grey, never darker than 0.3 x base: always distinct from the blue
-    // background (20, 24, 36), which is what the silhouette tests rely on.
     let light = 0.3 + 0.7 * (0.4 * visibility + 0.6 * diffuse * (0.5 + 0.5 * visibility));
-    return vec4<f32>(BASE_COLOUR * clamp(light, 0.3, 1.0), 1.0);
+    // Voxel colour (or warm grey), never darker than 0.3 x base and never below
+    // 0.2 in any channel: always distinct from the blue background (20, 24, 36),
+    // which is what the silhouette tests rely on, even for black voxels.
+    return vec4<f32>(max(in.base_colour * clamp(light, 0.3, 1.0), vec3<f32>(0.2)), 1.0);
 }

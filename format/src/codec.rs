@@ -1,26 +1,49 @@
-//! Block wire format: a fixed little-endian header, then one lz4 block holding
-//! the voxel columns (all `pos_faces` words, then all `normal` words). Columns
-//! compress better than interleaved records because neighbours in Morton order
-//! share high position bits and similar normals.
+//! Block wire format, version 2: a fixed little-endian header, then one lz4
+//! block holding the voxel columns, each laid out so that lz4 (a byte matcher,
+//! not an entropy coder) finds long runs.
 //!
 //! ```text
-//! 0  magic  "VXB1"
-//! 4  level  u8, then 3 reserved zero bytes
+//! 0  magic  "VXB2"
+//! 4  level  u8
+//! 5  flags  u8: bit 0 = colour column present; other bits zero
+//! 6  reserved, 2 zero bytes
 //! 8  x, y, z  u32 each
 //! 20 voxel count u32 (≤ 64³)
-//! 24 lz4 block of count·8 bytes
+//! 24 payload length u32 (decompressed; checked against the count before allocating)
+//! 28 lz4 block of the payload
 //! ```
+//!
+//! Payload columns, in this order:
+//! 1. **occupancy**: the voxel positions as an octree of child masks, breadth
+//!    first, one nonzero byte per occupied node from the 64³ root down to the
+//!    2³ nodes above the voxels (bit `i` = child octant `i` in Morton order).
+//!    Leaves come out in increasing Morton order by construction. A surface
+//!    costs about 0.4 bytes per voxel here before lz4, less than a varint of
+//!    the Morton delta (measured: `column_sizes`, ARCHITECTURE.md).
+//! 2. **faces**: one byte per voxel, the face mask XOR the mask predicted from
+//!    occupancy alone (neighbour in the block empty, or on the block boundary).
+//!    The prediction is right except next to dropped buried voxels and for
+//!    coarse voxels' ORed masks, so the column is mostly zeros.
+//! 3. **normals**: octahedral snorm8 pairs, all x bytes then all y bytes, each
+//!    stored as the wrapping difference from the previous voxel's byte.
+//! 4. **coverage** (levels above 0 only; level 0 is always full): one byte per voxel, 1..=255.
+//! 5. **colour** (when flagged): sRGB8, all r then all g then all b bytes,
+//!    each a wrapping difference from the previous voxel's.
 
-use crate::{BLOCK_VOXELS, Block, BlockKey, MAX_LEVEL, PackedVoxel};
+use crate::{BLOCK_VOXELS, Block, BlockKey, FULL_COVERAGE, MAX_LEVEL, PackedVoxel};
 
-pub const BLOCK_MAGIC: [u8; 4] = *b"VXB1";
-pub const HEADER_LEN: usize = 24;
+pub const BLOCK_MAGIC: [u8; 4] = *b"VXB2";
+pub const HEADER_LEN: usize = 28;
+/// Header flag: the block has a colour column.
+pub const FLAG_COLOR: u8 = 1;
+/// Octree depth of a 64³ block: 6 levels of 2³.
+const BLOCK_DEPTH: u32 = 6;
 
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
 pub enum CodecError {
     #[error("block is {0} bytes, shorter than its {HEADER_LEN}-byte header")]
     Truncated(usize),
-    #[error("block does not start with the VXB1 magic")]
+    #[error("block does not start with the VXB2 magic")]
     BadMagic,
     #[error("block header is invalid: {0}")]
     BadHeader(&'static str),
@@ -32,23 +55,289 @@ pub enum CodecError {
     BadVoxel { index: usize, why: &'static str },
 }
 
+/// A block's voxels as separate columns, for any octree depth (block edge
+/// `2^depth`): the block codec uses depth 6; the block-size measurements in
+/// `examples/block_stats.rs` use 5 and 7 with the same code.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct VoxelColumns {
+    /// Octree depth: the block is `2^depth` voxels per edge (1..=7).
+    pub depth: u32,
+    /// Block-local Morton codes, strictly increasing, `< 8^depth`.
+    pub morton: Vec<u32>,
+    /// Face masks, nonzero, `< 64`.
+    pub faces: Vec<u8>,
+    /// Octahedral snorm8 normals (x low byte).
+    pub normal: Vec<u16>,
+    /// Empty = every voxel full (level 0); else one nonzero byte per voxel.
+    pub coverage: Vec<u8>,
+    /// Empty = no colour; else one sRGB8 triple per voxel.
+    pub color: Vec<[u8; 3]>,
+}
+
+/// Compressed size of each column on its own, for measurements.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ColumnSizes {
+    pub occupancy: usize,
+    pub faces: usize,
+    pub normals: usize,
+    pub coverage: usize,
+    pub colors: usize,
+}
+
+impl std::ops::AddAssign for ColumnSizes {
+    fn add_assign(&mut self, o: Self) {
+        self.occupancy += o.occupancy;
+        self.faces += o.faces;
+        self.normals += o.normals;
+        self.coverage += o.coverage;
+        self.colors += o.colors;
+    }
+}
+
+fn axis_masks(depth: u32) -> [u32; 3] {
+    let x: u32 = (0..depth).map(|i| 1 << (3 * i)).sum();
+    [x, x << 1, x << 2]
+}
+
+/// Face masks predicted from occupancy alone: a face is exposed when the
+/// neighbour across it is outside the block or not occupied.
+fn predicted_faces(depth: u32, morton: &[u32]) -> Vec<u8> {
+    let mut occupied = vec![0u64; (1usize << (3 * depth)).div_ceil(64)];
+    for &m in morton {
+        occupied[m as usize / 64] |= 1 << (m % 64);
+    }
+    let is_set = |m: u32| occupied[m as usize / 64] & (1 << (m % 64)) != 0;
+    let masks = axis_masks(depth);
+    morton
+        .iter()
+        .map(|&m| {
+            let mut faces = 0u8;
+            for (axis, &mask) in masks.iter().enumerate() {
+                let c = m & mask;
+                let rest = m & !mask;
+                // Morton-space decrement/increment of one coordinate.
+                let below = c == 0 || !is_set(((c.wrapping_sub(1)) & mask) | rest);
+                let above = c == mask || !is_set((((c | !mask).wrapping_add(1)) & mask) | rest);
+                faces |= (below as u8) << (2 * axis) | (above as u8) << (2 * axis + 1);
+            }
+            faces
+        })
+        .collect()
+}
+
+fn octree_masks(depth: u32, morton: &[u32]) -> Vec<u8> {
+    let mut out = Vec::new();
+    for d in 0..depth {
+        // Nodes at depth d + 1 are the prefixes `m >> shift`; group them by parent.
+        let shift = 3 * (depth - 1 - d);
+        let mut parent = None;
+        let mut last_child = None;
+        for &m in morton {
+            let child = m >> shift;
+            if last_child == Some(child) {
+                continue;
+            }
+            last_child = Some(child);
+            if parent != Some(child >> 3) {
+                parent = Some(child >> 3);
+                out.push(0);
+            }
+            *out.last_mut().expect("pushed") |= 1 << (child & 7);
+        }
+    }
+    out
+}
+
+fn delta_plane(values: impl Iterator<Item = u8>, out: &mut Vec<u8>) {
+    let mut prev = 0u8;
+    for v in values {
+        out.push(v.wrapping_sub(prev));
+        prev = v;
+    }
+}
+
+impl VoxelColumns {
+    /// The columns of a decoded 64³ block; coverage is dropped on level 0
+    /// (always full there) and colour when no voxel has any.
+    pub fn from_block(block: &Block) -> Self {
+        let v = &block.voxels;
+        let has_color = v.iter().any(|v| v.color().is_some());
+        Self {
+            depth: BLOCK_DEPTH,
+            morton: v.iter().map(PackedVoxel::morton).collect(),
+            faces: v.iter().map(PackedVoxel::faces).collect(),
+            normal: v.iter().map(|v| v.normal as u16).collect(),
+            coverage: if block.key.level == 0 {
+                Vec::new()
+            } else {
+                v.iter().map(|v| v.coverage()).collect()
+            },
+            color: if has_color {
+                v.iter().map(|v| v.color().unwrap_or([0; 3])).collect()
+            } else {
+                Vec::new()
+            },
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.morton.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.morton.is_empty()
+    }
+
+    /// The five payload sections, uncompressed.
+    fn sections(&self) -> [Vec<u8>; 5] {
+        let n = self.len();
+        let occupancy = octree_masks(self.depth, &self.morton);
+        let faces =
+            self.faces.iter().zip(predicted_faces(self.depth, &self.morton)).map(|(f, p)| f ^ p).collect();
+        let mut normals = Vec::with_capacity(2 * n);
+        delta_plane(self.normal.iter().map(|n| *n as u8), &mut normals);
+        delta_plane(self.normal.iter().map(|n| (n >> 8) as u8), &mut normals);
+        let mut colors = Vec::with_capacity(3 * self.color.len());
+        for c in 0..3 {
+            delta_plane(self.color.iter().map(|rgb| rgb[c]), &mut colors);
+        }
+        [occupancy, faces, normals, self.coverage.clone(), colors]
+    }
+
+    /// The uncompressed payload.
+    pub fn payload(&self) -> Vec<u8> {
+        self.sections().concat()
+    }
+
+    /// Each column lz4-compressed on its own (the sum is a little more than
+    /// the one lz4 block the codec writes).
+    pub fn column_sizes(&self) -> ColumnSizes {
+        let s = self.sections().map(|c| if c.is_empty() { 0 } else { lz4_flex::block::compress(&c).len() });
+        ColumnSizes { occupancy: s[0], faces: s[1], normals: s[2], coverage: s[3], colors: s[4] }
+    }
+
+    /// Inverse of [`VoxelColumns::payload`], validating everything. `count`
+    /// must already be bounded by the caller (it sizes the output).
+    pub fn from_payload(
+        depth: u32,
+        count: usize,
+        has_coverage: bool,
+        has_color: bool,
+        raw: &[u8],
+    ) -> Result<Self, CodecError> {
+        let corrupt = |s: &str| CodecError::Corrupt(s.to_string());
+        // Occupancy: expand the octree breadth first.
+        let mut at = 0;
+        let mut nodes: Vec<u32> = if count == 0 { Vec::new() } else { vec![0] };
+        for _ in 0..depth {
+            let mut next = Vec::with_capacity(count.min(nodes.len() * 8));
+            for &p in &nodes {
+                let Some(&mask) = raw.get(at) else {
+                    return Err(corrupt("occupancy octree is truncated"));
+                };
+                at += 1;
+                if mask == 0 {
+                    return Err(corrupt("occupancy octree has an empty node"));
+                }
+                for bit in 0..8 {
+                    if mask & (1 << bit) != 0 {
+                        next.push(p << 3 | bit);
+                    }
+                }
+            }
+            // Every node has a child, so a level never shrinks: too many is final.
+            if next.len() > count {
+                return Err(corrupt("occupancy octree holds more voxels than the header says"));
+            }
+            nodes = next;
+        }
+        if nodes.len() != count {
+            return Err(CodecError::Corrupt(format!(
+                "occupancy octree holds {} voxels, the header says {count}",
+                nodes.len()
+            )));
+        }
+        let per_voxel = 3 + has_coverage as usize + 3 * has_color as usize;
+        if raw.len() - at != count * per_voxel {
+            return Err(CodecError::Corrupt(format!(
+                "payload holds {} bytes after the octree, {count} voxels need {}",
+                raw.len() - at,
+                count * per_voxel
+            )));
+        }
+        let morton = nodes;
+        let mut rest = &raw[at..];
+        let mut take = |len: usize| {
+            let (head, tail) = rest.split_at(len);
+            rest = tail;
+            head
+        };
+        let predicted = predicted_faces(depth, &morton);
+        let mut faces = Vec::with_capacity(count);
+        for (i, (stored, p)) in take(count).iter().zip(predicted).enumerate() {
+            let f = stored ^ p;
+            if f >= 64 {
+                return Err(CodecError::BadVoxel { index: i, why: "reserved face bits set" });
+            }
+            if f == 0 {
+                return Err(CodecError::BadVoxel { index: i, why: "no exposed face" });
+            }
+            faces.push(f);
+        }
+        let undelta = |plane: &[u8]| -> Vec<u8> {
+            let mut prev = 0u8;
+            plane
+                .iter()
+                .map(|d| {
+                    prev = prev.wrapping_add(*d);
+                    prev
+                })
+                .collect()
+        };
+        let nx = undelta(take(count));
+        let ny = undelta(take(count));
+        let normal = nx.iter().zip(&ny).map(|(&x, &y)| x as u16 | (y as u16) << 8).collect();
+        let coverage = if has_coverage { take(count).to_vec() } else { Vec::new() };
+        if let Some(i) = coverage.iter().position(|&c| c == 0) {
+            return Err(CodecError::BadVoxel { index: i, why: "zero coverage" });
+        }
+        let color = if has_color {
+            let (r, g, b) = (undelta(take(count)), undelta(take(count)), undelta(take(count)));
+            (0..count).map(|i| [r[i], g[i], b[i]]).collect()
+        } else {
+            Vec::new()
+        };
+        Ok(Self { depth, morton, faces, normal, coverage, color })
+    }
+}
+
+/// Most payload bytes a block of `count` voxels can have: a full octree above
+/// the voxels (bounded by both the tree and 6 nodes per voxel) plus the columns.
+fn max_payload(count: usize, has_coverage: bool, has_color: bool) -> usize {
+    let tree: usize = (0..BLOCK_DEPTH).map(|d| 1usize << (3 * d)).sum();
+    tree.min(BLOCK_DEPTH as usize * count) + count * (3 + has_coverage as usize + 3 * has_color as usize)
+}
+
 /// Encodes a block. The voxels must be in strictly increasing Morton order
-/// (what [`decode_block`] checks), which keeps encoding deterministic.
+/// (what [`decode_block`] checks), which keeps encoding deterministic. The
+/// block has a colour column when any voxel has colour (an uncoloured voxel
+/// in it then decodes as black); coverage is stored above level 0 only.
 pub fn encode_block(block: &Block) -> Vec<u8> {
     debug_assert!(block.voxels.windows(2).all(|w| w[0].morton() < w[1].morton()));
-    let n = block.voxels.len();
-    let mut raw = Vec::with_capacity(n * 8);
-    raw.extend(block.voxels.iter().flat_map(|v| v.pos_faces.to_le_bytes()));
-    raw.extend(block.voxels.iter().flat_map(|v| v.normal.to_le_bytes()));
+    debug_assert!(block.key.level > 0 || block.voxels.iter().all(|v| v.coverage() == FULL_COVERAGE));
+    let columns = VoxelColumns::from_block(block);
+    let raw = columns.payload();
     let packed = lz4_flex::block::compress(&raw);
+    let flags = if columns.color.is_empty() { 0 } else { FLAG_COLOR };
 
     let mut out = Vec::with_capacity(HEADER_LEN + packed.len());
     out.extend_from_slice(&BLOCK_MAGIC);
-    out.extend_from_slice(&[block.key.level, 0, 0, 0]);
+    out.extend_from_slice(&[block.key.level, flags, 0, 0]);
     for c in block.key.coord() {
         out.extend_from_slice(&c.to_le_bytes());
     }
-    out.extend_from_slice(&(n as u32).to_le_bytes());
+    out.extend_from_slice(&(columns.len() as u32).to_le_bytes());
+    out.extend_from_slice(&(raw.len() as u32).to_le_bytes());
     out.extend_from_slice(&packed);
     out
 }
@@ -58,7 +347,7 @@ fn u32_at(b: &[u8], at: usize) -> u32 {
 }
 
 /// Decodes and validates a block. Never panics and never allocates more than
-/// a full block, whatever the bytes say.
+/// a full block's payload, whatever the bytes say.
 pub fn decode_block(bytes: &[u8]) -> Result<Block, CodecError> {
     if bytes.len() < HEADER_LEN {
         return Err(CodecError::Truncated(bytes.len()));
@@ -70,7 +359,11 @@ pub fn decode_block(bytes: &[u8]) -> Result<Block, CodecError> {
     if level > MAX_LEVEL {
         return Err(CodecError::BadHeader("level too deep"));
     }
-    if bytes[5..8] != [0, 0, 0] {
+    let flags = bytes[5];
+    if flags & !FLAG_COLOR != 0 {
+        return Err(CodecError::BadHeader("unknown flag bits set"));
+    }
+    if bytes[6..8] != [0, 0] {
         return Err(CodecError::BadHeader("reserved bytes are not zero"));
     }
     let key = BlockKey::new(level, u32_at(bytes, 8), u32_at(bytes, 12), u32_at(bytes, 16));
@@ -79,30 +372,28 @@ pub fn decode_block(bytes: &[u8]) -> Result<Block, CodecError> {
         return Err(CodecError::TooManyVoxels(count));
     }
     let n = count as usize;
-    let mut raw = vec![0u8; n * 8];
+    let (has_coverage, has_color) = (level > 0, flags & FLAG_COLOR != 0);
+    let raw_len = u32_at(bytes, 24) as usize;
+    if raw_len > max_payload(n, has_coverage, has_color) {
+        return Err(CodecError::BadHeader("payload length is too large for the voxel count"));
+    }
+    let mut raw = vec![0u8; raw_len];
     let written = lz4_flex::block::decompress_into(&bytes[HEADER_LEN..], &mut raw)
         .map_err(|e| CodecError::Corrupt(e.to_string()))?;
     if written != raw.len() {
-        return Err(CodecError::Corrupt(format!(
-            "payload holds {written} bytes, header implies {}",
-            raw.len()
-        )));
+        return Err(CodecError::Corrupt(format!("payload holds {written} bytes, header says {raw_len}")));
     }
+    let c = VoxelColumns::from_payload(BLOCK_DEPTH, n, has_coverage, has_color, &raw)?;
     let mut voxels = Vec::with_capacity(n);
-    let mut prev_morton = None;
     for i in 0..n {
-        let v = PackedVoxel { pos_faces: u32_at(&raw, i * 4), normal: u32_at(&raw, (n + i) * 4) };
-        if v.pos_faces >> 24 != 0 {
-            return Err(CodecError::BadVoxel { index: i, why: "reserved bits set" });
+        let [x, y, z] = crate::demorton3(c.morton[i]);
+        let mut v = PackedVoxel::new([x, y, z], c.faces[i], c.normal[i] as u32);
+        if has_coverage {
+            v = v.with_coverage(c.coverage[i]);
         }
-        if v.faces() == 0 {
-            return Err(CodecError::BadVoxel { index: i, why: "no exposed face" });
+        if has_color {
+            v = v.with_color(c.color[i]);
         }
-        let m = v.morton();
-        if prev_morton.is_some_and(|p| p >= m) {
-            return Err(CodecError::BadVoxel { index: i, why: "not in increasing Morton order" });
-        }
-        prev_morton = Some(m);
         voxels.push(v);
     }
     Ok(Block { key, voxels })
@@ -114,13 +405,19 @@ mod tests {
     use crate::{BLOCK_SIZE, morton3, oct_encode};
     use proptest::prelude::*;
 
-    fn block_from(mut locals: Vec<([u32; 3], u8, [f32; 3])>) -> Block {
+    type Spec = ([u32; 3], u8, [f32; 3]);
+
+    fn block_at(key: BlockKey, mut locals: Vec<Spec>) -> Block {
         locals.sort_by_key(|(p, _, _)| morton3(p[0], p[1], p[2]));
         locals.dedup_by_key(|(p, _, _)| morton3(p[0], p[1], p[2]));
         Block {
-            key: BlockKey::new(2, 1, 0, 3),
+            key,
             voxels: locals.into_iter().map(|(p, f, n)| PackedVoxel::new(p, f, oct_encode(n))).collect(),
         }
+    }
+
+    fn block_from(locals: Vec<Spec>) -> Block {
+        block_at(BlockKey::new(0, 1, 0, 3), locals)
     }
 
     fn full_block() -> Block {
@@ -139,6 +436,7 @@ mod tests {
     fn empty_block_round_trips() {
         let b = block_from(vec![]);
         let bytes = encode_block(&b);
+        assert_eq!(bytes.len(), HEADER_LEN + 1);
         assert_eq!(decode_block(&bytes).unwrap(), b);
     }
 
@@ -148,6 +446,47 @@ mod tests {
         assert_eq!(b.voxels.len(), crate::BLOCK_VOXELS);
         let bytes = encode_block(&b);
         assert_eq!(decode_block(&bytes).unwrap(), b);
+    }
+
+    #[test]
+    fn coverage_and_colour_round_trip() {
+        let mut b = block_at(
+            BlockKey::new(3, 0, 1, 0),
+            (0..500).map(|i| ([i % 64, i / 64, 3], 1 + (i % 63) as u8, [0.0, 1.0, i as f32])).collect(),
+        );
+        for (i, v) in b.voxels.iter_mut().enumerate() {
+            *v = v.with_coverage(1 + (i % 255) as u8).with_color([i as u8, 7, (i * 3) as u8]);
+        }
+        let bytes = encode_block(&b);
+        assert_eq!(bytes[5], FLAG_COLOR);
+        assert_eq!(decode_block(&bytes).unwrap(), b);
+    }
+
+    #[test]
+    fn predicted_faces_match_exposure() {
+        // Two neighbours along x in the middle, one voxel on the -x boundary.
+        let m = |p: [u32; 3]| morton3(p[0], p[1], p[2]);
+        let mut pts = [m([10, 10, 10]), m([11, 10, 10]), m([0, 5, 5])];
+        pts.sort();
+        let f = predicted_faces(6, &pts);
+        let at = |p| f[pts.iter().position(|&q| q == m(p)).unwrap()];
+        assert_eq!(at([10, 10, 10]), 63 & !2);
+        assert_eq!(at([11, 10, 10]), 63 & !1);
+        assert_eq!(at([0, 5, 5]), 63);
+        // On a 64³ edge, increments must not wrap into the next coordinate.
+        let edge = [m([63, 0, 0]), m([0, 1, 0])];
+        assert_eq!(predicted_faces(6, &edge), vec![63, 63]);
+    }
+
+    #[test]
+    fn octree_masks_count_nodes() {
+        // One voxel: one mask per depth.
+        assert_eq!(octree_masks(6, &[morton3(63, 0, 0)]).len(), 6);
+        // A full block: 1 + 8 + … + 8^5 nodes.
+        let all: Vec<u32> = (0..(1 << 18)).collect();
+        let masks = octree_masks(6, &all);
+        assert_eq!(masks.len(), 37449);
+        assert!(masks.iter().all(|&m| m == 255));
     }
 
     #[test]
@@ -164,6 +503,7 @@ mod tests {
     #[test]
     fn header_damage_is_named() {
         let bytes = encode_block(&block_from(vec![([1, 2, 3], 1, [1.0, 0.0, 0.0])]));
+        assert!(decode_block(&bytes).is_ok());
         let mut bad = bytes.clone();
         bad[0] = b'X';
         assert_eq!(decode_block(&bad), Err(CodecError::BadMagic));
@@ -173,12 +513,77 @@ mod tests {
         let mut bad = bytes.clone();
         bad[4] = 200;
         assert!(matches!(decode_block(&bad), Err(CodecError::BadHeader(_))));
+        let mut bad = bytes.clone();
+        bad[5] = 4;
+        assert_eq!(decode_block(&bad), Err(CodecError::BadHeader("unknown flag bits set")));
+        // A payload length the count cannot need is refused before allocating.
+        let mut bad = bytes.clone();
+        bad[24..28].copy_from_slice(&(1u32 << 30).to_le_bytes());
+        assert!(matches!(decode_block(&bad), Err(CodecError::BadHeader(_))));
+        // Claiming two voxels for a one-voxel octree.
+        let mut bad = bytes.clone();
+        bad[20..24].copy_from_slice(&2u32.to_le_bytes());
+        assert!(decode_block(&bad).is_err());
+    }
+
+    #[test]
+    fn payload_damage_is_found() {
+        let b = block_from(vec![([1, 2, 3], 1, [1.0, 0.0, 0.0]), ([5, 2, 3], 2, [1.0, 0.0, 0.0])]);
+        let mut cols = VoxelColumns::from_block(&b);
+        let good = cols.payload();
+        assert!(VoxelColumns::from_payload(6, 2, false, false, &good).is_ok());
+        // An empty octree node.
+        let mut bad = good.clone();
+        bad[0] = 0;
+        assert!(VoxelColumns::from_payload(6, 2, false, false, &bad).is_err());
+        // A face mask that XORs to zero (the voxel would have no face).
+        cols.faces[0] = 0;
+        let bad = cols.payload();
+        assert_eq!(
+            VoxelColumns::from_payload(6, 2, false, false, &bad),
+            Err(CodecError::BadVoxel { index: 0, why: "no exposed face" })
+        );
+        // One byte too many or too few after the octree.
+        let mut long = good.clone();
+        long.push(0);
+        assert!(VoxelColumns::from_payload(6, 2, false, false, &long).is_err());
+        assert!(VoxelColumns::from_payload(6, 2, false, false, &good[..good.len() - 1]).is_err());
+    }
+
+    fn arb_block() -> impl Strategy<Value = Block> {
+        (
+            0u8..4,
+            prop::collection::vec(
+                ((0u32..64, 0u32..64, 0u32..64), 1u8..64, any::<u16>(), 1u8..=255, any::<[u8; 3]>()),
+                0..600,
+            ),
+            any::<bool>(),
+        )
+            .prop_map(|(level, v, colored)| {
+                let mut v: Vec<_> =
+                    v.into_iter().map(|((x, y, z), f, n, c, rgb)| (morton3(x, y, z), f, n, c, rgb)).collect();
+                v.sort_by_key(|t| t.0);
+                v.dedup_by_key(|t| t.0);
+                let voxels = v
+                    .into_iter()
+                    .map(|(m, f, n, c, rgb)| {
+                        let mut p = PackedVoxel::new(crate::demorton3(m), f, n as u32);
+                        if level > 0 {
+                            p = p.with_coverage(c);
+                        }
+                        if colored {
+                            p = p.with_color(rgb);
+                        }
+                        p
+                    })
+                    .collect();
+                Block { key: BlockKey::new(level, 2, 0, 5), voxels }
+            })
     }
 
     proptest! {
         #[test]
-        fn random_blocks_round_trip(v in prop::collection::vec(((0u32..64, 0u32..64, 0u32..64), 1u8..64, (-1f32..1.0, -1f32..1.0, -1f32..1.0)), 0..500)) {
-            let b = block_from(v.into_iter().map(|((x, y, z), f, (a, b, c))| ([x, y, z], f, [a, b, c])).collect());
+        fn random_blocks_round_trip(b in arb_block()) {
             prop_assert_eq!(decode_block(&encode_block(&b)).unwrap(), b);
         }
 
@@ -189,12 +594,26 @@ mod tests {
                 let at = at % bytes.len();
                 bytes[at] ^= val | 1;
             }
-            let _ = decode_block(&bytes);
+            if let Ok(b) = decode_block(&bytes) {
+                prop_assert!(b.voxels.windows(2).all(|w| w[0].morton() < w[1].morton()));
+                prop_assert!(b.voxels.iter().all(|v| v.faces() != 0));
+            }
         }
 
         #[test]
         fn arbitrary_bytes_never_panic(bytes in prop::collection::vec(any::<u8>(), 0..256)) {
             let _ = decode_block(&bytes);
+        }
+
+        #[test]
+        fn arbitrary_payloads_never_panic(
+            count in 0usize..40, cov in any::<bool>(), col in any::<bool>(),
+            raw in prop::collection::vec(any::<u8>(), 0..400),
+        ) {
+            if let Ok(c) = VoxelColumns::from_payload(6, count, cov, col, &raw) {
+                prop_assert_eq!(c.len(), count);
+                prop_assert!(c.morton.windows(2).all(|w| w[0] < w[1]));
+            }
         }
     }
 }

@@ -12,13 +12,17 @@ mod key;
 mod manifest;
 mod voxel;
 
-pub use codec::{BLOCK_MAGIC, CodecError, HEADER_LEN, decode_block, encode_block};
+pub use codec::{
+    BLOCK_MAGIC, CodecError, ColumnSizes, FLAG_COLOR, HEADER_LEN, VoxelColumns, decode_block, encode_block,
+};
 pub use key::{BlockKey, KeyError};
 pub use manifest::{
     BlockEntry, FORMAT_VERSION, GridFrame, LevelInfo, Manifest, ManifestError, SceneSummary, SourceInfo,
     VoxelBounds,
 };
-pub use voxel::{Block, Face, PackedVoxel, demorton3, morton3, oct_decode, oct_encode};
+pub use voxel::{
+    Block, FULL_COVERAGE, Face, PackedVoxel, coverage_from_count, demorton3, morton3, oct_decode, oct_encode,
+};
 
 /// Voxels per block edge (seed 003 uses 64³ blocks).
 pub const BLOCK_SIZE: u32 = 64;

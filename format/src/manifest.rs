@@ -3,7 +3,7 @@ use serde::{Deserialize, Serialize};
 use crate::{BLOCK_SIZE, BlockKey};
 
 /// Bumped whenever a reader of an older manifest would misread a newer one.
-pub const FORMAT_VERSION: u32 = 1;
+pub const FORMAT_VERSION: u32 = 2;
 
 /// Where the voxel grid sits in the source mesh's coordinates.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -64,6 +64,12 @@ pub struct BlockEntry {
     pub faces: u32,
     /// Encoded size in bytes.
     pub bytes: u32,
+    /// How far, in grid units (level-0 voxels), drawing this block's voxels
+    /// can put surface away from where the level-0 voxels below them are: an
+    /// upper bound on the one-sided Hausdorff distance from the block's voxel
+    /// cubes to the level-0 voxels they stand for (server `lod.rs` says how it
+    /// is measured). 0 on level 0; never smaller than any child block's.
+    pub geometric_error: f32,
     /// blake3 of the encoded bytes, hex; the block's ETag.
     pub hash: String,
 }
@@ -134,6 +140,9 @@ impl Manifest {
             if b.key.coord().iter().any(|&c| c >= blocks_per_edge) {
                 return bad(format!("block {} lies outside its level", b.key));
             }
+            if !(b.geometric_error.is_finite() && b.geometric_error >= 0.0) {
+                return bad(format!("block {} has geometric error {}", b.key, b.geometric_error));
+            }
         }
         Ok(())
     }
@@ -198,6 +207,7 @@ mod tests {
                     faces: 6,
                     bytes: 30,
                     hash: "x".into(),
+                    geometric_error: 0.0,
                 },
                 BlockEntry {
                     key: BlockKey::new(1, 0, 0, 0),
@@ -206,6 +216,7 @@ mod tests {
                     faces: 6,
                     bytes: 30,
                     hash: "y".into(),
+                    geometric_error: 1.5,
                 },
             ],
         }
@@ -227,6 +238,9 @@ mod tests {
         assert!(Manifest::from_json(&m.to_json()).is_err());
         let mut m = sample();
         m.blocks[0].key = BlockKey::new(0, 2, 0, 0);
+        assert!(Manifest::from_json(&m.to_json()).is_err());
+        let mut m = sample();
+        m.blocks[1].geometric_error = -1.0;
         assert!(Manifest::from_json(&m.to_json()).is_err());
         let mut m = sample();
         m.format_version = 99;

@@ -1,10 +1,28 @@
 //! LOD: exposed-face masks and the 2³ merge that builds coarser levels
 //! (seed 003 §3): a parent voxel exists if any of its 8 children does, its
-//! face mask is the OR of theirs and its normal sum is the sum of theirs.
+//! face mask is the OR of theirs and its normal and colour sums are the sums
+//! of theirs (averaged when packed: `store::packed_block`).
 //!
 //! Skirts: a level-0 face on a block's boundary is always marked exposed,
 //! whatever the neighbour block holds, so a block next to a coarser or finer
 //! neighbour never shows a crack. The OR carries those faces upwards.
+//!
+//! Two measured quantities travel up with each voxel:
+//!
+//! - **solid**: how many level-0 voxels below it are occupied. Level-0 voxels
+//!   buried on all six sides are never drawn, but they are occupied, and the
+//!   viewer's ambient occlusion wants solidity, so they are kept through the
+//!   merge (faces = 0) and only dropped at the end. Coverage = solid / 8^level.
+//! - **error**: an upper bound, in grid units, on the distance from any point
+//!   of the voxel's cube to the nearest occupied level-0 voxel below it (the
+//!   one-sided Hausdorff distance from what is drawn to what it stands for).
+//!   Level 0: 0. A parent of child edge `s` whose children have errors ≤ `e`:
+//!   a point inside an occupied child is within `e`; a point inside an empty
+//!   octant is within `s·k + e`, `k` = 1, √2 or √3 for the nearest occupied
+//!   octant sharing a face, an edge or only a corner. So
+//!   `error(parent) = min(e + s·k_max(mask), parent diagonal)`, which is never
+//!   smaller than any child's error: **error grows monotonically with level**,
+//!   and so does a block's error, the maximum over its drawn voxels.
 
 use std::collections::BTreeMap;
 
@@ -13,13 +31,40 @@ use voxstream_format::{BLOCK_SIZE, BLOCK_VOXELS, BlockKey, Face, demorton3, mort
 
 use crate::voxelize::{BuildVoxel, SparseBlock};
 
+/// A voxel on any level while the LOD is built.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LodVoxel {
+    /// Position, sums and face mask; `faces == 0` only for buried voxels, which
+    /// [`build_levels`] drops at the end.
+    pub voxel: BuildVoxel,
+    /// Occupied level-0 voxels below this one (buried ones included).
+    pub solid: u32,
+    /// Grid units; see the module docs.
+    pub error: f32,
+}
+
+/// One block of any level, voxels in strictly increasing Morton order.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LodBlock {
+    pub key: BlockKey,
+    pub voxels: Vec<LodVoxel>,
+}
+
+impl LodBlock {
+    /// Largest voxel error: the block's geometric error in grid units.
+    pub fn geometric_error(&self) -> f32 {
+        self.voxels.iter().filter(|v| v.voxel.faces != 0).map(|v| v.error).fold(0.0, f32::max)
+    }
+}
+
 /// Block-local position of a voxel.
 pub fn local_position(v: &BuildVoxel) -> [u32; 3] {
     demorton3(v.morton)
 }
 
 /// Marks each voxel's faces whose neighbour inside the block is empty, and
-/// every face on the block boundary (the skirt).
+/// every face on the block boundary (the skirt). Voxels buried on all six
+/// sides get an empty mask and stay (their solidity counts for coverage).
 pub fn mark_exposed_faces(block: &mut SparseBlock) {
     let mut occupied = vec![0u64; BLOCK_VOXELS / 64];
     for v in &block.voxels {
@@ -53,39 +98,68 @@ pub fn mark_exposed_faces(block: &mut SparseBlock) {
         }
         v.faces = mask;
     }
-    // A voxel buried on all six sides is never drawn; dropping it keeps blocks small.
-    block.voxels.retain(|v| v.faces != 0);
+}
+
+/// For each mask of occupied octants, the largest over empty octants of the
+/// distance factor (1, √2, √3) to the nearest occupied octant; 0 when full.
+fn empty_octant_reach(mask: u8) -> f32 {
+    let mut worst = 0f32;
+    for o in 0..8u8 {
+        if mask & (1 << o) != 0 {
+            continue;
+        }
+        let nearest = (0..8u8)
+            .filter(|c| mask & (1 << c) != 0)
+            .map(|c| ((o ^ c).count_ones() as f32).sqrt())
+            .fold(f32::INFINITY, f32::min);
+        worst = worst.max(nearest);
+    }
+    worst
 }
 
 /// Builds the parent block `key` from its children (any may be missing).
-pub fn merge_children(key: BlockKey, children: &[&SparseBlock]) -> Option<SparseBlock> {
-    // Dense accumulator indexed by parent-local Morton; `faces == 0` marks an empty slot
-    // because merged children only ever hold voxels with exposed faces.
-    let mut acc = vec![BuildVoxel::EMPTY; BLOCK_VOXELS];
+pub fn merge_children(key: BlockKey, children: &[&LodBlock]) -> Option<LodBlock> {
+    debug_assert!(key.level > 0);
+    // Dense accumulator indexed by parent-local Morton; `solid == 0` marks an empty slot.
+    let empty = LodVoxel { voxel: BuildVoxel::EMPTY, solid: 0, error: 0.0 };
+    let mut acc = vec![(empty, 0u8); BLOCK_VOXELS];
     let mut any = false;
     for child in children {
         debug_assert_eq!(child.key.parent(), key);
         let octant = child.key.coord().map(|c| (c & 1) * (BLOCK_SIZE / 2));
         for v in &child.voxels {
-            let p = demorton3(v.morton);
+            let p = demorton3(v.voxel.morton);
             let q = [0, 1, 2].map(|a| octant[a] + p[a] / 2);
             let m = morton3(q[0], q[1], q[2]);
-            let slot = &mut acc[m as usize];
-            slot.morton = m;
-            slot.faces |= v.faces;
+            let (slot, mask) = &mut acc[m as usize];
+            slot.voxel.morton = m;
+            slot.voxel.faces |= v.voxel.faces;
             for a in 0..3 {
-                slot.normal_sum[a] += v.normal_sum[a];
-                slot.color_sum[a] += v.color_sum[a];
+                slot.voxel.normal_sum[a] += v.voxel.normal_sum[a];
+                slot.voxel.color_sum[a] += v.voxel.color_sum[a];
             }
-            slot.color_weight += v.color_weight;
+            slot.voxel.color_weight += v.voxel.color_weight;
+            slot.solid += v.solid;
+            slot.error = slot.error.max(v.error);
+            *mask |= 1 << (v.voxel.morton & 7);
             any = true;
         }
     }
     if !any {
         return None;
     }
-    let voxels = acc.into_iter().filter(|v| v.faces != 0).collect();
-    Some(SparseBlock { key, voxels })
+    let reach: [f32; 256] = std::array::from_fn(|m| empty_octant_reach(m as u8));
+    let child_edge = (1u64 << (key.level - 1)) as f32;
+    let diagonal = 2.0 * child_edge * 3f32.sqrt();
+    let voxels = acc
+        .into_iter()
+        .filter(|(v, _)| v.solid != 0)
+        .map(|(mut v, mask)| {
+            v.error = (v.error + child_edge * reach[mask as usize]).min(diagonal);
+            v
+        })
+        .collect();
+    Some(LodBlock { key, voxels })
 }
 
 /// Number of levels for a grid: enough that the coarsest is one block.
@@ -100,19 +174,32 @@ pub fn level_count(resolution: u32) -> u8 {
 }
 
 /// Turns level-0 blocks (faces not yet marked) into every level, finest first.
-pub fn build_levels(mut level0: Vec<SparseBlock>, resolution: u32) -> Vec<Vec<SparseBlock>> {
+/// Every returned voxel has at least one exposed face; blocks without one are left out.
+pub fn build_levels(mut level0: Vec<SparseBlock>, resolution: u32) -> Vec<Vec<LodBlock>> {
     level0.par_iter_mut().for_each(mark_exposed_faces);
     level0.retain(|b| !b.voxels.is_empty());
+    let level0: Vec<LodBlock> = level0
+        .into_iter()
+        .map(|b| LodBlock {
+            key: b.key,
+            voxels: b.voxels.into_iter().map(|voxel| LodVoxel { voxel, solid: 1, error: 0.0 }).collect(),
+        })
+        .collect();
     let mut levels = vec![level0];
     for _ in 1..level_count(resolution) {
         let finer = levels.last().expect("level 0 exists");
-        let mut groups: BTreeMap<BlockKey, Vec<&SparseBlock>> = BTreeMap::new();
+        let mut groups: BTreeMap<BlockKey, Vec<&LodBlock>> = BTreeMap::new();
         for b in finer {
             groups.entry(b.key.parent()).or_default().push(b);
         }
-        let coarser: Vec<SparseBlock> =
+        let coarser: Vec<LodBlock> =
             groups.into_par_iter().filter_map(|(key, children)| merge_children(key, &children)).collect();
         levels.push(coarser);
+    }
+    // Buried voxels have done their part (coverage); nothing draws them.
+    for level in &mut levels {
+        level.par_iter_mut().for_each(|b| b.voxels.retain(|v| v.voxel.faces != 0));
+        level.retain(|b| !b.voxels.is_empty());
     }
     levels
 }
@@ -134,6 +221,15 @@ mod tests {
         SparseBlock { key, voxels }
     }
 
+    fn lod_of(key: BlockKey, points: &[[u32; 3]]) -> LodBlock {
+        let mut b = block_of(key, points);
+        mark_exposed_faces(&mut b);
+        LodBlock {
+            key,
+            voxels: b.voxels.into_iter().map(|voxel| LodVoxel { voxel, solid: 1, error: 0.0 }).collect(),
+        }
+    }
+
     #[test]
     fn faces_between_neighbours_are_hidden_and_skirts_kept() {
         let mut b = block_of(BlockKey::new(0, 0, 0, 0), &[[10, 10, 10], [11, 10, 10], [0, 5, 5]]);
@@ -145,33 +241,87 @@ mod tests {
         assert_eq!(by_pos([0, 5, 5]) & Face::NegX.bit(), Face::NegX.bit());
     }
 
-    #[test]
-    fn buried_voxels_are_dropped() {
+    fn cube(lo: u32, hi: u32) -> Vec<[u32; 3]> {
         let mut pts = Vec::new();
-        for z in 20..23 {
-            for y in 20..23 {
-                for x in 20..23 {
+        for z in lo..hi {
+            for y in lo..hi {
+                for x in lo..hi {
                     pts.push([x, y, z]);
                 }
             }
         }
-        let mut b = block_of(BlockKey::new(0, 0, 0, 0), &pts);
+        pts
+    }
+
+    #[test]
+    fn buried_voxels_are_dropped_but_count_as_solid() {
+        let mut b = block_of(BlockKey::new(0, 0, 0, 0), &cube(20, 23));
         mark_exposed_faces(&mut b);
-        assert_eq!(b.voxels.len(), 26);
-        assert!(b.voxels.iter().all(|v| local_position(v) != [21, 21, 21]));
+        let buried: Vec<_> = b.voxels.iter().filter(|v| v.faces == 0).map(local_position).collect();
+        assert_eq!(buried, vec![[21, 21, 21]]);
+
+        // 4³ solid cube at 20..24: level 1 sees 2³ parents, each over 8 occupied voxels.
+        let levels = build_levels(vec![block_of(BlockKey::new(0, 0, 0, 0), &cube(20, 24))], 128);
+        assert_eq!(levels.len(), 2);
+        assert_eq!(levels[0][0].voxels.len(), 64 - 8, "the 2³ core is buried");
+        assert!(levels[0][0].voxels.iter().all(|v| v.voxel.faces != 0));
+        let parents = &levels[1][0].voxels;
+        assert_eq!(parents.len(), 8);
+        assert!(parents.iter().all(|v| v.solid == 8), "buried voxels count: {parents:?}");
+        assert!(parents.iter().all(|v| v.error == 0.0), "full parents are exact");
     }
 
     #[test]
     fn merge_ors_faces_and_places_octants() {
-        let mut a = block_of(BlockKey::new(0, 1, 0, 0), &[[0, 0, 0], [1, 1, 1]]);
-        let mut b = block_of(BlockKey::new(0, 0, 1, 0), &[[63, 63, 63]]);
-        mark_exposed_faces(&mut a);
-        mark_exposed_faces(&mut b);
+        let a = lod_of(BlockKey::new(0, 1, 0, 0), &[[0, 0, 0], [1, 1, 1]]);
+        let b = lod_of(BlockKey::new(0, 0, 1, 0), &[[63, 63, 63]]);
         let parent = merge_children(BlockKey::new(1, 0, 0, 0), &[&a, &b]).unwrap();
-        let got: Vec<([u32; 3], u8)> = parent.voxels.iter().map(|v| (local_position(v), v.faces)).collect();
+        let got: Vec<([u32; 3], u8)> =
+            parent.voxels.iter().map(|v| (local_position(&v.voxel), v.voxel.faces)).collect();
         // a's two voxels collapse into parent (32, 0, 0); b's lands at (31, 63, 31).
         assert_eq!(got, vec![([32, 0, 0], 63), ([31, 63, 31], 63)]);
-        assert_eq!(parent.voxels[0].normal_sum, [0.0, 0.0, 2.0]);
+        assert_eq!(parent.voxels[0].voxel.normal_sum, [0.0, 0.0, 2.0]);
+        assert_eq!(parent.voxels[0].solid, 2);
+        // Two opposite corners occupied: every empty octant shares a face with one.
+        assert_eq!(parent.voxels[0].error, 1.0);
+        // One child in a corner: the opposite corner octant is √3 away.
+        assert!((parent.voxels[1].error - 3f32.sqrt()).abs() < 1e-6);
+    }
+
+    #[test]
+    fn octant_reach_by_adjacency() {
+        assert_eq!(empty_octant_reach(0xff), 0.0);
+        assert_eq!(empty_octant_reach(0b0000_1111), 1.0, "a full layer: the rest share faces");
+        assert!((empty_octant_reach(0b0000_0001) - 3f32.sqrt()).abs() < 1e-6);
+        assert!((empty_octant_reach(0b0000_0011) - 2f32.sqrt()).abs() < 1e-6);
+    }
+
+    #[test]
+    fn error_grows_with_level_and_stays_within_the_diagonal() {
+        // A slanted plane x + y + z = 100 through a 128 grid (two levels).
+        let mut pts = Vec::new();
+        for y in 0..64 {
+            for x in 0..64 {
+                let z = 100i32 - x as i32 - y as i32;
+                if (0..64).contains(&z) {
+                    pts.push([x, y, z as u32]);
+                }
+            }
+        }
+        let levels = build_levels(vec![block_of(BlockKey::new(0, 0, 0, 0), &pts)], 256);
+        assert_eq!(levels.len(), 3);
+        let errors: Vec<f32> = levels.iter().map(|l| l[0].geometric_error()).collect();
+        assert_eq!(errors[0], 0.0);
+        assert!(errors[1] > 0.0 && errors[1] < errors[2], "{errors:?}");
+        for (l, level) in levels.iter().enumerate() {
+            let diagonal = (1u32 << l) as f32 * 3f32.sqrt();
+            for v in &level[0].voxels {
+                assert!(v.error <= diagonal + 1e-4, "level {l}: {} > {diagonal}", v.error);
+                assert!(v.solid >= 1 && v.solid <= 8u32.pow(l as u32));
+            }
+        }
+        let solid: Vec<u32> = levels.iter().map(|l| l[0].voxels.iter().map(|v| v.solid).sum()).collect();
+        assert_eq!(solid, vec![pts.len() as u32; 3], "every level accounts for every level-0 voxel");
     }
 
     #[test]

@@ -13,12 +13,11 @@ use std::path::{Path, PathBuf};
 use rayon::prelude::*;
 use voxstream_format::{
     BLOCK_SIZE, Block, BlockEntry, BlockKey, FORMAT_VERSION, GridFrame, LevelInfo, Manifest, PackedVoxel,
-    SourceInfo, VoxelBounds, encode_block, oct_encode,
+    SourceInfo, VoxelBounds, coverage_from_count, encode_block, oct_encode,
 };
 
-use crate::lod::local_position;
+use crate::lod::{LodBlock, local_position};
 use crate::progress::{ProgressSink, Stage, StageCounter};
-use crate::voxelize::SparseBlock;
 
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
@@ -56,23 +55,56 @@ pub fn id_from_file_stem(path: &Path) -> String {
     if id.is_empty() { "scene".to_string() } else { id }
 }
 
-pub fn packed_block(b: &SparseBlock) -> Block {
+/// Linear [0, 1] → sRGB8 (the viewer shows colours as stored, like its grey).
+pub fn linear_to_srgb8(c: f32) -> u8 {
+    let c = if c.is_finite() { c.clamp(0.0, 1.0) } else { 0.0 };
+    let s = if c <= 0.003_130_8 { 12.92 * c } else { 1.055 * c.powf(1.0 / 2.4) - 0.055 };
+    (s * 255.0).round() as u8
+}
+
+/// Average colour of a voxel as sRGB8, if it has any colour weight.
+fn average_color(v: &voxstream_format::PackedVoxel, sum: [f32; 3], weight: f32) -> PackedVoxel {
+    if weight > 0.0 && weight.is_finite() {
+        v.with_color(sum.map(|c| linear_to_srgb8(c / weight)))
+    } else {
+        *v
+    }
+}
+
+/// Neutral colour for uncoloured voxels in a block that has colour (the
+/// viewer's grey, BASE_COLOUR in shaders/voxel.wgsl).
+pub const NEUTRAL_SRGB8: [u8; 3] = [219, 204, 184];
+
+/// The block as stored: normals are the normalised sums (octahedral snorm8),
+/// colours the area-weighted averages (sRGB8; blocks with no colour weight at
+/// all have no colour column), coverage the solid count over 8^level.
+pub fn packed_block(b: &LodBlock) -> Block {
+    let level = b.key.level;
+    let has_color = b.voxels.iter().any(|v| v.voxel.color_weight > 0.0);
     Block {
         key: b.key,
         voxels: b
             .voxels
             .iter()
-            .map(|v| PackedVoxel::new(local_position(v), v.faces, oct_encode(v.normal_sum)))
+            .map(|v| {
+                let mut p =
+                    PackedVoxel::new(local_position(&v.voxel), v.voxel.faces, oct_encode(v.voxel.normal_sum))
+                        .with_coverage(coverage_from_count(v.solid as u64, level));
+                if has_color {
+                    p = average_color(&p.with_color(NEUTRAL_SRGB8), v.voxel.color_sum, v.voxel.color_weight);
+                }
+                p
+            })
             .collect(),
     }
 }
 
-fn tight_bounds(b: &SparseBlock) -> VoxelBounds {
+fn tight_bounds(b: &LodBlock) -> VoxelBounds {
     let base = b.key.coord().map(|c| c * BLOCK_SIZE);
     let mut min = [u32::MAX; 3];
     let mut max = [0u32; 3];
     for v in &b.voxels {
-        let p = local_position(v);
+        let p = local_position(&v.voxel);
         for a in 0..3 {
             min[a] = min[a].min(base[a] + p[a]);
             max[a] = max[a].max(base[a] + p[a] + 1);
@@ -87,7 +119,7 @@ pub struct SceneContent<'a> {
     pub source: SourceInfo,
     pub grid: GridFrame,
     /// Blocks per level, finest first, each level sorted by key.
-    pub levels: &'a [Vec<SparseBlock>],
+    pub levels: &'a [Vec<LodBlock>],
 }
 
 fn write_synced(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
@@ -152,6 +184,7 @@ fn write_scene_dir(
                     faces: packed.face_count(),
                     bytes: bytes.len() as u32,
                     hash: blake3::hash(&bytes).to_hex().to_string(),
+                    geometric_error: b.geometric_error(),
                 })
             })
             .collect::<Result<_, StoreError>>()?;
@@ -240,6 +273,41 @@ pub fn open_scene(store: &Path, id: &str) -> Result<StoredScene, StoreError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn srgb_conversion() {
+        assert_eq!(linear_to_srgb8(0.0), 0);
+        assert_eq!(linear_to_srgb8(1.0), 255);
+        assert_eq!(linear_to_srgb8(0.22), 129);
+        assert_eq!(linear_to_srgb8(f32::NAN), 0);
+        assert_eq!(linear_to_srgb8(7.0), 255);
+    }
+
+    #[test]
+    fn packing_averages_normals_and_colours() {
+        use crate::lod::LodVoxel;
+        use crate::voxelize::BuildVoxel;
+        let voxel = |m, w: f32| LodVoxel {
+            voxel: BuildVoxel {
+                morton: m,
+                normal_sum: [0.0, 0.0, -40.0],
+                color_sum: [0.5 * w, 0.0, w],
+                color_weight: w,
+                faces: 1,
+            },
+            solid: 3,
+            error: 2.0,
+        };
+        let b = LodBlock { key: BlockKey::new(1, 0, 0, 0), voxels: vec![voxel(0, 4.0), voxel(9, 0.0)] };
+        let p = packed_block(&b);
+        assert_eq!(voxstream_format::oct_decode(p.voxels[0].normal), [0.0, 0.0, -1.0]);
+        assert_eq!(p.voxels[0].color(), Some([188, 0, 255]));
+        assert_eq!(p.voxels[1].color(), Some(NEUTRAL_SRGB8), "uncoloured voxel in a coloured block");
+        assert_eq!(p.voxels[0].coverage(), 96, "3 of 8");
+        assert_eq!(b.geometric_error(), 2.0);
+        let grey = LodBlock { key: BlockKey::new(0, 0, 0, 0), voxels: vec![voxel(0, 0.0)] };
+        assert_eq!(packed_block(&grey).voxels[0].color(), None);
+    }
 
     #[test]
     fn ids() {

@@ -171,16 +171,16 @@ fn gpu_expansion_writes_exactly_the_cpu_faces() {
         let faces = block.face_count();
         assert_eq!(faces, manifest.block(&key).unwrap().faces, "manifest face count of {key}");
         assert_eq!(args, [faces * 6, 1, 0, 0], "indirect args of {key}");
-        let mut gpu: Vec<[u32; 2]> = records;
+        let mut gpu: Vec<[u32; 3]> = records;
         gpu.sort();
-        let mut cpu: Vec<[u32; 2]> = block
+        let mut cpu: Vec<[u32; 3]> = block
             .voxels
             .iter()
             .flat_map(|v| {
                 Face::ALL
                     .into_iter()
                     .filter(move |f| v.faces() & f.bit() != 0)
-                    .map(move |f| [(v.pos_faces & 0x3ffff) | (f as u32) << 18, v.normal])
+                    .map(move |f| [(v.pos_faces & 0x3ffff) | (f as u32) << 18, v.normal, v.color])
             })
             .collect();
         cpu.sort();
@@ -234,4 +234,41 @@ fn corrupt_and_missing_blocks_fall_back_to_their_ancestor() {
         HEIGHT,
     );
     assert!(cmp.expected_pixels > 0 && cmp.within_tolerance(), "{cmp:?}");
+}
+
+#[test]
+fn voxel_colour_is_shaded_in() {
+    // A 40×40 sheet of pure-red voxels (linear 1, 0, 0) in a one-block scene.
+    use voxstream::lod::build_levels;
+    use voxstream::store::{SceneContent, write_scene};
+    use voxstream::voxelize::{BuildVoxel, SparseBlock};
+    use voxstream_format::{GridFrame, SourceInfo, morton3};
+    let mut voxels: Vec<BuildVoxel> = (0..40u32)
+        .flat_map(|y| (0..40u32).map(move |x| (x + 12, y + 12)))
+        .map(|(x, y)| BuildVoxel {
+            morton: morton3(x, y, 32),
+            normal_sum: [0.0, 0.0, 1.0],
+            color_sum: [2.0, 0.0, 0.0],
+            color_weight: 2.0,
+            faces: 0,
+        })
+        .collect();
+    voxels.sort_by_key(|v| v.morton);
+    let levels = build_levels(vec![SparseBlock { key: BlockKey::new(0, 0, 0, 0), voxels }], 64);
+    let store = tempfile::tempdir().unwrap();
+    let content = SceneContent {
+        name: "red".into(),
+        source: SourceInfo { file: "red".into(), format: "test".into(), triangles: 2, skipped_triangles: 0 },
+        grid: GridFrame { origin: [0.0; 3], voxel_size: 1.0, resolution: 64, units: None },
+        levels: &levels,
+    };
+    write_scene(store.path(), "red", &content).unwrap();
+    let mut offscreen = open(&store.path().join("red"), &RenderOptions::new(256, 256));
+    let frame = offscreen.render().expect("render");
+    write_png(&artifacts_dir().join("native-colour.png"), &frame);
+    let covered: Vec<&[u8]> = frame.pixels.chunks_exact(4).filter(|p| *p != BACKGROUND_RGBA8).collect();
+    assert!(covered.len() > 2000, "only {} pixels covered", covered.len());
+    for p in covered {
+        assert!(p[0] >= 70 && p[0] > p[1] + 15 && p[0] > p[2] + 15, "pixel {p:?} is not red");
+    }
 }

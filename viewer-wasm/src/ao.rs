@@ -4,8 +4,13 @@
 //! the whole scene grid, with a mip chain of averaged occupancy built on the
 //! CPU, and uploaded as an r8unorm 3D texture the fragment shader samples at
 //! the mip matching each cone's width.
+//!
+//! Each voxel brings its prefiltered coverage (the stored fraction of occupied
+//! level-0 voxels below it), so a coarse block puts the same occluding mass
+//! into the volume as the fine blocks it stands for would: the AO does not
+//! darken or brighten as the LOD changes.
 
-use voxstream_format::{BLOCK_SIZE, Block};
+use voxstream_format::{BLOCK_SIZE, Block, FULL_COVERAGE};
 
 /// Cells per edge of the finest occupancy mip (or the grid resolution if smaller).
 pub const MAX_CELLS: u32 = 128;
@@ -29,49 +34,41 @@ pub fn cells_for_grid(grid_resolution: u32) -> u32 {
 impl OccupancyVolume {
     /// Splats `blocks` into a volume over a `grid_resolution`³ grid.
     ///
-    /// A voxel at least as large as a cell fills every cell it covers. A smaller
-    /// voxel adds (voxel edge / cell edge)², its share of a surface crossing the
-    /// cell: the blocks store surface voxels only, so this makes a cell cut by
-    /// a surface read as (about) opaque whatever level the voxels come from.
+    /// The blocks store surface voxels only, so a cell's density is its
+    /// surface opacity: each occupied level-0 voxel adds 1 / (cell edge)², its
+    /// share of a surface crossing the cell, and a cell cut by a fine surface
+    /// reads as (about) opaque. A voxel of any level brings `coverage · 8^level`
+    /// level-0 voxels (its stored coverage), spread evenly over the cells it
+    /// overlaps when it is larger than a cell.
     pub fn build<'a>(grid_resolution: u32, blocks: impl IntoIterator<Item = &'a Block>) -> Self {
         let cells = cells_for_grid(grid_resolution);
         let cell_edge = (grid_resolution / cells).max(1) as u64;
         let n = cells as usize;
+        let per_level0 = 1.0 / (cell_edge * cell_edge) as f32;
         let mut density = vec![0f32; n * n * n];
         for block in blocks {
             let voxel_edge = 1u64 << block.key.level;
+            let volume = (voxel_edge * voxel_edge * voxel_edge) as f32;
             let block_origin = block.key.coord().map(|c| c as u64 * BLOCK_SIZE as u64 * voxel_edge);
-            if voxel_edge >= cell_edge {
-                let span = (voxel_edge / cell_edge) as usize;
-                for v in &block.voxels {
-                    let local = v.local();
-                    let first: [u64; 3] =
-                        std::array::from_fn(|a| (block_origin[a] + local[a] as u64 * voxel_edge) / cell_edge);
-                    if first.iter().any(|&c| c >= cells as u64) {
-                        continue;
-                    }
-                    let [x0, y0, z0] = first.map(|c| c as usize);
-                    for z in z0..(z0 + span).min(n) {
-                        for y in y0..(y0 + span).min(n) {
-                            let row = (z * n + y) * n;
-                            density[row + x0..row + (x0 + span).min(n)].fill(1.0);
+            let span = (voxel_edge / cell_edge).max(1) as usize;
+            let cells_per_voxel = (span * span * span) as f32;
+            for v in &block.voxels {
+                let level0 = v.coverage() as f32 / FULL_COVERAGE as f32 * volume;
+                let share = level0 * per_level0 / cells_per_voxel;
+                let local = v.local();
+                let first: [u64; 3] =
+                    std::array::from_fn(|a| (block_origin[a] + local[a] as u64 * voxel_edge) / cell_edge);
+                if first.iter().any(|&c| c >= cells as u64) {
+                    continue;
+                }
+                let [x0, y0, z0] = first.map(|c| c as usize);
+                for z in z0..(z0 + span).min(n) {
+                    for y in y0..(y0 + span).min(n) {
+                        let row = (z * n + y) * n;
+                        for d in &mut density[row + x0..row + (x0 + span).min(n)] {
+                            *d += share;
                         }
                     }
-                }
-            } else {
-                let share = {
-                    let r = voxel_edge as f32 / cell_edge as f32;
-                    r * r
-                };
-                for v in &block.voxels {
-                    let local = v.local();
-                    let cell: [u64; 3] =
-                        std::array::from_fn(|a| (block_origin[a] + local[a] as u64 * voxel_edge) / cell_edge);
-                    if cell.iter().any(|&c| c >= cells as u64) {
-                        continue;
-                    }
-                    let [x, y, z] = cell.map(|c| c as usize);
-                    density[(z * n + y) * n + x] += share;
                 }
             }
         }
@@ -285,6 +282,26 @@ mod tests {
         let lone = block(0, [0, 0, 0], &[[9, 9, 9]]);
         let vol = OccupancyVolume::build(512, [&lone]);
         assert!((vol.value(0, 2, 2, 2) - 1.0 / 16.0).abs() < 1.0 / 255.0);
+    }
+
+    #[test]
+    fn coarse_voxels_bring_their_coverage() {
+        // Grid 512, 4-unit cells. A flat 8×8 sheet of level-0 voxels at z = 1
+        // and the level-3 voxel standing for it (64 of 512 level-0 voxels).
+        let sheet: Vec<[u32; 3]> = (0..8).flat_map(|x| (0..8).map(move |y| [x, y, 1])).collect();
+        let fine = OccupancyVolume::build(512, [&block(0, [0, 0, 0], &sheet)]);
+        let mut coarse = block(3, [0, 0, 0], &[[0, 0, 0]]);
+        coarse.voxels[0] = coarse.voxels[0].with_coverage(voxstream_format::coverage_from_count(64, 3));
+        let coarse = OccupancyVolume::build(512, [&coarse]);
+        // Same occluding mass: equal from the mip that covers the voxel upwards.
+        for mip in 1..4 {
+            let (f, c) = (fine.value(mip, 0, 0, 0), coarse.value(mip, 0, 0, 0));
+            assert!((f - c).abs() <= 2.0 / 255.0, "mip {mip}: fine {f}, coarse {c}");
+        }
+        assert!((fine.value(1, 0, 0, 0) - 0.5).abs() < 2.0 / 255.0);
+        // A full-coverage coarse voxel would read twice as dense here.
+        let full = OccupancyVolume::build(512, [&block(3, [0, 0, 0], &[[0, 0, 0]])]);
+        assert_eq!(full.value(1, 0, 0, 0), 1.0);
     }
 
     #[test]

@@ -45,6 +45,7 @@ mod tests {
             faces: 2,
             bytes: 0,
             hash: String::new(),
+            geometric_error: 1.0,
         };
         (block, entry)
     }

@@ -4,13 +4,13 @@
 //! popcount of the face masks ([`Block::face_count`]).
 
 use bytemuck::{Pod, Zeroable};
-use voxstream_format::{BLOCK_SIZE, Block, BlockKey};
+use voxstream_format::{BLOCK_SIZE, Block, BlockKey, PackedVoxel};
 use wgpu::util::DeviceExt;
 
 use crate::shaders;
 
 /// Bytes of one face record (shaders: `FaceRecord`).
-pub const FACE_RECORD_BYTES: u64 = 8;
+pub const FACE_RECORD_BYTES: u64 = 12;
 /// Invocations per workgroup in expand.wgsl.
 const WORKGROUP_SIZE: u32 = 64;
 
@@ -104,7 +104,7 @@ impl Expander {
         let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("expand"),
             entries: &[
-                storage_entry(0, true, 8),
+                storage_entry(0, true, size_of::<PackedVoxel>() as u64),
                 storage_entry(1, false, FACE_RECORD_BYTES),
                 storage_entry(2, false, 16),
             ],
@@ -220,5 +220,8 @@ mod tests {
         assert_eq!(u.voxel_size, 4.0);
         assert_eq!(u.origin, [256.0, 0.0, 768.0]);
         assert_eq!(size_of::<BlockUniform>(), 16);
+        // expand.wgsl's Voxel and FaceRecord are three u32 each.
+        assert_eq!(size_of::<PackedVoxel>(), 12);
+        assert_eq!(FACE_RECORD_BYTES, 12);
     }
 }

@@ -203,11 +203,14 @@ impl Offscreen {
     }
 
     /// The face records the compute pass wrote for a cached block, as
-    /// (x | y << 6 | z << 12 | face << 18, normal) pairs in GPU order.
-    pub fn face_records(&self, key: &BlockKey) -> Result<Vec<[u32; 2]>, OffscreenError> {
+    /// (x | y << 6 | z << 12 | face << 18, normal, colour) records in GPU order.
+    pub fn face_records(&self, key: &BlockKey) -> Result<Vec<[u32; 3]>, OffscreenError> {
         let Some(gpu) = self.scene.gpu_block(key) else { return Ok(Vec::new()) };
         let bytes = read_buffer(&self.renderer, &gpu.face_buffer)?;
-        Ok(bytes.chunks_exact(8).map(bytemuck::pod_read_unaligned).collect())
+        Ok(bytes
+            .chunks_exact(crate::expand::FACE_RECORD_BYTES as usize)
+            .map(bytemuck::pod_read_unaligned)
+            .collect())
     }
 }
 

@@ -1,6 +1,9 @@
 //! Screen-space LOD selection (seed 003): start at the coarsest level and refine
-//! a block into its existing children while one of its voxels projects larger
-//! than a pixel threshold, culling blocks whose tight bounds leave the frustum.
+//! a block into its existing children while its geometric error (from the
+//! manifest: how far, in grid units, its voxels can put surface away from the
+//! level-0 voxels) projects larger than a pixel threshold, culling blocks whose
+//! tight bounds leave the frustum. The error never shrinks towards coarser
+//! levels, so refinement stops exactly where the error is small enough.
 //! Plus the rule that keeps a coarser block on screen until its children load.
 
 use std::cmp::Ordering;
@@ -20,15 +23,17 @@ pub struct ViewParams {
 
 #[derive(Debug, Clone, Copy)]
 pub struct SelectParams {
-    /// Refine while a block's voxel projects larger than this many pixels.
-    pub max_voxel_pixels: f32,
+    /// Refine while a block's geometric error projects larger than this many pixels.
+    pub max_error_pixels: f32,
     /// Stop refining once this many blocks are selected.
     pub max_blocks: usize,
 }
 
 impl Default for SelectParams {
     fn default() -> Self {
-        Self { max_voxel_pixels: 1.5, max_blocks: 768 }
+        // The error of a level-l block is about 0.9–1.5 voxel edges (2^l), so
+        // 2 px of error is about the 1.5 px voxel of the per-level rule before it.
+        Self { max_error_pixels: 2.0, max_blocks: 768 }
     }
 }
 
@@ -90,14 +95,17 @@ impl Frustum {
     }
 }
 
-/// Projected edge, in pixels, of one voxel of `level` at the nearest point of `bounds`.
-pub fn voxel_pixels(level: u8, bounds: &Aabb, view: &ViewParams) -> f32 {
-    let edge = (1u64 << level) as f32;
+/// Projected size, in pixels, of a geometric error of `error` grid units at
+/// the nearest point of `bounds`. An eye inside the bounds sees any nonzero error as infinite.
+pub fn error_pixels(error: f32, bounds: &Aabb, view: &ViewParams) -> f32 {
+    if error <= 0.0 {
+        return 0.0;
+    }
     let dist = bounds.distance_to(view.eye);
     if dist <= 1e-6 {
         return f32::INFINITY;
     }
-    edge * view.focal_pixels / dist
+    error * view.focal_pixels / dist
 }
 
 struct Candidate {
@@ -123,22 +131,23 @@ impl Ord for Candidate {
 }
 
 /// The blocks to show for this view, coarse to fine refinement by largest
-/// projected voxel first, so a block budget spends itself where it shows most.
+/// projected error first, so a block budget spends itself where it shows most.
 /// The result is sorted by key (coarser levels last).
 pub fn select_blocks(manifest: &Manifest, view: &ViewParams, params: &SelectParams) -> Vec<BlockKey> {
     let frustum = Frustum::from_view_proj(view.view_proj);
     let visible = |key: &BlockKey| -> Option<Candidate> {
+        let entry = manifest.block(key)?;
         let bounds = block_bounds(manifest, key)?;
         frustum
             .intersects(&bounds)
-            .then(|| Candidate { key: *key, pixels: voxel_pixels(key.level, &bounds, view) })
+            .then(|| Candidate { key: *key, pixels: error_pixels(entry.geometric_error, &bounds, view) })
     };
     let coarsest = manifest.coarsest_level();
     let mut open: BinaryHeap<Candidate> =
         manifest.blocks.iter().filter(|b| b.key.level == coarsest).filter_map(|b| visible(&b.key)).collect();
     let mut done = Vec::new();
     while let Some(c) = open.pop() {
-        if c.pixels > params.max_voxel_pixels {
+        if c.pixels > params.max_error_pixels {
             let existing: Vec<BlockKey> =
                 c.key.children().into_iter().flatten().filter(|k| manifest.block(k).is_some()).collect();
             // Existing children all outside the frustum: nothing visible here at finer levels.
@@ -227,6 +236,8 @@ mod tests {
                             faces: 1,
                             bytes: 1,
                             hash: String::new(),
+                            // The bound for a diagonal surface (lod.rs): √3 per halving.
+                            geometric_error: ((1u32 << level) - 1) as f32 * 3f32.sqrt(),
                         });
                     }
                 }
@@ -294,11 +305,32 @@ mod tests {
         let params = SelectParams::default();
         let sel = select_blocks(&m, &view, &params);
         for k in &sel {
-            let px = voxel_pixels(k.level, &block_bounds(&m, k).unwrap(), &view);
-            assert!(k.level == 0 || px <= params.max_voxel_pixels, "{k} left at {px} px");
+            let error = m.block(k).unwrap().geometric_error;
+            let px = error_pixels(error, &block_bounds(&m, k).unwrap(), &view);
+            assert!(k.level == 0 || px <= params.max_error_pixels, "{k} left at {px} px");
         }
         let tight = select_blocks(&m, &view, &SelectParams { max_blocks: 10, ..params });
         assert!(tight.len() <= 10 && !tight.is_empty());
+    }
+
+    #[test]
+    fn blocks_with_small_error_are_not_refined() {
+        // Same view, same level: the block whose measured error is small stays
+        // coarse, the one with a large error is refined.
+        let mut m = pyramid(512);
+        let cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(512.0));
+        let view = view_of(&cam, 700.0);
+        for b in &mut m.blocks {
+            if b.key.level > 0 {
+                b.geometric_error = if b.key.level == 3 { 1e3 } else { 1e-3 };
+            }
+        }
+        let sel = select_blocks(&m, &view, &SelectParams::default());
+        assert!(sel.iter().all(|k| k.level == 2), "{sel:?}");
+        assert_eq!(sel.len(), 8);
+        let px = error_pixels(2.0, &Aabb { min: Vec3::ZERO, max: Vec3::ONE }, &view);
+        assert!(px > 0.0 && px.is_finite());
+        assert_eq!(error_pixels(0.0, &Aabb { min: Vec3::ZERO, max: Vec3::ONE }, &view), 0.0);
     }
 
     #[test]

@@ -186,12 +186,12 @@ async fn run() -> Result<(), String> {
     let manifest = Manifest::from_json(&manifest_bytes).map_err(|e| format!("scene {id}: {e}"))?;
     let renderer = Renderer::new(device, queue, format, cells_for_grid(manifest.grid.resolution));
     let mut scene = Scene::new(manifest, (width, height));
-    // ?ao=0 turns ambient occlusion off, ?px=3 coarsens the LOD (max projected voxel size).
+    // ?ao=0 turns ambient occlusion off, ?px=3 coarsens the LOD (max projected geometric error).
     if let Some(ao) = url_number("ao", 0.0..=1.0) {
         scene.ao_strength = ao;
     }
     if let Some(px) = url_number("px", 0.25..=64.0) {
-        scene.select_params.max_voxel_pixels = px;
+        scene.select_params.max_error_pixels = px;
     }
     scene.record_bytes_fetched(manifest_bytes.len() as u64);
 
