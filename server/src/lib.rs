@@ -5,7 +5,7 @@
 //! [`synth`] writes synthetic scans for benchmarks. The server side of
 //! [`http`] keeps its state in [`catalog`] (published scenes), [`uploads`]
 //! and [`jobs`] (builds of uploads), configured by [`config`], measured by
-//! [`metrics`].
+//! [`metrics`]; [`thumbnail`] draws catalog pictures on the CPU.
 
 pub mod build;
 pub mod catalog;
@@ -18,5 +18,6 @@ pub mod metrics;
 pub mod progress;
 pub mod store;
 pub mod synth;
+pub mod thumbnail;
 pub mod uploads;
 pub mod voxelize;
