@@ -6,7 +6,8 @@
 const $ = (id) => document.getElementById(id);
 
 const TUS_VERSION = '1.0.0';
-const CHUNK_BYTES = 8 << 20;
+/** Bytes per PATCH; `?chunk=<bytes>` (at least 64 KiB) overrides, e.g. to watch small files move. */
+const CHUNK_BYTES = Math.max(Number(new URLSearchParams(window.location.search).get('chunk')) || 8 << 20, 64 << 10);
 /** Consecutive failed attempts to continue an upload before giving up. */
 const MAX_RETRIES = 6;
 const FORMATS = ['ply', 'obj', 'stl', 'glb', 'gltf'];
@@ -65,7 +66,7 @@ function explain(status, message) {
     case 403:
       return `Not allowed: ${message}`;
     case 409:
-      return `${message} (tick “replace” under Options or give another scene id).`;
+      return `${message}; on this page: tick “replace” under Options, or enter another scene id.`;
     case 413:
       return `The file is too large for this server: ${message}`;
     case 415:
@@ -267,9 +268,6 @@ function showJob(job) {
   if (job.state === 'running' && job.triangles_per_second > 0) {
     parts.push(`${formatCount(Math.round(job.triangles_per_second))} triangles/s`);
   }
-  if (job.state === 'done' && job.started_at && job.finished_at) {
-    parts.push(`built in ${formatSeconds(job.finished_at - job.started_at)}`);
-  }
   $('build-status').textContent = parts.join(' · ');
 }
 
@@ -360,6 +358,13 @@ async function startUpload(file) {
     link.href = `index.html?scene=${encodeURIComponent(job.scene_id)}`;
     link.textContent = `Open “${job.scene_id}” in the viewer`;
     link.hidden = false;
+    try {
+      const scene = await (await api('GET', `/api/scenes/${encodeURIComponent(job.scene_id)}`)).json();
+      const seconds = scene.build_seconds == null ? '' : ` in ${formatSeconds(scene.build_seconds)}`;
+      $('build-status').textContent = `done · ${formatCount(scene.voxels)} voxels, ${formatBytes(scene.bytes_on_disk)}${seconds}`;
+    } catch {
+      // The job's own "done" line stays.
+    }
   } catch (e) {
     if (run.cancelled || e.message === 'cancelled') {
       $('build-status').textContent = run.jobId ? 'cancelled' : $('build-status').textContent;
@@ -477,7 +482,7 @@ function sceneRow(tbody, scene) {
       showError(e.message);
     }
   };
-  const actions = cell(row, rename, 'actions');
+  const actions = cell(row, rename, 'row-actions');
   actions.append(del);
 }
 
@@ -562,6 +567,8 @@ function init() {
   window.addEventListener('dragover', (e) => e.preventDefault());
   window.addEventListener('drop', (e) => e.preventDefault());
 
+  // Enter in an option field must not submit (and reload) the page.
+  $('options-form').addEventListener('submit', (e) => e.preventDefault());
   $('cancel').addEventListener('click', cancelRun);
   $('refresh').addEventListener('click', refreshScenes);
   refreshScenes();
