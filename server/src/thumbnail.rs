@@ -474,6 +474,31 @@ mod tests {
     }
 
     #[test]
+    fn cone_stands_on_its_base() {
+        // A cone with its apex up (+Y): wide at the bottom of the picture, narrow at the top.
+        let segments = 64;
+        let mut obj = String::from("v 0 2 0\nv 0 0 0\n");
+        for j in 0..segments {
+            let phi = 2.0 * std::f64::consts::PI * j as f64 / segments as f64;
+            writeln!(obj, "v {} 0 {}", phi.cos(), phi.sin()).unwrap();
+        }
+        for j in 0..segments {
+            let (a, b) = (3 + j, 3 + (j + 1) % segments);
+            writeln!(obj, "f 1 {b} {a}\nf 2 {a} {b}").unwrap();
+        }
+        let (_dir, scene) = build(&obj, 128);
+        let img = decode_png(&render_scene(&scene).unwrap());
+        let s = silhouette(&img);
+        let row_width = |y: u32| (0..img.width).filter(|&x| img.pixel(x, y) != BACKGROUND).count();
+        let h = s.max[1] - s.min[1];
+        let (top, bottom) = (row_width(s.min[1] + h / 5), row_width(s.max[1] - h / 5));
+        assert!(
+            bottom > 2 * top,
+            "rows near the top are {top} px wide, near the bottom {bottom}: upside down?"
+        );
+    }
+
+    #[test]
     fn level_choice_respects_the_budget() {
         let (_dir, scene) = build(&ellipsoid_obj([1.0; 3]), 256);
         let m = &scene.manifest;
@@ -493,6 +518,44 @@ mod tests {
         std::fs::write(scene.block_path(&entry.key), b"VXB2 not really").unwrap();
         let err = render_scene(&scene).unwrap_err().to_string();
         assert!(err.contains(&entry.key.to_string()), "{err}");
+    }
+
+    #[tokio::test]
+    async fn route_serves_caches_and_revalidates() {
+        use axum::body::Body;
+        use axum::http::Request;
+        use tower::ServiceExt;
+
+        let (dir, _scene) = build(&ellipsoid_obj([1.0; 3]), 64);
+        let store = dir.path().join("store");
+        let app = crate::http::router(AppState::load(&store, None).unwrap());
+        let get = |uri: &str, etag: Option<&str>| {
+            let mut req = Request::get(uri);
+            if let Some(e) = etag {
+                req = req.header(header::IF_NONE_MATCH, e);
+            }
+            app.clone().oneshot(req.body(Body::empty()).unwrap())
+        };
+        let resp = get("/api/scenes/shape/thumbnail.png", None).await.unwrap();
+        assert_eq!(resp.status(), StatusCode::OK);
+        assert_eq!(resp.headers()[header::CONTENT_TYPE], "image/png");
+        let etag = resp.headers()[header::ETAG].to_str().unwrap().to_string();
+        let body = axum::body::to_bytes(resp.into_body(), 1 << 22).await.unwrap();
+        let img = decode_png(&body);
+        assert!(silhouette(&img).pixels > 1000, "the served picture is blank");
+        // Cached beside the manifest under the key the ETag names.
+        let cached = store.join("shape").join(format!("thumbnail-{}.png", etag.trim_matches('"')));
+        assert_eq!(std::fs::read(&cached).unwrap(), body);
+        let again = get("/api/scenes/shape/thumbnail.png", Some(&etag)).await.unwrap();
+        assert_eq!(again.status(), StatusCode::NOT_MODIFIED);
+        assert_eq!(
+            get("/api/scenes/nope/thumbnail.png", None).await.unwrap().status(),
+            StatusCode::NOT_FOUND
+        );
+        assert_eq!(
+            get("/api/scenes/No..pe/thumbnail.png", None).await.unwrap().status(),
+            StatusCode::BAD_REQUEST
+        );
     }
 
     #[test]
