@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Build the browser viewer bundle into viewer-wasm/dist/:
 #
-#   dist/index.html, dist/viewer.css   copied from viewer-wasm/web/
+#   dist/index.html, viewer.css,       copied from viewer-wasm/web/ (the viewer page and the
+#   upload.html, upload.js, upload.css upload/catalog page)
 #   dist/pkg/                          wasm-bindgen --target web output (voxstream_viewer.js + _bg.wasm)
 #
 #   bash scripts/build-web.sh

@@ -6,7 +6,7 @@
 //! against a peer (`voxstream bench`). The server side of
 //! [`http`] keeps its state in [`catalog`] (published scenes), [`uploads`]
 //! and [`jobs`] (builds of uploads), configured by [`config`], measured by
-//! [`metrics`].
+//! [`metrics`]; [`thumbnail`] draws catalog pictures on the CPU.
 
 pub mod bench;
 pub mod build;
@@ -20,5 +20,6 @@ pub mod metrics;
 pub mod progress;
 pub mod store;
 pub mod synth;
+pub mod thumbnail;
 pub mod uploads;
 pub mod voxelize;

@@ -869,6 +869,7 @@ async fn health_metrics_openapi_and_cors() {
         "/api/scenes/{id}/manifest",
         "/api/scenes/{id}/blocks/{block}",
         "/api/scenes/{id}/blocks/batch",
+        "/api/scenes/{id}/thumbnail.png",
         "/api/uploads",
         "/api/uploads/{id}",
         "/api/jobs",

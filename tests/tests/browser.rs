@@ -226,3 +226,165 @@ fn browser_renders_koala_matching_cpu_coverage() {
 
     server.abort();
 }
+
+/// The upload page against the full server (jobs, tus, SSE, thumbnails) on an empty store:
+/// tests/browser/upload.mjs drops data/koala.obj onto the page, one PATCH is cut and resumed,
+/// both progress bars reach 100 %, the link opens the viewer, which becomes ready.
+#[test]
+fn upload_page_builds_and_opens_scene() {
+    let started = Instant::now();
+    let root = workspace_root();
+    let web = root.join("viewer-wasm/dist");
+    for page in ["index.html", "upload.html", "upload.js", "upload.css"] {
+        require(&web.join(page), "build the viewer bundle first: bash scripts/build-web.sh");
+    }
+    let script = root.join("tests/browser/upload.mjs");
+    require(&script, "the upload harness is part of the repository");
+    require(
+        &root.join("tests/browser/node_modules/playwright-core/package.json"),
+        "install the harness dependencies: bash scripts/setup.sh (npm ci in tests/browser)",
+    );
+    let mesh = root.join("data/koala.obj");
+
+    // The server as `voxstream serve` runs it (jobs, uploads, recovery), at a low default
+    // resolution so SwiftShader draws the result quickly.
+    let store = tempfile::tempdir().expect("temp store");
+    let mut config = voxstream::config::ServerConfig::new(store.path());
+    config.web = Some(web.clone());
+    config.resolution = 64;
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
+    let shutdown = tokio_util::sync::CancellationToken::new();
+    let state = rt.block_on(async { AppState::start(config, shutdown) }).expect("AppState::start");
+    let listener = rt.block_on(tokio::net::TcpListener::bind("127.0.0.1:0")).expect("bind 127.0.0.1:0");
+    let addr = listener.local_addr().unwrap();
+    let app = router(state.clone()).into_make_service_with_connect_info::<std::net::SocketAddr>();
+    let server = rt.spawn(async move { axum::serve(listener, app).await });
+    let base = format!("http://{addr}");
+
+    let out = artifacts_dir();
+    std::fs::create_dir_all(&out).unwrap();
+    for name in ["upload.png", "upload-viewer.png", "upload.json"] {
+        let _ = std::fs::remove_file(out.join(name));
+    }
+    let mut cmd = Command::new("node");
+    cmd.arg(&script).arg(&base).arg(&mesh).arg(&out).current_dir(&root);
+    let (ok, log) = run_with_timeout(cmd, HARNESS_TIMEOUT);
+    assert!(!server.is_finished(), "the server stopped during the browser run: {:?}", rt.block_on(server));
+    assert!(ok, "upload harness failed for {base}; its output (page console included):\n{log}");
+    let json_path = out.join("upload.json");
+    let result: Value = serde_json::from_slice(
+        &std::fs::read(&json_path).unwrap_or_else(|e| panic!("{}: {e}\n{log}", json_path.display())),
+    )
+    .expect("upload.json is JSON");
+    let page = &result["page"];
+    assert_eq!(result["pageErrors"].as_array().map(Vec::len), Some(0), "uncaught exceptions: {result}");
+    assert_eq!(page["error"], Value::Null, "the page showed an error: {page}");
+
+    // Both bars moved forward only and ended at 100 %; the upload went up in several chunks.
+    for bar in ["upload", "build"] {
+        let seen: Vec<f64> = page["bars"][bar]
+            .as_array()
+            .unwrap_or_else(|| panic!("bars.{bar}: {page}"))
+            .iter()
+            .map(|v| v.as_f64().expect("bar values are numbers"))
+            .collect();
+        assert_eq!(seen.last(), Some(&100.0), "{bar} bar did not end at 100: {seen:?}");
+        assert!(seen.windows(2).all(|w| w[0] <= w[1]), "{bar} bar went backwards: {seen:?}");
+        assert_eq!(page[bar]["aria"], "100", "{bar} aria-valuenow: {page}");
+        assert_eq!(page[format!("{bar}Value")].as_f64(), Some(100.0), "{bar} <progress> value: {page}");
+    }
+    let uploads_seen = page["bars"]["upload"].as_array().unwrap().len();
+    assert!(uploads_seen >= 4, "the upload bar took only {uploads_seen} values for 4 chunks: {page}");
+
+    // The cut PATCH was resumed: a HEAD, then PATCHes up to the full length, each at the
+    // offset the server confirmed.
+    let requests = result["requests"].as_array().expect("requests");
+    let size = std::fs::metadata(&mesh).unwrap().len();
+    assert_eq!(result["cutPatches"], 1, "the harness should have cut one PATCH: {result}");
+    assert!(
+        requests.iter().any(|r| r["method"] == "HEAD" && r["status"] == 200),
+        "no HEAD after the cut connection: {requests:?}"
+    );
+    let offsets: Vec<u64> = requests
+        .iter()
+        .filter(|r| r["method"] == "PATCH")
+        .map(|r| {
+            assert_eq!(r["status"], 204, "a PATCH failed: {requests:?}");
+            r["offset"].as_str().and_then(|o| o.parse().ok()).expect("PATCH answers carry Upload-Offset")
+        })
+        .collect();
+    assert_eq!(offsets.last(), Some(&size), "the upload did not end at the file size: {offsets:?}");
+    assert!(offsets.windows(2).all(|w| w[0] < w[1]), "offsets: {offsets:?}");
+
+    // What the API lists is what the page listed and what the link opened.
+    let scenes: Value = rt
+        .block_on(async { reqwest::get(format!("{base}/api/scenes")).await?.json().await })
+        .expect("GET /api/scenes");
+    let scenes = scenes.as_array().expect("a JSON array");
+    assert_eq!(scenes.len(), 1, "one upload, one scene: {scenes:?}");
+    let scene = &scenes[0];
+    let (mesh_data, _) = voxstream::ingest::read_mesh(&mesh).expect("read koala.obj");
+    assert_eq!(scene["id"], "koala");
+    assert_eq!(scene["triangles"].as_u64(), Some(mesh_data.triangles.len() as u64), "{scene}");
+    assert_eq!(scene["resolution"], 64, "the server default applies: {scene}");
+    assert!(scene["voxels"].as_u64().unwrap_or(0) > 0 && scene["build_seconds"].is_number(), "{scene}");
+    assert_eq!(page["link"], "index.html?scene=koala");
+    let rows = page["rows"].as_array().expect("rows");
+    assert_eq!(rows.len(), 1, "{rows:?}");
+    assert_eq!(rows[0]["id"], "koala");
+    let cells: Vec<&str> = rows[0]["cells"].as_array().unwrap().iter().map(|c| c.as_str().unwrap()).collect();
+    let count = |n: u64| {
+        let s = n.to_string();
+        let mut out = String::new();
+        for (i, ch) in s.chars().enumerate() {
+            if i > 0 && (s.len() - i).is_multiple_of(3) {
+                out.push(',');
+            }
+            out.push(ch);
+        }
+        out
+    };
+    assert_eq!(cells[2], count(scene["triangles"].as_u64().unwrap()), "triangles cell: {cells:?}");
+    assert_eq!(cells[3], count(scene["voxels"].as_u64().unwrap()), "voxels cell: {cells:?}");
+    assert_eq!(rows[0]["thumbnail"]["width"], 256, "thumbnail in the list: {}", rows[0]);
+    let viewer = &result["viewer"];
+    assert!(viewer["url"].as_str().unwrap().ends_with("/index.html?scene=koala"), "{viewer}");
+    assert!(viewer["stats"]["blocksDrawn"].as_u64().unwrap_or(0) > 0, "the viewer drew nothing: {viewer}");
+    assert_eq!(viewer["uploadLink"], "upload.html", "the viewer links back to the upload page");
+
+    // Refusals are sentences naming the problem.
+    let errors = &result["errors"];
+    let not_mesh = errors["notMesh"].as_str().unwrap_or_default();
+    assert!(not_mesh.contains("notes.txt") && not_mesh.contains("not a mesh format"), "{errors}");
+    let exists = errors["exists"].as_str().unwrap_or_default();
+    assert!(exists.contains("\"koala\" exists") && exists.contains("replace"), "{errors}");
+
+    // The thumbnail the page showed is a picture of the scene, not a blank.
+    let png = rt
+        .block_on(async {
+            reqwest::get(format!("{base}/api/scenes/koala/thumbnail.png")).await?.bytes().await
+        })
+        .expect("GET thumbnail");
+    let thumb = out.join("upload-thumbnail.png");
+    std::fs::write(&thumb, &png).unwrap();
+    let (w, h, rgb) = read_png_rgb(&thumb);
+    let lit = rgb.chunks_exact(3).filter(|p| *p != &BACKGROUND_RGBA8[..3]).count();
+    assert_eq!((w, h), (256, 256));
+    assert!(lit > (w * h / 10) as usize && lit < (w * h) as usize, "thumbnail has {lit} drawn pixels");
+
+    // The server cleaned up after the job: no upload left, the scene published.
+    assert!(store.path().join("koala/manifest.json").is_file());
+    let leftovers: Vec<_> = std::fs::read_dir(store.path().join(".uploads"))
+        .map(|d| d.flatten().map(|e| e.file_name()).collect())
+        .unwrap_or_default();
+    assert!(leftovers.is_empty(), "uploads left behind: {leftovers:?}");
+    let (shot_w, shot_h, _) = read_png_rgb(&out.join("upload.png"));
+    assert!(shot_w >= 640 && shot_h >= 400, "upload page screenshot is {shot_w}x{shot_h}");
+    println!(
+        "upload page test: harness {:.1} s, whole test {:.1?}; artifacts in {}",
+        result["elapsedMs"].as_f64().unwrap_or(0.0) / 1000.0,
+        started.elapsed(),
+        out.display()
+    );
+    server.abort();
+}

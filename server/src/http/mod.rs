@@ -174,6 +174,7 @@ pub fn router(state: AppState) -> Router {
         .route("/scenes", get(scenes::list_scenes).post(uploads::post_scene))
         .route("/scenes/{id}", get(scenes::get_scene).patch(scenes::patch_scene).delete(scenes::delete_scene))
         .route("/scenes/{id}/manifest", get(scenes::get_manifest))
+        .route("/scenes/{id}/thumbnail.png", get(crate::thumbnail::get_thumbnail))
         .route("/scenes/{id}/blocks/batch", post(scenes::post_batch))
         .route("/scenes/{id}/blocks/{block}", get(scenes::get_block))
         .route("/uploads", post(uploads::tus_create).options(uploads::tus_options))

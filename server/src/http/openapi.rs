@@ -31,6 +31,7 @@ impl utoipa::Modify for BearerAuth {
         scenes::get_manifest,
         scenes::get_block,
         scenes::post_batch,
+        crate::thumbnail::get_thumbnail,
         uploads::post_scene,
         uploads::tus_options,
         uploads::tus_create,
