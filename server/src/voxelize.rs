@@ -14,6 +14,7 @@ use voxstream_format::{BLOCK_SIZE, BLOCK_VOXELS, BlockKey, GridFrame, morton3};
 
 use crate::ingest::TriangleMesh;
 use crate::progress::{ProgressSink, Stage, StageCounter};
+use crate::tristream::Bounds;
 
 /// A voxel while the store is being built.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -69,12 +70,12 @@ pub fn check_resolution(resolution: u32) -> Result<(), VoxelizeError> {
 }
 
 /// A triangle in grid units, or `None` when it is degenerate or non-finite.
-fn to_grid(tri: [[f64; 3]; 3], frame: &GridFrame) -> Option<[[f64; 3]; 3]> {
+pub(crate) fn to_grid(tri: [[f64; 3]; 3], frame: &GridFrame) -> Option<[[f64; 3]; 3]> {
     let t = tri.map(|p| std::array::from_fn(|a| (p[a] - frame.origin[a]) / frame.voxel_size));
     valid_triangle(&t).then_some(t)
 }
 
-fn valid_triangle(tri: &[[f64; 3]; 3]) -> bool {
+pub(crate) fn valid_triangle(tri: &[[f64; 3]; 3]) -> bool {
     tri.iter().flatten().all(|c| c.is_finite()) && {
         let n = cross(sub(tri[1], tri[0]), sub(tri[2], tri[0]));
         dot(n, n) > 0.0
@@ -91,8 +92,7 @@ fn valid_triangle(tri: &[[f64; 3]; 3]) -> bool {
 /// The cube is enlarged by a hair so that no vertex lands on its far faces.
 pub fn choose_frame(mesh: &TriangleMesh, resolution: u32) -> Result<GridFrame, VoxelizeError> {
     check_resolution(resolution)?;
-    let mut lo = [f64::INFINITY; 3];
-    let mut hi = [f64::NEG_INFINITY; 3];
+    let mut bounds = Bounds::EMPTY;
     let mut skipped = 0;
     for t in 0..mesh.triangles.len() {
         let tri = mesh.triangle(t);
@@ -100,16 +100,19 @@ pub fn choose_frame(mesh: &TriangleMesh, resolution: u32) -> Result<GridFrame, V
             skipped += 1;
             continue;
         }
-        for p in tri {
-            for a in 0..3 {
-                lo[a] = lo[a].min(p[a]);
-                hi[a] = hi[a].max(p[a]);
-            }
-        }
+        bounds.add_triangle(&tri);
     }
-    if lo[0] > hi[0] {
+    frame_from_bounds(&bounds, resolution, skipped)
+}
+
+/// [`choose_frame`] from the bounds of the valid triangles (as the chunked
+/// stream's headers carry them); `skipped` only feeds the error.
+pub fn frame_from_bounds(bounds: &Bounds, resolution: u32, skipped: u64) -> Result<GridFrame, VoxelizeError> {
+    check_resolution(resolution)?;
+    if bounds.is_empty() {
         return Err(VoxelizeError::NoValidTriangle { skipped });
     }
+    let (lo, hi) = (bounds.min, bounds.max);
     // Positive: a valid triangle has non-zero area, so some axis has extent.
     let extent = (0..3).map(|a| hi[a] - lo[a]).fold(0.0, f64::max);
     let voxel_size = extent * (1.0 + 1e-6) / resolution as f64;
@@ -134,23 +137,19 @@ pub fn voxelize_reporting(
     let res = frame.resolution as i64;
     let mut stats = VoxelizeStats::default();
     let mut tris: Vec<[[f64; 3]; 3]> = Vec::with_capacity(mesh.triangles.len());
+    let mut colors: Vec<[f32; 3]> = Vec::new();
+    let colored = !mesh.colors.is_empty() && mesh.colors.len() == mesh.positions.len();
     let mut bins: BTreeMap<[u32; 3], Vec<u32>> = BTreeMap::new();
     for t in 0..mesh.triangles.len() {
         let Some(g) = to_grid(mesh.triangle(t), frame) else {
             stats.skipped += 1;
             continue;
         };
-        let (lo, hi) = voxel_range(&g, res);
-        let (blo, bhi) =
-            (lo.map(|v| (v / BLOCK_SIZE as i64) as u32), hi.map(|v| (v / BLOCK_SIZE as i64) as u32));
-        for bz in blo[2]..=bhi[2] {
-            for by in blo[1]..=bhi[1] {
-                for bx in blo[0]..=bhi[0] {
-                    bins.entry([bx, by, bz]).or_default().push(tris.len() as u32);
-                }
-            }
-        }
+        for_each_block(&g, res, |b| bins.entry(b).or_default().push(tris.len() as u32));
         tris.push(g);
+        if colored {
+            colors.push(mesh.triangle_color(t).unwrap_or_default());
+        }
     }
     stats.triangles = tris.len() as u64;
     if tris.is_empty() {
@@ -159,14 +158,31 @@ pub fn voxelize_reporting(
     let counter = StageCounter::new(progress, Stage::Voxelize, bins.len());
     let blocks: Vec<SparseBlock> = bins
         .into_par_iter()
-        .filter_map(|(coord, list)| {
+        .map_init(BlockVoxelizer::new, |vox, (coord, list)| {
             let key = BlockKey::new(0, coord[0], coord[1], coord[2]);
-            let block = voxelize_block(key, &list, &tris, res, topology);
+            for &t in &list {
+                let color = colored.then(|| colors[t as usize]);
+                vox.add(key, &tris[t as usize], color, res, topology);
+            }
             counter.tick();
-            block
+            vox.finish(key)
         })
+        .filter_map(|b| b)
         .collect();
     Ok((blocks, stats))
+}
+
+/// Calls `f` with the coordinate of every 64³ block a grid triangle's bounds overlap.
+pub(crate) fn for_each_block(g: &[[f64; 3]; 3], res: i64, mut f: impl FnMut([u32; 3])) {
+    let (lo, hi) = voxel_range(g, res);
+    let (blo, bhi) = (lo.map(|v| (v / BLOCK_SIZE as i64) as u32), hi.map(|v| (v / BLOCK_SIZE as i64) as u32));
+    for bz in blo[2]..=bhi[2] {
+        for by in blo[1]..=bhi[1] {
+            for bx in blo[0]..=bhi[0] {
+                f([bx, by, bz]);
+            }
+        }
+    }
 }
 
 /// Closed voxel index range of a grid-space triangle's bounds, clamped to the
@@ -179,62 +195,94 @@ fn voxel_range(t: &[[f64; 3]; 3], res: i64) -> ([i64; 3], [i64; 3]) {
 }
 
 /// A dense 64³ brick, indexed by local Morton code so that reading occupied
-/// voxels in index order yields them already sorted.
-struct DenseBrick {
+/// voxels in index order yields them already sorted. One per worker thread,
+/// reused block after block: finishing a block clears only the voxels it set.
+pub(crate) struct BlockVoxelizer {
     bits: Vec<u64>,
     normals: Vec<[f32; 3]>,
+    /// Area-weighted colour sums and the area behind them; allocated on the first coloured triangle.
+    colors: Vec<[f32; 4]>,
 }
 
-impl DenseBrick {
-    fn new() -> Self {
-        Self { bits: vec![0; BLOCK_VOXELS / 64], normals: vec![[0.0; 3]; BLOCK_VOXELS] }
+/// Heap bytes of one [`BlockVoxelizer`] with colours: what an in-flight block costs.
+pub(crate) const BLOCK_VOXELIZER_BYTES: usize = BLOCK_VOXELS / 8 + BLOCK_VOXELS * (12 + 16);
+
+impl BlockVoxelizer {
+    pub(crate) fn new() -> Self {
+        Self { bits: vec![0; BLOCK_VOXELS / 64], normals: vec![[0.0; 3]; BLOCK_VOXELS], colors: Vec::new() }
     }
 
-    fn add(&mut self, m: u32, n: [f32; 3]) {
-        self.bits[m as usize / 64] |= 1 << (m % 64);
-        let s = &mut self.normals[m as usize];
-        for a in 0..3 {
-            s[a] += n[a];
-        }
-    }
-
-    fn into_voxels(self) -> Vec<BuildVoxel> {
-        let mut out = Vec::new();
-        for (w, &word) in self.bits.iter().enumerate() {
-            let mut bits = word;
-            while bits != 0 {
-                let m = (w * 64) as u32 + bits.trailing_zeros();
-                bits &= bits - 1;
-                out.push(BuildVoxel { morton: m, normal_sum: self.normals[m as usize], ..BuildVoxel::EMPTY });
-            }
-        }
-        out
-    }
-}
-
-fn voxelize_block(
-    key: BlockKey,
-    list: &[u32],
-    tris: &[[[f64; 3]; 3]],
-    res: i64,
-    topology: Topology,
-) -> Option<SparseBlock> {
-    let base = key.coord().map(|c| c as i64 * BLOCK_SIZE as i64);
-    let mut brick = DenseBrick::new();
-    for &t in list {
-        let tri = &tris[t as usize];
+    /// Adds a valid grid-space triangle (see [`to_grid`]) to block `key`.
+    pub(crate) fn add(
+        &mut self,
+        key: BlockKey,
+        tri: &[[f64; 3]; 3],
+        color: Option<[f32; 3]>,
+        res: i64,
+        topology: Topology,
+    ) {
+        let base = key.coord().map(|c| c as i64 * BLOCK_SIZE as i64);
         let n = cross(sub(tri[1], tri[0]), sub(tri[2], tri[0]));
         let nf = n.map(|c| c as f32);
+        // Colour weight: the triangle's area in voxel units.
+        let weighted = color.map(|c| {
+            let area = (0.5 * norm(n)) as f32;
+            [c[0] * area, c[1] * area, c[2] * area, area]
+        });
+        if weighted.is_some() && self.colors.is_empty() {
+            self.colors = vec![[0.0; 4]; BLOCK_VOXELS];
+        }
         let (lo, hi) = voxel_range(tri, res);
         let lo: [i64; 3] = std::array::from_fn(|a| lo[a].max(base[a]));
         let hi: [i64; 3] = std::array::from_fn(|a| hi[a].min(base[a] + BLOCK_SIZE as i64 - 1));
-        for_each_touched_voxel(tri, n, lo, hi, topology, |v| {
+        let mut set = |v: [i64; 3]| {
             let l = [v[0] - base[0], v[1] - base[1], v[2] - base[2]].map(|c| c as u32);
-            brick.add(morton3(l[0], l[1], l[2]), nf);
-        });
+            let m = morton3(l[0], l[1], l[2]) as usize;
+            self.bits[m / 64] |= 1 << (m % 64);
+            let s = &mut self.normals[m];
+            for a in 0..3 {
+                s[a] += nf[a];
+            }
+            if let Some(w) = weighted {
+                let c = &mut self.colors[m];
+                for a in 0..4 {
+                    c[a] += w[a];
+                }
+            }
+        };
+        if lo == hi {
+            // The triangle's bounds lie inside one voxel's open cube (grown by the
+            // 1e-9 hair on integer planes): only that voxel can be touched, and it is.
+            if topology == Topology::Conservative || triangle_meets_target(tri, lo, topology) {
+                set(lo);
+            }
+            return;
+        }
+        for_each_touched_voxel(tri, n, lo, hi, topology, set);
     }
-    let voxels = brick.into_voxels();
-    (!voxels.is_empty()).then_some(SparseBlock { key, voxels })
+
+    /// The block's voxels in Morton order (`None` when empty); leaves the brick clear.
+    pub(crate) fn finish(&mut self, key: BlockKey) -> Option<SparseBlock> {
+        let mut out = Vec::new();
+        for w in 0..self.bits.len() {
+            let mut bits = std::mem::take(&mut self.bits[w]);
+            while bits != 0 {
+                let m = (w * 64) as u32 + bits.trailing_zeros();
+                bits &= bits - 1;
+                let normal_sum = std::mem::take(&mut self.normals[m as usize]);
+                let [r, g, b, weight] =
+                    self.colors.get_mut(m as usize).map(std::mem::take).unwrap_or_default();
+                out.push(BuildVoxel {
+                    morton: m,
+                    normal_sum,
+                    color_sum: [r, g, b],
+                    color_weight: weight,
+                    faces: 0,
+                });
+            }
+        }
+        (!out.is_empty()).then_some(SparseBlock { key, voxels: out })
+    }
 }
 
 /// Which voxels a triangle sets (Laine, "A topological approach to

@@ -173,6 +173,7 @@ fn build_scene_accepts_stl_and_glb() {
     let mut mesh = TriangleMesh {
         positions: vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
         triangles: vec![[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]],
+        ..Default::default()
     };
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("store");

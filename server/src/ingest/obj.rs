@@ -1,4 +1,4 @@
-use super::{IngestError, MeshFormat, TriangleMesh};
+use super::{IngestError, MeshFormat, TriangleMesh, srgb_to_linear};
 
 pub(super) fn read(bytes: &[u8]) -> Result<TriangleMesh, IngestError> {
     let options = tobj::LoadOptions {
@@ -15,11 +15,17 @@ pub(super) fn read(bytes: &[u8]) -> Result<TriangleMesh, IngestError> {
     .map_err(|e| IngestError::Parse { format: MeshFormat::Obj, message: e.to_string() })?;
 
     let mut mesh = TriangleMesh::default();
+    // Colours only when every vertex of every model has one (`v x y z r g b`).
+    let colored = models.iter().all(|m| m.mesh.vertex_color.len() == m.mesh.positions.len())
+        && models.iter().any(|m| !m.mesh.positions.is_empty());
     for model in &models {
         let m = &model.mesh;
         let base = mesh.positions.len() as u32;
         let count = m.positions.len() / 3;
         mesh.positions.extend(m.positions.chunks_exact(3).map(|p| [p[0], p[1], p[2]]));
+        if colored {
+            mesh.colors.extend(m.vertex_color.chunks_exact(3).map(|c| [0, 1, 2].map(|a| srgb_to_linear(c[a] as f32))));
+        }
         let mut start = 0usize;
         // tobj leaves face_arities empty when every face is a triangle.
         let all_triangles;
@@ -63,5 +69,16 @@ mod tests {
     fn bad_input_is_an_error() {
         assert!(read(b"v 0 0 0\nf 1 2 3\n").is_err());
         assert!(read(b"v zero 0 0\n").is_err());
+    }
+
+    #[test]
+    fn vertex_colours_are_linearised() {
+        let m = read(b"v 0 0 0 1 0 0.5\nv 1 0 0 1 0 0.5\nv 0 1 0 0 0 0\nf 1 2 3\n").unwrap();
+        assert_eq!(m.colors.len(), 3);
+        assert_eq!(m.colors[0][0], 1.0);
+        assert!((m.colors[0][2] - 0.214).abs() < 1e-3, "{:?}", m.colors[0]);
+        let c = m.triangle_color(0).unwrap();
+        assert!((c[0] - 2.0 / 3.0).abs() < 1e-6);
+        assert!(read(b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n").unwrap().triangle_color(0).is_none());
     }
 }

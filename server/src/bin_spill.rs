@@ -1,0 +1,277 @@
+//! Out-of-core voxelization: the build's three passes over the chunked
+//! triangle stream ([`crate::tristream`]), each within the memory budget.
+//!
+//! 1. **Stream** ([`StreamSink`]): the reader pushes triangles; valid ones
+//!    (finite, non-zero area) are packed into chunks whose headers carry
+//!    their bounds, invalid ones are counted and dropped. The union of the
+//!    chunk bounds gives the grid frame.
+//! 2. **Bin** ([`bin_triangles`]): chunks are read back in order and every
+//!    triangle's record is appended to the buffer of each 64³ block its
+//!    bounds overlap. A full buffer (one chunk's worth) becomes a segment in
+//!    the bin store; when all buffers together pass their share of the
+//!    budget, every buffer is flushed. Segments of one block stay in input
+//!    order.
+//! 3. **Voxelize** ([`voxelize_bins`]): blocks in key order, in parallel
+//!    (rayon), each reading its segments one at a time into a reused dense
+//!    brick, so a block costs one brick and one segment however many
+//!    triangles it has. At most `budget / 4 / brick` blocks are in flight.
+//!
+//! Determinism: passes 1 and 2 are sequential, and in pass 3 each block is
+//! one thread's work over its triangles in input order, so the output does
+//! not depend on the thread count.
+//!
+//! Memory: stream and bin stores each keep up to budget/8 of encoded chunks
+//! resident and spill the rest to files in the build's temp dir; bin
+//! buffers take up to budget/16. Level-0 output is ~36 bytes a voxel
+//! (`BuildVoxel`) and must fit the budget; a clear error says so otherwise.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use rayon::prelude::*;
+use voxstream_format::{BlockKey, GridFrame};
+
+use crate::build::{BuildError, BuildOptions};
+use crate::ingest::{IngestError, TriangleSink};
+use crate::progress::{ProgressSink, Stage};
+use crate::tristream::{Bounds, ChunkStore, MAX_CHUNK_TRIANGLES, RecordLayout, encode_chunk};
+use crate::voxelize::{
+    BLOCK_VOXELIZER_BYTES, BlockVoxelizer, BuildVoxel, SparseBlock, Topology, VoxelizeError, VoxelizeStats,
+    for_each_block, to_grid, valid_triangle,
+};
+
+/// Pass 1: packs valid triangles into chunks.
+pub struct StreamSink<'a> {
+    pub store: ChunkStore,
+    pub layout: RecordLayout,
+    /// Bounds of every valid triangle.
+    pub bounds: Bounds,
+    pub triangles: u64,
+    pub skipped: u64,
+    raw: Vec<u8>,
+    chunk_bounds: Bounds,
+    begun: bool,
+    on_tick: &'a mut dyn FnMut() -> Result<(), IngestError>,
+}
+
+impl<'a> StreamSink<'a> {
+    pub fn new(store: ChunkStore, on_tick: &'a mut dyn FnMut() -> Result<(), IngestError>) -> Self {
+        Self {
+            store,
+            layout: RecordLayout { f64_positions: true, color: false },
+            bounds: Bounds::EMPTY,
+            triangles: 0,
+            skipped: 0,
+            raw: Vec::new(),
+            chunk_bounds: Bounds::EMPTY,
+            begun: false,
+            on_tick,
+        }
+    }
+
+    fn flush(&mut self) -> Result<(), IngestError> {
+        if self.raw.is_empty() {
+            return Ok(());
+        }
+        let chunk = encode_chunk(self.layout, &self.raw, &self.chunk_bounds);
+        self.store.push(chunk).map_err(|e| IngestError::Invalid(format!("temporary triangle stream: {e}")))?;
+        self.raw.clear();
+        self.chunk_bounds = Bounds::EMPTY;
+        (self.on_tick)()
+    }
+
+    /// Writes the last partial chunk.
+    pub fn finish(&mut self) -> Result<(), IngestError> {
+        self.flush()
+    }
+}
+
+impl TriangleSink for StreamSink<'_> {
+    fn begin(&mut self, layout: RecordLayout) -> Result<(), IngestError> {
+        if self.begun {
+            return Err(IngestError::Invalid("reader began twice".into()));
+        }
+        self.begun = true;
+        self.layout = layout;
+        self.raw.reserve(MAX_CHUNK_TRIANGLES * layout.size());
+        Ok(())
+    }
+
+    fn triangle(&mut self, tri: [[f64; 3]; 3], color: [f32; 3]) -> Result<(), IngestError> {
+        if !valid_triangle(&tri) {
+            self.skipped += 1;
+            return Ok(());
+        }
+        self.layout.encode(&mut self.raw, &tri, color);
+        self.chunk_bounds.add_triangle(&tri);
+        self.bounds.add_triangle(&tri);
+        self.triangles += 1;
+        if self.raw.len() >= MAX_CHUNK_TRIANGLES * self.layout.size() {
+            self.flush()?;
+        }
+        Ok(())
+    }
+
+    fn tick(&mut self) -> Result<(), IngestError> {
+        (self.on_tick)()
+    }
+}
+
+/// One block's pending records and the segments already stored.
+#[derive(Default)]
+struct BinBuffer {
+    raw: Vec<u8>,
+    bounds: Bounds,
+    segments: Vec<usize>,
+}
+
+/// The bins: for each non-empty block, its segments in the bin store, in input order.
+pub struct Bins {
+    pub store: ChunkStore,
+    pub layout: RecordLayout,
+    blocks: BTreeMap<BlockKey, Vec<usize>>,
+    /// Triangles that became degenerate or non-finite in grid units.
+    pub skipped: u64,
+    pub triangles: u64,
+}
+
+impl Bins {
+    pub fn block_count(&self) -> usize {
+        self.blocks.len()
+    }
+}
+
+fn temp_err(e: crate::tristream::ChunkError) -> BuildError {
+    BuildError::Temp(e.to_string())
+}
+
+/// Pass 2: bins the stream's triangles by the 64³ blocks they overlap.
+pub fn bin_triangles(
+    stream: &ChunkStore,
+    layout: RecordLayout,
+    frame: &GridFrame,
+    spill_path: &Path,
+    opts: &BuildOptions,
+    progress: &ProgressSink,
+) -> Result<Bins, BuildError> {
+    let res = frame.resolution as i64;
+    let rec = layout.size();
+    let buffer_limit = (opts.memory_budget / 16).max(1 << 20) as usize;
+    let mut store = ChunkStore::new(spill_path, (opts.memory_budget / 8) as usize);
+    let mut buffers: BTreeMap<[u32; 3], BinBuffer> = BTreeMap::new();
+    let mut buffered = 0usize;
+    let (mut skipped, mut triangles) = (0u64, 0u64);
+    let flush = |store: &mut ChunkStore, b: &mut BinBuffer| -> Result<(), BuildError> {
+        if !b.raw.is_empty() {
+            b.segments.push(store.push(encode_chunk(layout, &b.raw, &b.bounds)).map_err(temp_err)?);
+            b.raw.clear();
+            b.bounds = Bounds::EMPTY;
+        }
+        Ok(())
+    };
+    let mut blocks_hit: Vec<[u32; 3]> = Vec::new();
+    for id in 0..stream.len() {
+        opts.check_cancelled()?;
+        let (_, raw) = stream.read(id).map_err(temp_err)?;
+        for record in raw.chunks_exact(rec) {
+            let (tri, _) = layout.decode(record);
+            let Some(g) = to_grid(tri, frame) else {
+                skipped += 1;
+                continue;
+            };
+            triangles += 1;
+            blocks_hit.clear();
+            for_each_block(&g, res, |b| blocks_hit.push(b));
+            for &b in &blocks_hit {
+                let buf = buffers.entry(b).or_default();
+                buf.raw.extend_from_slice(record);
+                buf.bounds.add_triangle(&tri);
+                buffered += rec;
+                if buf.raw.len() >= MAX_CHUNK_TRIANGLES * rec {
+                    buffered -= buf.raw.len();
+                    flush(&mut store, buf)?;
+                }
+            }
+            if buffered > buffer_limit {
+                for buf in buffers.values_mut() {
+                    flush(&mut store, buf)?;
+                }
+                buffered = 0;
+            }
+        }
+        progress.stage(Stage::Voxelize, 0.3 * (id + 1) as f64 / stream.len() as f64);
+    }
+    for buf in buffers.values_mut() {
+        flush(&mut store, buf)?;
+    }
+    let blocks = buffers
+        .into_iter()
+        .filter(|(_, b)| !b.segments.is_empty())
+        .map(|(c, b)| (BlockKey::new(0, c[0], c[1], c[2]), b.segments))
+        .collect();
+    Ok(Bins { store, layout, blocks, skipped, triangles })
+}
+
+/// Pass 3: voxelizes every block's segments; blocks come back sorted by key.
+pub fn voxelize_bins(
+    bins: &Bins,
+    frame: &GridFrame,
+    topology: Topology,
+    opts: &BuildOptions,
+    progress: &ProgressSink,
+) -> Result<(Vec<SparseBlock>, VoxelizeStats), BuildError> {
+    let stats = VoxelizeStats { triangles: bins.triangles, skipped: bins.skipped };
+    if bins.triangles == 0 {
+        return Err(VoxelizeError::NoValidTriangle { skipped: bins.skipped }.into());
+    }
+    let res = frame.resolution as i64;
+    let rec = bins.layout.size();
+    let voxel_cap = opts.memory_budget / std::mem::size_of::<BuildVoxel>() as u64;
+    let voxels = AtomicU64::new(0);
+    let done = AtomicU64::new(0);
+    let total = bins.blocks.len().max(1) as f64;
+    let work: Vec<(&BlockKey, &Vec<usize>)> = bins.blocks.iter().collect();
+    let run = || {
+        work.par_iter()
+            .map_init(BlockVoxelizer::new, |vox, &(&key, segments)| -> Result<Option<SparseBlock>, BuildError> {
+                opts.check_cancelled()?;
+                for &s in segments {
+                    let (_, raw) = bins.store.read(s).map_err(temp_err)?;
+                    for record in raw.chunks_exact(rec) {
+                        let (tri, color) = bins.layout.decode(record);
+                        // Valid: pass 2 kept only triangles that are valid in grid units.
+                        if let Some(g) = to_grid(tri, frame) {
+                            vox.add(key, &g, bins.layout.color.then_some(color), res, topology);
+                        }
+                    }
+                }
+                let block = vox.finish(key);
+                let n = block.as_ref().map_or(0, |b| b.voxels.len() as u64);
+                if voxels.fetch_add(n, Ordering::Relaxed) + n > voxel_cap {
+                    return Err(BuildError::Ingest(IngestError::TooLarge(format!(
+                        "level 0 holds more than {voxel_cap} voxels ({} bytes each), more than the memory \
+                         budget of {} bytes: lower --resolution or raise --memory-budget",
+                        std::mem::size_of::<BuildVoxel>(),
+                        opts.memory_budget
+                    ))));
+                }
+                let d = done.fetch_add(1, Ordering::Relaxed) + 1;
+                progress.stage(Stage::Voxelize, 0.3 + 0.7 * d as f64 / total);
+                Ok(block)
+            })
+            .collect::<Result<Vec<Option<SparseBlock>>, BuildError>>()
+    };
+    // Each in-flight block holds one brick: cap the workers so bricks fit a quarter of the budget.
+    let max_workers = ((opts.memory_budget / 4) as usize / BLOCK_VOXELIZER_BYTES).max(1);
+    let blocks = if rayon::current_num_threads() > max_workers {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(max_workers)
+            .build()
+            .map_err(|e| BuildError::Temp(format!("thread pool: {e}")))?
+            .install(run)?
+    } else {
+        run()?
+    };
+    Ok((blocks.into_iter().flatten().collect(), stats))
+}
