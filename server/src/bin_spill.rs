@@ -35,7 +35,7 @@ use voxstream_format::{BlockKey, GridFrame};
 use crate::build::{BuildError, BuildOptions};
 use crate::ingest::{IngestError, TriangleSink};
 use crate::progress::{ProgressSink, Stage};
-use crate::tristream::{Bounds, ChunkStore, MAX_CHUNK_TRIANGLES, RecordLayout, encode_chunk};
+use crate::tristream::{Bounds, ChunkStore, MAX_CHUNK_TRIANGLES, RecordLayout};
 use crate::voxelize::{
     BLOCK_VOXELIZER_BYTES, BlockVoxelizer, BuildVoxel, SparseBlock, Topology, VoxelizeError, VoxelizeStats,
     for_each_block, to_grid, valid_triangle,
@@ -74,8 +74,9 @@ impl<'a> StreamSink<'a> {
         if self.raw.is_empty() {
             return Ok(());
         }
-        let chunk = encode_chunk(self.layout, &self.raw, &self.chunk_bounds);
-        self.store.push(chunk).map_err(|e| IngestError::Invalid(format!("temporary triangle stream: {e}")))?;
+        self.store
+            .push_records(self.layout, &self.raw, &self.chunk_bounds)
+            .map_err(|e| IngestError::Invalid(format!("temporary triangle stream: {e}")))?;
         self.raw.clear();
         self.chunk_bounds = Bounds::EMPTY;
         (self.on_tick)()
@@ -164,7 +165,7 @@ pub fn bin_triangles(
     let (mut skipped, mut triangles) = (0u64, 0u64);
     let flush = |store: &mut ChunkStore, b: &mut BinBuffer| -> Result<(), BuildError> {
         if !b.raw.is_empty() {
-            b.segments.push(store.push(encode_chunk(layout, &b.raw, &b.bounds)).map_err(temp_err)?);
+            b.segments.push(store.push_records(layout, &b.raw, &b.bounds).map_err(temp_err)?);
             b.raw.clear();
             b.bounds = Bounds::EMPTY;
         }

@@ -158,11 +158,18 @@ pub fn build_scene_reporting(
         Err(IngestError::Cancelled) => return Err(BuildError::Cancelled),
         r => r?,
     };
-    let StreamSink { store: stream_store, layout, bounds, triangles: read_triangles, skipped: read_skipped, .. } =
-        sink;
+    let StreamSink {
+        store: stream_store,
+        layout,
+        bounds,
+        triangles: read_triangles,
+        skipped: read_skipped,
+        ..
+    } = sink;
     if read_triangles + read_skipped == 0 {
         return Err(IngestError::Invalid("the file holds no triangles".into()).into());
     }
+    tracing::debug!(seconds = start.elapsed().as_secs_f64(), "build: read done");
     progress.set_triangles(read_triangles + read_skipped);
     progress.stage(Stage::Read, 1.0);
     opts.check_cancelled()?;
@@ -170,9 +177,16 @@ pub fn build_scene_reporting(
     // Pass 2 and 3: bin by block, then voxelize blocks in parallel.
     let frame = voxelize::frame_from_bounds(&bounds, opts.resolution, read_skipped)?;
     progress.stage(Stage::Voxelize, 0.0);
-    let bins =
-        bin_spill::bin_triangles(&stream_store, layout, &frame, &temp.path().join("bins.vxt"), opts, &progress)?;
+    let bins = bin_spill::bin_triangles(
+        &stream_store,
+        layout,
+        &frame,
+        &temp.path().join("bins.vxt"),
+        opts,
+        &progress,
+    )?;
     drop(stream_store);
+    tracing::debug!(seconds = start.elapsed().as_secs_f64(), "build: bin done");
     let (level0, mut stats) = bin_spill::voxelize_bins(&bins, &frame, opts.topology, opts, &progress)
         .map_err(|e| match e {
             BuildError::Voxelize(VoxelizeError::NoValidTriangle { skipped }) => {
@@ -182,10 +196,12 @@ pub fn build_scene_reporting(
         })?;
     stats.skipped += read_skipped;
     drop(bins);
+    tracing::debug!(seconds = start.elapsed().as_secs_f64(), "build: vox done");
     opts.check_cancelled()?;
     progress.stage(Stage::Lod, 0.0);
     let levels = lod::build_levels(level0, frame.resolution);
     progress.stage(Stage::Lod, 1.0);
+    tracing::debug!(seconds = start.elapsed().as_secs_f64(), "build: lod done");
     opts.check_cancelled()?;
     let content = SceneContent {
         name: id.clone(),

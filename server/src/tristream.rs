@@ -120,15 +120,12 @@ impl Bounds {
     pub const EMPTY: Bounds = Bounds { min: [f64::INFINITY; 3], max: [f64::NEG_INFINITY; 3] };
 
     pub fn is_empty(&self) -> bool {
-        !(self.min[0] <= self.max[0])
+        self.min[0].partial_cmp(&self.max[0]).is_none_or(|o| o.is_gt())
     }
 
     pub fn add_triangle(&mut self, tri: &[[f64; 3]; 3]) {
         for p in tri {
-            for a in 0..3 {
-                self.min[a] = self.min[a].min(p[a]);
-                self.max[a] = self.max[a].max(p[a]);
-            }
+            self.union(&Bounds { min: *p, max: *p });
         }
     }
 
@@ -158,12 +155,14 @@ pub enum ChunkError {
     Damaged(String),
 }
 
-/// Encodes `raw` (whole records of `layout`) as one chunk; lz4 when it saves bytes.
-pub fn encode_chunk(layout: RecordLayout, raw: &[u8], bounds: &Bounds) -> Vec<u8> {
+/// Encodes `raw` (whole records of `layout`) as one chunk; with `compress`,
+/// as lz4 when that saves bytes.
+pub fn encode_chunk(layout: RecordLayout, raw: &[u8], bounds: &Bounds, compress: bool) -> Vec<u8> {
     let triangles = raw.len() / layout.size();
-    debug_assert!(raw.len() % layout.size() == 0 && triangles <= MAX_CHUNK_TRIANGLES);
-    let packed = lz4_flex::block::compress(raw);
-    let (codec, payload) = if packed.len() < raw.len() { (CODEC_LZ4, &packed[..]) } else { (CODEC_RAW, raw) };
+    debug_assert!(raw.len().is_multiple_of(layout.size()) && triangles <= MAX_CHUNK_TRIANGLES);
+    let packed = if compress { lz4_flex::block::compress(raw) } else { Vec::new() };
+    let (codec, payload) =
+        if compress && packed.len() < raw.len() { (CODEC_LZ4, &packed[..]) } else { (CODEC_RAW, raw) };
     let mut out = Vec::with_capacity(HEADER_LEN + payload.len());
     out.extend_from_slice(MAGIC);
     out.extend_from_slice(&[layout.flags(), codec, 0, 0]);
@@ -261,6 +260,18 @@ impl ChunkStore {
 
     fn io(&self, action: &'static str) -> impl FnOnce(io::Error) -> ChunkError + '_ {
         move |source| ChunkError::Io { action, path: self.spill_path.clone(), source }
+    }
+
+    /// Encodes and stores records as a chunk: raw while resident (no CPU spent
+    /// on compression), lz4 when spilled (fewer bytes to write and read).
+    pub fn push_records(
+        &mut self,
+        layout: RecordLayout,
+        raw: &[u8],
+        bounds: &Bounds,
+    ) -> Result<usize, ChunkError> {
+        let resident = self.resident_bytes + HEADER_LEN + raw.len() <= self.resident_limit;
+        self.push(encode_chunk(layout, raw, bounds, !resident))
     }
 
     /// Stores an encoded chunk and returns its id (ids count up from 0).
@@ -370,7 +381,7 @@ mod tests {
                 bounds.add_triangle(&tri(k as f64));
             }
             assert_eq!(raw.len(), 100 * layout.size());
-            let chunk = encode_chunk(layout, &raw, &bounds);
+            let chunk = encode_chunk(layout, &raw, &bounds, true);
             let (h, back) = decode_chunk(&chunk).unwrap();
             assert_eq!((h.triangles, h.layout, h.bounds), (100, layout, bounds));
             assert_eq!(back, raw);
@@ -385,7 +396,7 @@ mod tests {
         let layout = RecordLayout { f64_positions: false, color: false };
         let mut raw = Vec::new();
         layout.encode(&mut raw, &tri(1.0), [0.0; 3]);
-        let chunk = encode_chunk(layout, &raw, &Bounds::EMPTY);
+        let chunk = encode_chunk(layout, &raw, &Bounds::EMPTY, true);
         for len in 0..chunk.len() {
             assert!(decode_chunk(&chunk[..len]).is_err(), "{len}");
         }
@@ -403,7 +414,7 @@ mod tests {
         for k in 0..5 {
             let mut raw = Vec::new();
             layout.encode(&mut raw, &tri(k as f64), [0.0; 3]);
-            let c = encode_chunk(layout, &raw, &Bounds::EMPTY);
+            let c = encode_chunk(layout, &raw, &Bounds::EMPTY, k % 2 == 0);
             assert_eq!(store.push(c.clone()).unwrap(), k);
             chunks.push(raw);
         }

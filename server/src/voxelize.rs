@@ -365,11 +365,13 @@ pub fn segment_meets_triangle(p0: [f64; 3], p1: [f64; 3], t: &[[f64; 3]; 3]) -> 
 
 /// Whether the triangle meets voxel `c`'s target for `topology`.
 pub fn triangle_meets_target(tri: &[[f64; 3]; 3], c: [i64; 3], topology: Topology) -> bool {
-    if !triangle_touches_voxel(tri, c) {
-        return false; // every target lies inside the closed cube
-    }
+    triangle_touches_voxel(tri, c) && meets_segments(tri, c, topology)
+}
+
+/// The segment part of [`triangle_meets_target`], for a voxel the triangle touches.
+fn meets_segments(tri: &[[f64; 3]; 3], c: [i64; 3], topology: Topology) -> bool {
     let segments = match topology {
-        Topology::Conservative => return true,
+        Topology::Conservative => return true, // every target lies inside the closed cube
         Topology::Separating26 => &TARGET_SEGMENTS[..],
         Topology::Separating6 => &TARGET_SEGMENTS[..3],
     };
@@ -393,32 +395,43 @@ pub fn for_each_touched_voxel(
     topology: Topology,
     mut hit: impl FnMut([i64; 3]),
 ) {
+    let sat = TriangleSat::new(tri, lo);
     let w = (0..3).max_by(|&a, &b| n[a].abs().total_cmp(&n[b].abs())).unwrap_or(2);
     let (u, v) = ((w + 1) % 3, (w + 2) % 3);
-    let d = dot(n, tri[0]);
+    // The plane as w = a - b·u - c·v; over a column's closed square [cu, cu+1] × [cv, cv+1]
+    // it spans [base - max(b,0) - max(c,0), base - min(b,0) - min(c,0)], base at the corner.
+    let a = dot(n, tri[0]) / n[w];
+    let (b, c) = (n[u] / n[w], n[v] / n[w]);
+    let (lo_off, hi_off) = (b.max(0.0) + c.max(0.0), b.min(0.0) + c.min(0.0));
+    // Voxel cw's cube spans [cw, cw+1] in w, so it can meet the plane iff
+    // cw ∈ [ceil(wmin) - 1, floor(wmax)], i.e. [floor(wmin - slack), floor(wmax + slack)]:
+    // the slack also covers rounding and the SAT's grown cube (≤ 3e-9 voxels).
+    // The SAT then decides every voxel in the slab.
+    const SLACK: f64 = 1e-7;
     for cu in lo[u]..=hi[u] {
         for cv in lo[v]..=hi[v] {
-            // The plane's w over the column's closed square, at its four corners.
-            let mut wmin = f64::INFINITY;
-            let mut wmax = f64::NEG_INFINITY;
-            for (pu, pv) in [(cu, cv), (cu + 1, cv), (cu, cv + 1), (cu + 1, cv + 1)] {
-                let pw = (d - n[u] * pu as f64 - n[v] * pv as f64) / n[w];
-                wmin = wmin.min(pw);
-                wmax = wmax.max(pw);
-            }
-            let w0 = (wmin.floor() as i64 - 1).max(lo[w]);
-            let w1 = (wmax.floor() as i64 + 1).min(hi[w]);
+            let base = a - b * cu as f64 - c * cv as f64;
+            let w0 = fast_floor(base - lo_off - SLACK).max(lo[w]);
+            let w1 = fast_floor(base - hi_off + SLACK).min(hi[w]);
             for cw in w0..=w1 {
-                let mut c = [0i64; 3];
-                c[u] = cu;
-                c[v] = cv;
-                c[w] = cw;
-                if triangle_meets_target(tri, c, topology) {
-                    hit(c);
+                let mut p = [0i64; 3];
+                p[u] = cu;
+                p[v] = cv;
+                p[w] = cw;
+                if sat.touches(p) && meets_segments(tri, p, topology) {
+                    hit(p);
                 }
             }
         }
     }
+}
+
+/// `floor` without a libm call (the default x86-64 target has no SSE4.1 round);
+/// saturates far outside the grid, where the clamps above take over.
+#[inline]
+fn fast_floor(x: f64) -> i64 {
+    let i = x as i64;
+    if (i as f64) > x { i - 1 } else { i }
 }
 
 /// Separating-axis test (Akenine-Möller) of a triangle against the closed unit
@@ -428,20 +441,6 @@ pub fn triangle_touches_voxel(tri: &[[f64; 3]; 3], c: [i64; 3]) -> bool {
     const H: f64 = 0.5 + 1e-9;
     let centre = c.map(|v| v as f64 + 0.5);
     let p = tri.map(|q| sub(q, centre));
-    let e = [sub(p[1], p[0]), sub(p[2], p[1]), sub(p[0], p[2])];
-    // 9 edge cross axes.
-    for ei in e {
-        for a in 0..3 {
-            let mut axis = [0.0; 3];
-            axis[a] = 1.0;
-            let ax = cross(axis, ei);
-            let r = H * (ax[0].abs() + ax[1].abs() + ax[2].abs());
-            let (mn, mx) = project(&p, ax);
-            if mn > r || mx < -r {
-                return false;
-            }
-        }
-    }
     // 3 box face normals.
     for a in 0..3 {
         let (mn, mx) = project(&p, std::array::from_fn(|k| if k == a { 1.0 } else { 0.0 }));
@@ -449,10 +448,62 @@ pub fn triangle_touches_voxel(tri: &[[f64; 3]; 3], c: [i64; 3]) -> bool {
             return false;
         }
     }
-    // Triangle plane.
-    let n = cross(e[0], e[1]);
-    let r = H * (n[0].abs() + n[1].abs() + n[2].abs());
-    dot(n, p[0]).abs() <= r
+    TriangleSat::new(tri, c).touches(c)
+}
+
+/// The triangle's side of the separating-axis test, computed once: for the
+/// 9 edge × box-axis directions and the plane normal, the interval the
+/// triangle projects to, widened by the grown cube's radius. A voxel then
+/// costs one dot product per axis. The box face axes are not tested: callers
+/// only ask about voxels in the triangle's closed bounding box, whose cubes
+/// always overlap it on those axes.
+struct TriangleSat {
+    /// An integer corner near the triangle; coordinates are taken relative to
+    /// it so that products stay small and precise far from the grid origin.
+    origin: [i64; 3],
+    axes: [[f64; 3]; 10],
+    lo: [f64; 10],
+    hi: [f64; 10],
+}
+
+impl TriangleSat {
+    fn new(tri: &[[f64; 3]; 3], origin: [i64; 3]) -> Self {
+        const H: f64 = 0.5 + 1e-9;
+        let o = origin.map(|v| v as f64);
+        let p = tri.map(|q| sub(q, o));
+        let e = [sub(p[1], p[0]), sub(p[2], p[1]), sub(p[0], p[2])];
+        let mut axes = [[0.0; 3]; 10];
+        let mut lo = [0.0; 10];
+        let mut hi = [0.0; 10];
+        let mut k = 0;
+        for ei in e {
+            for a in 0..3 {
+                let mut unit = [0.0; 3];
+                unit[a] = 1.0;
+                axes[k] = cross(unit, ei);
+                k += 1;
+            }
+        }
+        axes[9] = cross(e[0], e[1]);
+        for k in 0..10 {
+            let ax = axes[k];
+            let r = H * (ax[0].abs() + ax[1].abs() + ax[2].abs());
+            let (mn, mx) = project(&p, ax);
+            lo[k] = mn - r;
+            hi[k] = mx + r;
+        }
+        Self { origin, axes, lo, hi }
+    }
+
+    /// Whether the closed (grown) cube at integer corner `c` meets the triangle.
+    #[inline]
+    fn touches(&self, c: [i64; 3]) -> bool {
+        let centre: [f64; 3] = std::array::from_fn(|a| (c[a] - self.origin[a]) as f64 + 0.5);
+        (0..10).all(|k| {
+            let d = dot(centre, self.axes[k]);
+            d >= self.lo[k] && d <= self.hi[k]
+        })
+    }
 }
 
 fn project(p: &[[f64; 3]; 3], ax: [f64; 3]) -> (f64, f64) {

@@ -263,7 +263,12 @@ pub fn read_mesh_bytes(bytes: &[u8], format: MeshFormat) -> Result<TriangleMesh,
         MeshFormat::Gltf | MeshFormat::Glb => gltf::read(bytes)?,
         MeshFormat::Ply | MeshFormat::Stl => {
             let mut builder = MeshBuilder::default();
-            stream_mesh_bytes(bytes, format, &mut builder, &ReadOptions { memory_budget: u64::MAX, ..Default::default() })?;
+            stream_mesh_bytes(
+                bytes,
+                format,
+                &mut builder,
+                &ReadOptions { memory_budget: u64::MAX, ..Default::default() },
+            )?;
             builder.mesh
         }
     };
@@ -293,7 +298,11 @@ pub fn stream_mesh_bytes(
 
 /// Streams a mesh file's triangles into `sink` in file order, within
 /// `opts.memory_budget`; returns the format read.
-pub fn stream_mesh(path: &Path, sink: &mut dyn TriangleSink, opts: &ReadOptions) -> Result<MeshFormat, IngestError> {
+pub fn stream_mesh(
+    path: &Path,
+    sink: &mut dyn TriangleSink,
+    opts: &ReadOptions,
+) -> Result<MeshFormat, IngestError> {
     let io = |source| IngestError::Io { path: path.display().to_string(), source };
     let mut file = File::open(path).map_err(io)?;
     let len = file.metadata().map_err(io)?.len();
@@ -326,7 +335,12 @@ pub fn stream_mesh(path: &Path, sink: &mut dyn TriangleSink, opts: &ReadOptions)
             let mut bytes = Vec::with_capacity(len as usize);
             file.read_to_end(&mut bytes).map_err(io)?;
             opts.bytes_read.store(len, Ordering::Relaxed);
-            stream_mesh_bytes(&bytes, format, sink, &ReadOptions { bytes_read: Arc::new(AtomicU64::new(0)), ..opts.clone() })?;
+            stream_mesh_bytes(
+                &bytes,
+                format,
+                sink,
+                &ReadOptions { bytes_read: Arc::new(AtomicU64::new(0)), ..opts.clone() },
+            )?;
         }
     }
     Ok(format)

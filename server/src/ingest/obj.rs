@@ -24,7 +24,9 @@ pub(super) fn read(bytes: &[u8]) -> Result<TriangleMesh, IngestError> {
         let count = m.positions.len() / 3;
         mesh.positions.extend(m.positions.chunks_exact(3).map(|p| [p[0], p[1], p[2]]));
         if colored {
-            mesh.colors.extend(m.vertex_color.chunks_exact(3).map(|c| [0, 1, 2].map(|a| srgb_to_linear(c[a] as f32))));
+            mesh.colors.extend(
+                m.vertex_color.chunks_exact(3).map(|c| [0, 1, 2].map(|a| srgb_to_linear(c[a] as f32))),
+            );
         }
         let mut start = 0usize;
         // tobj leaves face_arities empty when every face is a triangle.

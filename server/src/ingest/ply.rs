@@ -218,7 +218,12 @@ struct ElementReader<R: BufRead> {
 const MAX_LINE: u64 = 1 << 20;
 
 impl<R: BufRead> ElementReader<R> {
-    fn read<E: PropertyAccess>(&mut self, parser: &Parser<E>, def: &ElementDef, i: usize) -> Result<E, IngestError> {
+    fn read<E: PropertyAccess>(
+        &mut self,
+        parser: &Parser<E>,
+        def: &ElementDef,
+        i: usize,
+    ) -> Result<E, IngestError> {
         let at = |e: &dyn std::fmt::Display| parse_err(format!("{} {i}: {e}", def.name));
         match self.encoding {
             Encoding::Ascii => {
@@ -303,7 +308,12 @@ fn read_vertices<R: BufRead>(
         }
     }
     let f32_exact = ["x", "y", "z"].iter().all(|a| exact_in_f32(&def.properties[*a].data_type));
-    let has_color = def.properties.keys().filter_map(|k| color_channel(k)).collect::<std::collections::BTreeSet<_>>().len()
+    let has_color = def
+        .properties
+        .keys()
+        .filter_map(|k| color_channel(k))
+        .collect::<std::collections::BTreeSet<_>>()
+        .len()
         == 3;
     let per_vertex = if f32_exact { 12 } else { 24 } + if has_color { 3 } else { 0 };
     let needed = def.count as u64 * per_vertex;
@@ -374,7 +384,8 @@ pub(super) fn stream<R: BufRead>(
     };
     let mut total_min = 0u64;
     for def in header.elements.values() {
-        total_min = total_min.saturating_add(min_element_bytes(def, header.encoding).saturating_mul(def.count as u64));
+        total_min = total_min
+            .saturating_add(min_element_bytes(def, header.encoding).saturating_mul(def.count as u64));
         if total_min > len {
             return Err(parse_err(format!(
                 "the header declares {} {} elements (and those before them), which need at least {total_min} bytes, \
@@ -383,9 +394,13 @@ pub(super) fn stream<R: BufRead>(
             )));
         }
     }
-    let has_color =
-        vertex_def.properties.keys().filter_map(|k| color_channel(k)).collect::<std::collections::BTreeSet<_>>().len()
-            == 3;
+    let has_color = vertex_def
+        .properties
+        .keys()
+        .filter_map(|k| color_channel(k))
+        .collect::<std::collections::BTreeSet<_>>()
+        .len()
+        == 3;
     let f32_exact = ["x", "y", "z"]
         .iter()
         .all(|a| vertex_def.properties.get(*a).is_some_and(|p| exact_in_f32(&p.data_type)));
