@@ -432,10 +432,10 @@ property float z\nelement face 3\nproperty list uchar int vertex_indices\nend_he
             ply.extend_from_slice(&c.to_be_bytes());
         }
     }
-    for face in [[0, 1, 2], [0, 3, 2], [4, 1, 2]] {
+    for face in [[0i32, 1, 2], [0, 3, 2], [4, 1, 2]] {
         ply.push(3);
         for i in face {
-            ply.extend_from_slice(&(i as i32).to_be_bytes());
+            ply.extend_from_slice(&i.to_be_bytes());
         }
     }
     let dir = tempfile::tempdir().unwrap();
