@@ -37,8 +37,8 @@ use crate::ingest::{IngestError, TriangleSink};
 use crate::progress::{ProgressSink, Stage};
 use crate::tristream::{Bounds, ChunkStore, MAX_CHUNK_TRIANGLES, RecordLayout};
 use crate::voxelize::{
-    BLOCK_VOXELIZER_BYTES, BlockVoxelizer, BuildVoxel, SparseBlock, Topology, VoxelizeError, VoxelizeStats,
-    for_each_block, to_grid, valid_triangle,
+    BLOCK_VOXELIZER_BYTES, BuildVoxel, SparseBlock, Topology, VoxelizeError, VoxelizeStats, for_each_block,
+    to_grid, valid_triangle, with_block_voxelizer,
 };
 
 /// Pass 1: packs valid triangles into chunks.
@@ -235,19 +235,21 @@ pub fn voxelize_bins(
     let work: Vec<(&BlockKey, &Vec<usize>)> = bins.blocks.iter().collect();
     let run = || {
         work.par_iter()
-            .map_init(BlockVoxelizer::new, |vox, &(&key, segments)| -> Result<Option<SparseBlock>, BuildError> {
+            .map(|&(&key, segments)| -> Result<Option<SparseBlock>, BuildError> {
                 opts.check_cancelled()?;
-                for &s in segments {
-                    let (_, raw) = bins.store.read(s).map_err(temp_err)?;
-                    for record in raw.chunks_exact(rec) {
-                        let (tri, color) = bins.layout.decode(record);
-                        // Valid: pass 2 kept only triangles that are valid in grid units.
-                        if let Some(g) = to_grid(tri, frame) {
-                            vox.add(key, &g, bins.layout.color.then_some(color), res, topology);
+                let block = with_block_voxelizer(|vox| -> Result<_, BuildError> {
+                    for &s in segments {
+                        let (_, raw) = bins.store.read(s).map_err(temp_err)?;
+                        for record in raw.chunks_exact(rec) {
+                            let (tri, color) = bins.layout.decode(record);
+                            // Always valid: pass 2 kept only triangles valid in grid units.
+                            if let Some(g) = to_grid(tri, frame) {
+                                vox.add(key, &g, bins.layout.color.then_some(color), res, topology);
+                            }
                         }
                     }
-                }
-                let block = vox.finish(key);
+                    Ok(vox.finish(key))
+                })?;
                 let n = block.as_ref().map_or(0, |b| b.voxels.len() as u64);
                 if voxels.fetch_add(n, Ordering::Relaxed) + n > voxel_cap {
                     return Err(BuildError::Ingest(IngestError::TooLarge(format!(

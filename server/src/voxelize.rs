@@ -158,14 +158,17 @@ pub fn voxelize_reporting(
     let counter = StageCounter::new(progress, Stage::Voxelize, bins.len());
     let blocks: Vec<SparseBlock> = bins
         .into_par_iter()
-        .map_init(BlockVoxelizer::new, |vox, (coord, list)| {
+        .map(|(coord, list)| {
             let key = BlockKey::new(0, coord[0], coord[1], coord[2]);
-            for &t in &list {
-                let color = colored.then(|| colors[t as usize]);
-                vox.add(key, &tris[t as usize], color, res, topology);
-            }
+            let block = with_block_voxelizer(|vox| {
+                for &t in &list {
+                    let color = colored.then(|| colors[t as usize]);
+                    vox.add(key, &tris[t as usize], color, res, topology);
+                }
+                vox.finish(key)
+            });
             counter.tick();
-            vox.finish(key)
+            block
         })
         .filter_map(|b| b)
         .collect();
@@ -189,8 +192,8 @@ pub(crate) fn for_each_block(g: &[[f64; 3]; 3], res: i64, mut f: impl FnMut([u32
 /// grid. A bound on an integer plane also touches the voxel below it, hence
 /// `ceil - 1` rather than `floor` at the low end.
 fn voxel_range(t: &[[f64; 3]; 3], res: i64) -> ([i64; 3], [i64; 3]) {
-    let lo = std::array::from_fn(|a| (t[0][a].min(t[1][a]).min(t[2][a]).ceil() as i64 - 1).clamp(0, res - 1));
-    let hi = std::array::from_fn(|a| (t[0][a].max(t[1][a]).max(t[2][a]).floor() as i64).clamp(0, res - 1));
+    let lo = std::array::from_fn(|a| (-fast_floor(-t[0][a].min(t[1][a]).min(t[2][a])) - 1).clamp(0, res - 1));
+    let hi = std::array::from_fn(|a| fast_floor(t[0][a].max(t[1][a]).max(t[2][a])).clamp(0, res - 1));
     (lo, hi)
 }
 
@@ -207,7 +210,30 @@ pub(crate) struct BlockVoxelizer {
 /// Heap bytes of one [`BlockVoxelizer`] with colours: what an in-flight block costs.
 pub(crate) const BLOCK_VOXELIZER_BYTES: usize = BLOCK_VOXELS / 8 + BLOCK_VOXELS * (12 + 16);
 
+thread_local! {
+    /// Each worker thread's brick, allocated once (rayon's `map_init` would
+    /// allocate one per work split).
+    static BRICK: std::cell::RefCell<Option<BlockVoxelizer>> = const { std::cell::RefCell::new(None) };
+}
+
+/// Runs `f` with this thread's [`BlockVoxelizer`] (clear on entry, and left clear by `finish`).
+pub(crate) fn with_block_voxelizer<T>(f: impl FnOnce(&mut BlockVoxelizer) -> T) -> T {
+    BRICK.with(|cell| {
+        let mut slot = cell.borrow_mut();
+        let vox = slot.get_or_insert_with(BlockVoxelizer::new);
+        vox.clear();
+        f(vox)
+    })
+}
+
 impl BlockVoxelizer {
+    /// Drops whatever an interrupted block left behind (cheap when already clear).
+    fn clear(&mut self) {
+        if self.bits.iter().any(|&w| w != 0) {
+            self.finish(BlockKey::new(0, 0, 0, 0));
+        }
+    }
+
     pub(crate) fn new() -> Self {
         Self { bits: vec![0; BLOCK_VOXELS / 64], normals: vec![[0.0; 3]; BLOCK_VOXELS], colors: Vec::new() }
     }
@@ -408,17 +434,45 @@ pub fn for_each_touched_voxel(
     // the slack also covers rounding and the SAT's grown cube (≤ 3e-9 voxels).
     // The SAT then decides every voxel in the slab.
     const SLACK: f64 = 1e-7;
+    // SAT axes cross(unit_w, edge) (k = 3·edge + w) have no w component: their
+    // test is the same for a whole column, so it runs once per column. The
+    // other axes cost one multiply-add per voxel on top of the column's part.
+    let column_axes = [w, 3 + w, 6 + w];
+    let voxel_axes: [usize; 7] = {
+        let mut out = [9; 7];
+        for (i, k) in (0..9).filter(|k| k % 3 != w).enumerate() {
+            out[i] = k;
+        }
+        out
+    };
+    let centre = |c: i64, a: usize| (c - sat.origin[a]) as f64 + 0.5;
     for cu in lo[u]..=hi[u] {
+        let mu = centre(cu, u);
         for cv in lo[v]..=hi[v] {
+            let mv = centre(cv, v);
+            let in_column = column_axes.iter().all(|&k| {
+                let d = sat.axes[k][u] * mu + sat.axes[k][v] * mv;
+                d >= sat.lo[k] && d <= sat.hi[k]
+            });
+            if !in_column {
+                continue;
+            }
+            let part = voxel_axes.map(|k| sat.axes[k][u] * mu + sat.axes[k][v] * mv);
             let base = a - b * cu as f64 - c * cv as f64;
             let w0 = fast_floor(base - lo_off - SLACK).max(lo[w]);
             let w1 = fast_floor(base - hi_off + SLACK).min(hi[w]);
             for cw in w0..=w1 {
+                let mw = centre(cw, w);
+                let touches = (0..7).all(|i| {
+                    let k = voxel_axes[i];
+                    let d = part[i] + sat.axes[k][w] * mw;
+                    d >= sat.lo[k] && d <= sat.hi[k]
+                });
                 let mut p = [0i64; 3];
                 p[u] = cu;
                 p[v] = cv;
                 p[w] = cw;
-                if sat.touches(p) && meets_segments(tri, p, topology) {
+                if touches && meets_segments(tri, p, topology) {
                     hit(p);
                 }
             }
