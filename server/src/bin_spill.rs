@@ -25,7 +25,7 @@
 //! buffers take up to budget/16. Level-0 output is ~36 bytes a voxel
 //! (`BuildVoxel`) and must fit the budget; a clear error says so otherwise.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -37,7 +37,7 @@ use crate::ingest::{IngestError, TriangleSink};
 use crate::progress::{ProgressSink, Stage};
 use crate::tristream::{Bounds, ChunkStore, MAX_CHUNK_TRIANGLES, RecordLayout};
 use crate::voxelize::{
-    BLOCK_VOXELIZER_BYTES, BuildVoxel, SparseBlock, Topology, VoxelizeError, VoxelizeStats, for_each_block,
+    BLOCK_VOXELIZER_BYTES, BuildVoxel, SparseBlock, Topology, VoxelizeError, VoxelizeStats, block_range,
     to_grid, valid_triangle, with_block_voxelizer,
 };
 
@@ -147,6 +147,9 @@ fn temp_err(e: crate::tristream::ChunkError) -> BuildError {
     BuildError::Temp(e.to_string())
 }
 
+/// A triangle's block range (closed) and its source-space bounds.
+type Placement = ([u32; 3], [u32; 3], Bounds);
+
 /// Pass 2: bins the stream's triangles by the 64³ blocks they overlap.
 pub fn bin_triangles(
     stream: &ChunkStore,
@@ -160,7 +163,11 @@ pub fn bin_triangles(
     let rec = layout.size();
     let buffer_limit = (opts.memory_budget / 16).max(1 << 20) as usize;
     let mut store = ChunkStore::new(spill_path, (opts.memory_budget / 8) as usize);
-    let mut buffers: BTreeMap<[u32; 3], BinBuffer> = BTreeMap::new();
+    // Buffers in first-hit order, found through a map and a one-entry cache
+    // (consecutive triangles mostly share a block).
+    let mut buffers: Vec<([u32; 3], BinBuffer)> = Vec::new();
+    let mut index: HashMap<[u32; 3], usize> = HashMap::new();
+    let mut last: Option<([u32; 3], usize)> = None;
     let mut buffered = 0usize;
     let (mut skipped, mut triangles) = (0u64, 0u64);
     let flush = |store: &mut ChunkStore, b: &mut BinBuffer| -> Result<(), BuildError> {
@@ -171,31 +178,56 @@ pub fn bin_triangles(
         }
         Ok(())
     };
-    let mut blocks_hit: Vec<[u32; 3]> = Vec::new();
     for id in 0..stream.len() {
         opts.check_cancelled()?;
         let (_, raw) = stream.read(id).map_err(temp_err)?;
-        for record in raw.chunks_exact(rec) {
-            let (tri, _) = layout.decode(record);
-            let Some(g) = to_grid(tri, frame) else {
+        // Where each triangle goes, computed on all cores; appended below in input order.
+        let placed: Vec<Option<Placement>> = raw
+            .par_chunks_exact(rec)
+            .with_min_len(1024)
+            .map(|record| {
+                let (tri, _) = layout.decode(record);
+                let g = to_grid(tri, frame)?;
+                let (lo, hi) = block_range(&g, res);
+                let mut bounds = Bounds::EMPTY;
+                bounds.add_triangle(&tri);
+                Some((lo, hi, bounds))
+            })
+            .collect();
+        for (record, place) in raw.chunks_exact(rec).zip(placed) {
+            let Some((blo, bhi, bounds)) = place else {
                 skipped += 1;
                 continue;
             };
             triangles += 1;
-            blocks_hit.clear();
-            for_each_block(&g, res, |b| blocks_hit.push(b));
-            for &b in &blocks_hit {
-                let buf = buffers.entry(b).or_default();
-                buf.raw.extend_from_slice(record);
-                buf.bounds.add_triangle(&tri);
-                buffered += rec;
-                if buf.raw.len() >= MAX_CHUNK_TRIANGLES * rec {
-                    buffered -= buf.raw.len();
-                    flush(&mut store, buf)?;
+            for bz in blo[2]..=bhi[2] {
+                for by in blo[1]..=bhi[1] {
+                    for bx in blo[0]..=bhi[0] {
+                        let key = [bx, by, bz];
+                        let i = match last {
+                            Some((k, i)) if k == key => i,
+                            _ => {
+                                let i = *index.entry(key).or_insert_with(|| {
+                                    buffers.push((key, BinBuffer::default()));
+                                    buffers.len() - 1
+                                });
+                                last = Some((key, i));
+                                i
+                            }
+                        };
+                        let buf = &mut buffers[i].1;
+                        buf.raw.extend_from_slice(record);
+                        buf.bounds.union(&bounds);
+                        buffered += rec;
+                        if buf.raw.len() >= MAX_CHUNK_TRIANGLES * rec {
+                            buffered -= buf.raw.len();
+                            flush(&mut store, buf)?;
+                        }
+                    }
                 }
             }
             if buffered > buffer_limit {
-                for buf in buffers.values_mut() {
+                for (_, buf) in &mut buffers {
                     flush(&mut store, buf)?;
                 }
                 buffered = 0;
@@ -203,7 +235,7 @@ pub fn bin_triangles(
         }
         progress.stage(Stage::Voxelize, 0.3 * (id + 1) as f64 / stream.len() as f64);
     }
-    for buf in buffers.values_mut() {
+    for (_, buf) in &mut buffers {
         flush(&mut store, buf)?;
     }
     let blocks = buffers

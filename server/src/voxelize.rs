@@ -175,10 +175,15 @@ pub fn voxelize_reporting(
     Ok((blocks, stats))
 }
 
-/// Calls `f` with the coordinate of every 64³ block a grid triangle's bounds overlap.
-pub(crate) fn for_each_block(g: &[[f64; 3]; 3], res: i64, mut f: impl FnMut([u32; 3])) {
+/// The closed range of 64³ block coordinates a grid triangle's bounds overlap.
+pub(crate) fn block_range(g: &[[f64; 3]; 3], res: i64) -> ([u32; 3], [u32; 3]) {
     let (lo, hi) = voxel_range(g, res);
-    let (blo, bhi) = (lo.map(|v| (v / BLOCK_SIZE as i64) as u32), hi.map(|v| (v / BLOCK_SIZE as i64) as u32));
+    (lo.map(|v| (v / BLOCK_SIZE as i64) as u32), hi.map(|v| (v / BLOCK_SIZE as i64) as u32))
+}
+
+/// Calls `f` with the coordinate of every 64³ block a grid triangle's bounds overlap.
+fn for_each_block(g: &[[f64; 3]; 3], res: i64, mut f: impl FnMut([u32; 3])) {
+    let (blo, bhi) = block_range(g, res);
     for bz in blo[2]..=bhi[2] {
         for by in blo[1]..=bhi[1] {
             for bx in blo[0]..=bhi[0] {

@@ -216,8 +216,63 @@ struct ElementReader<R: BufRead> {
 
 /// Longest ASCII element line accepted (a face of ~100k vertices).
 const MAX_LINE: u64 = 1 << 20;
+/// Elements read per batch; ASCII batches are parsed in parallel.
+const BATCH: usize = 1 << 14;
 
 impl<R: BufRead> ElementReader<R> {
+    /// Reads elements `start..start + n` into `out` (cleared first), in order.
+    /// ASCII lines are gathered first and parsed on all cores: ply-rs-bw's
+    /// `read_ascii_element` is a pure function of one line.
+    fn read_batch<E: PropertyAccess + Send + Sync>(
+        &mut self,
+        parser: &Parser<E>,
+        def: &ElementDef,
+        start: usize,
+        n: usize,
+        out: &mut Vec<E>,
+    ) -> Result<(), IngestError> {
+        use rayon::prelude::*;
+        out.clear();
+        if self.encoding != Encoding::Ascii {
+            for i in start..start + n {
+                out.push(self.read(parser, def, i)?);
+            }
+            return Ok(());
+        }
+        let mut text = String::new();
+        let mut ends = Vec::with_capacity(n);
+        for i in start..start + n {
+            self.read_line(def, i, &mut text)?;
+            ends.push(text.len());
+        }
+        let parsed: Result<Vec<E>, IngestError> = (0..n)
+            .into_par_iter()
+            .with_min_len(256)
+            .map(|k| {
+                let line = &text[if k == 0 { 0 } else { ends[k - 1] }..ends[k]];
+                parser
+                    .read_ascii_element(line, def)
+                    .map_err(|e| parse_err(format!("{} {}: {e}", def.name, start + k)))
+            })
+            .collect();
+        *out = parsed?;
+        Ok(())
+    }
+
+    /// Appends one ASCII element line to `text`.
+    fn read_line(&mut self, def: &ElementDef, i: usize, text: &mut String) -> Result<(), IngestError> {
+        let at = |e: &dyn std::fmt::Display| parse_err(format!("{} {i}: {e}", def.name));
+        let before = text.len();
+        let n = std::io::Read::take(self.reader.get_mut(), MAX_LINE).read_line(text).map_err(|e| at(&e))?;
+        if n == 0 {
+            return Err(at(&format!("the file ends early (the header declares {})", def.count)));
+        }
+        if n as u64 == MAX_LINE && !text[before..].ends_with('\n') {
+            return Err(at(&"line longer than 1 MiB"));
+        }
+        Ok(())
+    }
+
     fn read<E: PropertyAccess>(
         &mut self,
         parser: &Parser<E>,
@@ -227,17 +282,12 @@ impl<R: BufRead> ElementReader<R> {
         let at = |e: &dyn std::fmt::Display| parse_err(format!("{} {i}: {e}", def.name));
         match self.encoding {
             Encoding::Ascii => {
-                self.line.clear();
-                let n = std::io::Read::take(self.reader.get_mut(), MAX_LINE)
-                    .read_line(&mut self.line)
-                    .map_err(|e| at(&e))?;
-                if n == 0 {
-                    return Err(at(&format!("the file ends early (the header declares {})", def.count)));
-                }
-                if n as u64 == MAX_LINE && !self.line.ends_with('\n') {
-                    return Err(at(&"line longer than 1 MiB"));
-                }
-                parser.read_ascii_element(&self.line, def).map_err(|e| at(&e))
+                let mut line = std::mem::take(&mut self.line);
+                line.clear();
+                let read = self.read_line(def, i, &mut line);
+                let parsed = read.and_then(|()| parser.read_ascii_element(&line, def).map_err(|e| at(&e)));
+                self.line = line;
+                parsed
             }
             Encoding::BinaryBigEndian => {
                 parser.read_big_endian_element(self.reader.get_mut(), def).map_err(|e| at(&e))
@@ -332,18 +382,19 @@ fn read_vertices<R: BufRead>(
     };
     let mut colors = has_color.then(|| Vec::with_capacity(def.count));
     let parser = Parser::<VertexRecord>::new();
-    for i in 0..def.count {
-        let v = input.read(&parser, def, i)?;
-        match &mut positions {
-            Positions::F32(p) => p.push(v.p.map(|c| c as f32)),
-            Positions::F64(p) => p.push(v.p),
+    let mut batch = Vec::new();
+    for start in (0..def.count).step_by(BATCH) {
+        input.read_batch(&parser, def, start, BATCH.min(def.count - start), &mut batch)?;
+        for v in &batch {
+            match &mut positions {
+                Positions::F32(p) => p.push(v.p.map(|c| c as f32)),
+                Positions::F64(p) => p.push(v.p),
+            }
+            if let Some(c) = &mut colors {
+                c.push(v.c.map(|x| if x.is_nan() { 0 } else { (x.clamp(0.0, 1.0) * 255.0).round() as u8 }));
+            }
         }
-        if let Some(c) = &mut colors {
-            c.push(v.c.map(|x| if x.is_nan() { 0 } else { (x.clamp(0.0, 1.0) * 255.0).round() as u8 }));
-        }
-        if i % TICK_EVERY == TICK_EVERY - 1 {
-            sink.tick()?;
-        }
+        sink.tick()?;
     }
     Ok(VertexTable { positions, colors })
 }
@@ -417,30 +468,32 @@ pub(super) fn stream<R: BufRead>(
             "vertex" => table = Some(read_vertices(&mut input, def, sink, opts.memory_budget)?),
             "face" => {
                 let parser = Parser::<FaceRecord>::new();
-                for i in 0..def.count {
-                    let f = input.read(&parser, def, i)?;
-                    let poly = f.indices(&mut scratch);
-                    match &table {
-                        Some(t) => emit_polygon(poly, t, i, sink)?,
-                        None => {
-                            if poly.iter().any(|&v| v as usize >= vertex_def.count) {
-                                check_polygon(poly, vertex_def.count, i)?;
-                            }
-                            for k in 1..poly.len().saturating_sub(1) {
-                                early.push([poly[0], poly[k], poly[k + 1]]);
-                            }
-                            if early.len() as u64 * 12 > opts.memory_budget / 4 {
-                                return Err(IngestError::TooLarge(
-                                    "the PLY's faces come before its vertices and do not fit a quarter of the \
-                                     memory budget: raise --memory-budget"
-                                        .into(),
-                                ));
+                let mut batch = Vec::new();
+                for start in (0..def.count).step_by(BATCH) {
+                    input.read_batch(&parser, def, start, BATCH.min(def.count - start), &mut batch)?;
+                    for (k, f) in batch.iter().enumerate() {
+                        let i = start + k;
+                        let poly = f.indices(&mut scratch);
+                        match &table {
+                            Some(t) => emit_polygon(poly, t, i, sink)?,
+                            None => {
+                                if poly.iter().any(|&v| v as usize >= vertex_def.count) {
+                                    check_polygon(poly, vertex_def.count, i)?;
+                                }
+                                for k in 1..poly.len().saturating_sub(1) {
+                                    early.push([poly[0], poly[k], poly[k + 1]]);
+                                }
+                                if early.len() as u64 * 12 > opts.memory_budget / 4 {
+                                    return Err(IngestError::TooLarge(
+                                        "the PLY's faces come before its vertices and do not fit a quarter of \
+                                         the memory budget: raise --memory-budget"
+                                            .into(),
+                                    ));
+                                }
                             }
                         }
                     }
-                    if i % TICK_EVERY == TICK_EVERY - 1 {
-                        sink.tick()?;
-                    }
+                    sink.tick()?;
                 }
             }
             _ if def.properties.is_empty() => {} // nothing stored, nothing to read
