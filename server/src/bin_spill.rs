@@ -22,8 +22,9 @@
 //!
 //! Memory: stream and bin stores each keep up to budget/8 of encoded chunks
 //! resident and spill the rest to files in the build's temp dir; bin
-//! buffers take up to budget/16. Level-0 output is ~36 bytes a voxel
-//! (`BuildVoxel`) and must fit the budget; a clear error says so otherwise.
+//! buffers take up to budget/16 (budget/32 of records, capacity doubling).
+//! Level-0 output is ~36 bytes a voxel (`BuildVoxel`) and must fit the
+//! budget; a clear error says so otherwise.
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
@@ -161,7 +162,8 @@ pub fn bin_triangles(
 ) -> Result<Bins, BuildError> {
     let res = frame.resolution as i64;
     let rec = layout.size();
-    let buffer_limit = (opts.memory_budget / 16).max(1 << 20) as usize;
+    // Counted by length; capacities reach at most twice that.
+    let buffer_limit = (opts.memory_budget / 32).max(1 << 20) as usize;
     let mut store = ChunkStore::new(spill_path, (opts.memory_budget / 8) as usize);
     // Buffers in first-hit order, found through a map and a one-entry cache
     // (consecutive triangles mostly share a block).
@@ -173,7 +175,8 @@ pub fn bin_triangles(
     let flush = |store: &mut ChunkStore, b: &mut BinBuffer| -> Result<(), BuildError> {
         if !b.raw.is_empty() {
             b.segments.push(store.push_records(layout, &b.raw, &b.bounds).map_err(temp_err)?);
-            b.raw.clear();
+            // Freed, not cleared: idle blocks must not keep their high-water capacity.
+            b.raw = Vec::new();
             b.bounds = Bounds::EMPTY;
         }
         Ok(())

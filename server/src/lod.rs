@@ -84,7 +84,9 @@ pub fn merge_children(key: BlockKey, children: &[&SparseBlock]) -> Option<Sparse
     if !any {
         return None;
     }
-    let voxels = acc.into_iter().filter(|v| v.faces != 0).collect();
+    // Copied out rather than `into_iter().collect()`, which would keep the 9 MB
+    // accumulator as every coarse block's allocation (in-place collect).
+    let voxels = acc.iter().filter(|v| v.faces != 0).copied().collect();
     Some(SparseBlock { key, voxels })
 }
 
