@@ -39,7 +39,7 @@ use crate::progress::{ProgressSink, Stage};
 use crate::tristream::{Bounds, ChunkStore, MAX_CHUNK_TRIANGLES, RecordLayout};
 use crate::voxelize::{
     BLOCK_VOXELIZER_BYTES, BuildVoxel, SparseBlock, Topology, VoxelizeError, VoxelizeStats, block_range,
-    to_grid, valid_triangle, with_block_voxelizer,
+    to_grid, to_grid_unchecked, valid_triangle, with_block_voxelizer,
 };
 
 /// Pass 1: packs valid triangles into chunks.
@@ -277,10 +277,10 @@ pub fn voxelize_bins(
                         let (_, raw) = bins.store.read(s).map_err(temp_err)?;
                         for record in raw.chunks_exact(rec) {
                             let (tri, color) = bins.layout.decode(record);
-                            // Always valid: pass 2 kept only triangles valid in grid units.
-                            if let Some(g) = to_grid(tri, frame) {
-                                vox.add(key, &g, bins.layout.color.then_some(color), res, topology);
-                            }
+                            // Valid: pass 2 binned only triangles that `to_grid` accepted,
+                            // and the same arithmetic gives the same grid triangle here.
+                            let g = to_grid_unchecked(tri, frame);
+                            vox.add(key, &g, bins.layout.color.then_some(color), res, topology);
                         }
                     }
                     Ok(vox.finish(key))

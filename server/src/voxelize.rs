@@ -71,8 +71,13 @@ pub fn check_resolution(resolution: u32) -> Result<(), VoxelizeError> {
 
 /// A triangle in grid units, or `None` when it is degenerate or non-finite.
 pub(crate) fn to_grid(tri: [[f64; 3]; 3], frame: &GridFrame) -> Option<[[f64; 3]; 3]> {
-    let t = tri.map(|p| std::array::from_fn(|a| (p[a] - frame.origin[a]) / frame.voxel_size));
+    let t = to_grid_unchecked(tri, frame);
     valid_triangle(&t).then_some(t)
+}
+
+/// [`to_grid`] without the validity check, for triangles already checked by it.
+pub(crate) fn to_grid_unchecked(tri: [[f64; 3]; 3], frame: &GridFrame) -> [[f64; 3]; 3] {
+    tri.map(|p| std::array::from_fn(|a| (p[a] - frame.origin[a]) / frame.voxel_size))
 }
 
 pub(crate) fn valid_triangle(tri: &[[f64; 3]; 3]) -> bool {
@@ -263,9 +268,9 @@ impl BlockVoxelizer {
         if weighted.is_some() && self.colors.is_empty() {
             self.colors = vec![[0.0; 4]; BLOCK_VOXELS];
         }
-        let (lo, hi) = voxel_range(tri, res);
-        let lo: [i64; 3] = std::array::from_fn(|a| lo[a].max(base[a]));
-        let hi: [i64; 3] = std::array::from_fn(|a| hi[a].min(base[a] + BLOCK_SIZE as i64 - 1));
+        let (full_lo, full_hi) = voxel_range(tri, res);
+        let lo: [i64; 3] = std::array::from_fn(|a| full_lo[a].max(base[a]));
+        let hi: [i64; 3] = std::array::from_fn(|a| full_hi[a].min(base[a] + BLOCK_SIZE as i64 - 1));
         let mut set = |v: [i64; 3]| {
             let l = [v[0] - base[0], v[1] - base[1], v[2] - base[2]].map(|c| c as u32);
             let m = morton3(l[0], l[1], l[2]) as usize;
@@ -281,11 +286,19 @@ impl BlockVoxelizer {
                 }
             }
         };
-        if lo == hi {
-            // The triangle's bounds lie inside one voxel's open cube (grown by the
-            // 1e-9 hair on integer planes): only that voxel can be touched, and it is.
-            if topology == Topology::Conservative || triangle_meets_target(tri, lo, topology) {
-                set(lo);
+        if (0..3).filter(|&a| full_hi[a] > full_lo[a]).count() <= 1 {
+            // The triangle's bounds lie inside one voxel, or one row of voxels,
+            // open in the other two axes: it is connected and spans the row from
+            // end to end, so it touches every voxel of the row (the SAT would say
+            // the same, at many times the cost).
+            for x in lo[0]..=hi[0] {
+                for y in lo[1]..=hi[1] {
+                    for z in lo[2]..=hi[2] {
+                        if meets_segments(tri, [x, y, z], topology) {
+                            set([x, y, z]);
+                        }
+                    }
+                }
             }
             return;
         }
@@ -580,4 +593,68 @@ pub(crate) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
 
 pub(crate) fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng, rngs::StdRng};
+
+    /// Every voxel of the block the SAT says the triangle touches (the reference),
+    /// searched over the triangle's bounds grown by two voxels.
+    fn by_sat(tri: &[[f64; 3]; 3], key: BlockKey) -> Vec<u32> {
+        let base = key.coord().map(|c| (c * BLOCK_SIZE) as i64);
+        let range = |a: usize| {
+            let lo = tri.iter().map(|p| p[a]).fold(f64::INFINITY, f64::min).floor() as i64 - 2;
+            let hi = tri.iter().map(|p| p[a]).fold(f64::NEG_INFINITY, f64::max).floor() as i64 + 2;
+            lo.max(base[a])..=hi.min(base[a] + BLOCK_SIZE as i64 - 1)
+        };
+        let mut out = Vec::new();
+        for z in range(2) {
+            for y in range(1) {
+                for x in range(0) {
+                    if triangle_touches_voxel(tri, [x, y, z]) {
+                        let l = [x - base[0], y - base[1], z - base[2]].map(|c| c as u32);
+                        out.push(morton3(l[0], l[1], l[2]));
+                    }
+                }
+            }
+        }
+        out.sort();
+        out
+    }
+
+    /// Small and thin triangles take the one-voxel and one-row shortcuts and
+    /// larger ones the column sweep; all must agree with the plain SAT, also
+    /// where a block boundary cuts the triangle.
+    #[test]
+    fn shortcuts_and_sweep_agree_with_the_sat() {
+        let mut rng = StdRng::seed_from_u64(3);
+        let mut vox = BlockVoxelizer::new();
+        let mut rows = 0;
+        for i in 0..3000 {
+            let size = [0.05, 0.3, 0.9, 3.0][i % 4];
+            let c: [f64; 3] = std::array::from_fn(|_| rng.random_range(60.0..68.0));
+            let mut tri: [[f64; 3]; 3] =
+                std::array::from_fn(|_| std::array::from_fn(|a| c[a] + rng.random_range(-size..size)));
+            if i % 7 == 0 {
+                // Flat in z on an integer plane: touching contacts.
+                for p in &mut tri {
+                    p[2] = c[2].floor();
+                }
+            }
+            if !valid_triangle(&tri) {
+                continue;
+            }
+            let (lo, hi) = voxel_range(&tri, 128);
+            rows += usize::from((0..3).filter(|&a| hi[a] > lo[a]).count() == 1);
+            for key in [BlockKey::new(0, 0, 0, 0), BlockKey::new(0, 1, 0, 0), BlockKey::new(0, 1, 1, 1)] {
+                vox.add(key, &tri, None, 128, Topology::Conservative);
+                let got: Vec<u32> =
+                    vox.finish(key).map(|b| b.voxels.iter().map(|v| v.morton).collect()).unwrap_or_default();
+                assert_eq!(got, by_sat(&tri, key), "triangle {i} {tri:?} in block {key}");
+            }
+        }
+        assert!(rows > 300, "only {rows} one-row triangles");
+    }
 }
