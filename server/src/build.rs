@@ -185,8 +185,15 @@ pub fn build_scene_reporting(
         opts,
         &progress,
     )?;
+    tracing::debug!(
+        seconds = start.elapsed().as_secs_f64(),
+        stream_chunks = stream_store.len(),
+        stream_spilled_bytes = stream_store.spilled_bytes(),
+        bin_segments = bins.store.len(),
+        bin_spilled_bytes = bins.store.spilled_bytes(),
+        "build: bin done"
+    );
     drop(stream_store);
-    tracing::debug!(seconds = start.elapsed().as_secs_f64(), "build: bin done");
     let (level0, mut stats) = bin_spill::voxelize_bins(&bins, &frame, opts.topology, opts, &progress)
         .map_err(|e| match e {
             BuildError::Voxelize(VoxelizeError::NoValidTriangle { skipped }) => {
