@@ -207,6 +207,18 @@ fn min_element_bytes(def: &ElementDef, encoding: Encoding) -> u64 {
     }
 }
 
+/// Bytes of one binary element when it has no list property.
+fn fixed_element_size(def: &ElementDef) -> Option<usize> {
+    def.properties
+        .values()
+        .map(|p| match &p.data_type {
+            PropertyType::Scalar(t) => Some(scalar_size(t) as usize),
+            PropertyType::List(..) => None,
+        })
+        .sum::<Option<usize>>()
+        .filter(|&n| n > 0)
+}
+
 /// Reads elements one at a time in the file's encoding.
 struct ElementReader<R: BufRead> {
     reader: Reader<R>,
@@ -234,9 +246,37 @@ impl<R: BufRead> ElementReader<R> {
         use rayon::prelude::*;
         out.clear();
         if self.encoding != Encoding::Ascii {
-            for i in start..start + n {
-                out.push(self.read(parser, def, i)?);
-            }
+            let Some(size) = fixed_element_size(def) else {
+                for i in start..start + n {
+                    out.push(self.read(parser, def, i)?);
+                }
+                return Ok(());
+            };
+            // Fixed-size elements (no lists): read the batch's bytes, parse them on all cores.
+            let mut bytes = vec![0u8; n * size];
+            std::io::Read::read_exact(self.reader.get_mut(), &mut bytes).map_err(|e| {
+                parse_err(format!(
+                    "{} {start}..{}: {e} (the header declares {})",
+                    def.name,
+                    start + n,
+                    def.count
+                ))
+            })?;
+            let big = self.encoding == Encoding::BinaryBigEndian;
+            let parsed: Result<Vec<E>, IngestError> = bytes
+                .par_chunks_exact(size)
+                .enumerate()
+                .with_min_len(1024)
+                .map(|(k, mut b)| {
+                    let e = if big {
+                        parser.read_big_endian_element(&mut b, def)
+                    } else {
+                        parser.read_little_endian_element(&mut b, def)
+                    };
+                    e.map_err(|e| parse_err(format!("{} {}: {e}", def.name, start + k)))
+                })
+                .collect();
+            *out = parsed?;
             return Ok(());
         }
         let mut text = String::new();
