@@ -477,8 +477,43 @@ fn mutated_files_never_panic() {
 property uchar red\nproperty uchar green\nproperty uchar blue\nelement face 2\nproperty list uchar int vertex_indices\n\
 end_header\n0 0 0 1 2 3\n1 0 0 4 5 6\n1 1 0 7 8 9\n0 1 0 1 1 1\n3 0 1 2\n4 0 1 2 3\n";
     let mesh = read_mesh_bytes(ascii, MeshFormat::Ply).unwrap();
+    let binary = |big: bool| {
+        let mut b = format!(
+            "ply\nformat binary_{}_endian 1.0\nelement vertex 4\nproperty float x\nproperty uchar red\n\
+             property float y\nproperty uchar green\nproperty uchar blue\nproperty float z\nelement face 2\n\
+             property list uchar int vertex_indices\nproperty uchar flags\nend_header\n",
+            if big { "big" } else { "little" }
+        )
+        .into_bytes();
+        let f = |b: &mut Vec<u8>, v: f32| {
+            b.extend_from_slice(&if big { v.to_be_bytes() } else { v.to_le_bytes() })
+        };
+        for (k, p) in [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]].iter().enumerate()
+        {
+            f(&mut b, p[0]);
+            b.push(k as u8 * 60);
+            f(&mut b, p[1]);
+            b.extend_from_slice(&[9, 200]);
+            f(&mut b, p[2]);
+        }
+        for face in [&[0i32, 1, 2][..], &[0, 1, 2, 3]] {
+            b.push(face.len() as u8);
+            for i in face {
+                b.extend_from_slice(&if big { i.to_be_bytes() } else { i.to_le_bytes() });
+            }
+            b.push(7);
+        }
+        b
+    };
+    let (le, be) = (binary(false), binary(true));
+    let (a, b) =
+        (read_mesh_bytes(&le, MeshFormat::Ply).unwrap(), read_mesh_bytes(&be, MeshFormat::Ply).unwrap());
+    assert_eq!(a.triangles.len(), 3);
+    assert_eq!(a, b);
     let seeds: Vec<(Vec<u8>, MeshFormat)> = vec![
         (ascii.to_vec(), MeshFormat::Ply),
+        (le, MeshFormat::Ply),
+        (be, MeshFormat::Ply),
         (write_binary_stl(&mesh), MeshFormat::Stl),
         (write_glb(&mesh, [0.0; 3]), MeshFormat::Glb),
         (b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n".to_vec(), MeshFormat::Obj),

@@ -219,6 +219,34 @@ fn fixed_element_size(def: &ElementDef) -> Option<usize> {
         .filter(|&n| n > 0)
 }
 
+/// The byte length of the binary element at the start of `bytes`, if it is all there.
+fn element_len(def: &ElementDef, bytes: &[u8], big: bool) -> Option<usize> {
+    let mut at = 0usize;
+    for p in def.properties.values() {
+        match &p.data_type {
+            PropertyType::Scalar(t) => at += scalar_size(t) as usize,
+            PropertyType::List(count_type, item) => {
+                let w = scalar_size(count_type) as usize;
+                let raw = bytes.get(at..at + w)?;
+                let mut word = [0u8; 8];
+                if big {
+                    word[8 - w..].copy_from_slice(raw);
+                } else {
+                    word[..w].copy_from_slice(raw);
+                }
+                // Read unsigned: a negative count turns huge, never fits, and the crate reports it.
+                let count = if big { u64::from_be_bytes(word) } else { u64::from_le_bytes(word) };
+                let items = usize::try_from(count).ok()?.checked_mul(scalar_size(item) as usize)?;
+                at = at.checked_add(w)?.checked_add(items)?;
+            }
+        }
+        if at > bytes.len() {
+            return None;
+        }
+    }
+    Some(at)
+}
+
 /// Reads elements one at a time in the file's encoding.
 struct ElementReader<R: BufRead> {
     reader: Reader<R>,
@@ -247,10 +275,7 @@ impl<R: BufRead> ElementReader<R> {
         out.clear();
         if self.encoding != Encoding::Ascii {
             let Some(size) = fixed_element_size(def) else {
-                for i in start..start + n {
-                    out.push(self.read(parser, def, i)?);
-                }
-                return Ok(());
+                return self.read_framed_batch(parser, def, start, n, out);
             };
             // Fixed-size elements (no lists): read the batch's bytes, parse them on all cores.
             let mut bytes = vec![0u8; n * size];
@@ -296,6 +321,59 @@ impl<R: BufRead> ElementReader<R> {
             })
             .collect();
         *out = parsed?;
+        Ok(())
+    }
+
+    /// Binary elements with lists: whole elements found in the reader's buffer
+    /// (their lengths from the list counts) are parsed on all cores straight
+    /// from it; an element straddling the buffer's end is read on its own.
+    fn read_framed_batch<E: PropertyAccess + Send + Sync>(
+        &mut self,
+        parser: &Parser<E>,
+        def: &ElementDef,
+        start: usize,
+        n: usize,
+        out: &mut Vec<E>,
+    ) -> Result<(), IngestError> {
+        use rayon::prelude::*;
+        let big = self.encoding == Encoding::BinaryBigEndian;
+        let mut ends: Vec<usize> = Vec::new();
+        while out.len() < n {
+            let i = start + out.len();
+            let buf =
+                self.reader.get_mut().fill_buf().map_err(|e| parse_err(format!("{} {i}: {e}", def.name)))?;
+            ends.clear();
+            let mut at = 0;
+            while out.len() + ends.len() < n {
+                match element_len(def, &buf[at..], big) {
+                    Some(len) => {
+                        at += len;
+                        ends.push(at);
+                    }
+                    None => break,
+                }
+            }
+            if ends.is_empty() {
+                // Straddles the buffer's end (or is malformed): the crate reads it and says what is wrong.
+                out.push(self.read(parser, def, i)?);
+                continue;
+            }
+            let parsed: Result<Vec<E>, IngestError> = (0..ends.len())
+                .into_par_iter()
+                .with_min_len(1024)
+                .map(|k| {
+                    let mut b = &buf[if k == 0 { 0 } else { ends[k - 1] }..ends[k]];
+                    let e = if big {
+                        parser.read_big_endian_element(&mut b, def)
+                    } else {
+                        parser.read_little_endian_element(&mut b, def)
+                    };
+                    e.map_err(|e| parse_err(format!("{} {}: {e}", def.name, i + k)))
+                })
+                .collect();
+            out.extend(parsed?);
+            self.reader.get_mut().consume(at);
+        }
         Ok(())
     }
 
