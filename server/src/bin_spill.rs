@@ -42,6 +42,9 @@ use crate::voxelize::{
     to_grid, to_grid_unchecked, valid_triangle, with_block_voxelizer,
 };
 
+/// Chunks encoded (lz4 when spilled) together on all cores.
+const PENDING_CHUNKS: usize = 8;
+
 /// Pass 1: packs valid triangles into chunks.
 pub struct StreamSink<'a> {
     pub store: ChunkStore,
@@ -52,6 +55,8 @@ pub struct StreamSink<'a> {
     pub skipped: u64,
     raw: Vec<u8>,
     chunk_bounds: Bounds,
+    /// Full chunks waiting to be encoded together.
+    pending: Vec<(Vec<u8>, Bounds)>,
     begun: bool,
     on_tick: &'a mut dyn FnMut() -> Result<(), IngestError>,
 }
@@ -66,26 +71,33 @@ impl<'a> StreamSink<'a> {
             skipped: 0,
             raw: Vec::new(),
             chunk_bounds: Bounds::EMPTY,
+            pending: Vec::new(),
             begun: false,
             on_tick,
         }
     }
 
-    fn flush(&mut self) -> Result<(), IngestError> {
-        if self.raw.is_empty() {
-            return Ok(());
+    /// Queues the current chunk; every [`PENDING_CHUNKS`] (and at the end) they are encoded together.
+    fn flush(&mut self, last: bool) -> Result<(), IngestError> {
+        if !self.raw.is_empty() {
+            let raw = std::mem::replace(
+                &mut self.raw,
+                Vec::with_capacity(MAX_CHUNK_TRIANGLES * self.layout.size()),
+            );
+            self.pending.push((raw, std::mem::take(&mut self.chunk_bounds)));
         }
-        self.store
-            .push_records(self.layout, &self.raw, &self.chunk_bounds)
-            .map_err(|e| IngestError::Invalid(format!("temporary triangle stream: {e}")))?;
-        self.raw.clear();
-        self.chunk_bounds = Bounds::EMPTY;
+        if self.pending.len() >= PENDING_CHUNKS || (last && !self.pending.is_empty()) {
+            self.store
+                .push_many(self.layout, &self.pending)
+                .map_err(|e| IngestError::Invalid(format!("temporary triangle stream: {e}")))?;
+            self.pending.clear();
+        }
         (self.on_tick)()
     }
 
     /// Writes the last partial chunk.
     pub fn finish(&mut self) -> Result<(), IngestError> {
-        self.flush()
+        self.flush(true)
     }
 }
 
@@ -110,7 +122,7 @@ impl TriangleSink for StreamSink<'_> {
         self.bounds.add_triangle(&tri);
         self.triangles += 1;
         if self.raw.len() >= MAX_CHUNK_TRIANGLES * self.layout.size() {
-            self.flush()?;
+            self.flush(false)?;
         }
         Ok(())
     }
@@ -172,12 +184,23 @@ pub fn bin_triangles(
     let mut last: Option<([u32; 3], usize)> = None;
     let mut buffered = 0usize;
     let (mut skipped, mut triangles) = (0u64, 0u64);
-    let flush = |store: &mut ChunkStore, b: &mut BinBuffer| -> Result<(), BuildError> {
+    // Full buffers wait here (buffer index, records, bounds) and are encoded together.
+    let mut pending: Vec<(usize, Vec<u8>, Bounds)> = Vec::new();
+    let take = |b: &mut BinBuffer, i: usize, pending: &mut Vec<(usize, Vec<u8>, Bounds)>| {
         if !b.raw.is_empty() {
-            b.segments.push(store.push_records(layout, &b.raw, &b.bounds).map_err(temp_err)?);
-            // Freed, not cleared: idle blocks must not keep their high-water capacity.
-            b.raw = Vec::new();
-            b.bounds = Bounds::EMPTY;
+            // Moved out, not cleared: idle blocks must not keep their high-water capacity.
+            pending.push((i, std::mem::take(&mut b.raw), std::mem::take(&mut b.bounds)));
+        }
+    };
+    let drain = |store: &mut ChunkStore,
+                 buffers: &mut Vec<([u32; 3], BinBuffer)>,
+                 pending: &mut Vec<(usize, Vec<u8>, Bounds)>|
+     -> Result<(), BuildError> {
+        let items: Vec<(Vec<u8>, Bounds)> =
+            pending.iter_mut().map(|(_, r, b)| (std::mem::take(r), *b)).collect();
+        let ids = store.push_many(layout, &items).map_err(temp_err)?;
+        for ((i, _, _), id) in pending.drain(..).zip(ids) {
+            buffers[i].1.segments.push(id);
         }
         Ok(())
     };
@@ -224,23 +247,28 @@ pub fn bin_triangles(
                         buffered += rec;
                         if buf.raw.len() >= MAX_CHUNK_TRIANGLES * rec {
                             buffered -= buf.raw.len();
-                            flush(&mut store, buf)?;
+                            take(buf, i, &mut pending);
+                            if pending.len() >= PENDING_CHUNKS {
+                                drain(&mut store, &mut buffers, &mut pending)?;
+                            }
                         }
                     }
                 }
             }
             if buffered > buffer_limit {
-                for (_, buf) in &mut buffers {
-                    flush(&mut store, buf)?;
+                for (i, (_, buf)) in buffers.iter_mut().enumerate() {
+                    take(buf, i, &mut pending);
                 }
+                drain(&mut store, &mut buffers, &mut pending)?;
                 buffered = 0;
             }
         }
         progress.stage(Stage::Voxelize, 0.3 * (id + 1) as f64 / stream.len() as f64);
     }
-    for (_, buf) in &mut buffers {
-        flush(&mut store, buf)?;
+    for (i, (_, buf)) in buffers.iter_mut().enumerate() {
+        take(buf, i, &mut pending);
     }
+    drain(&mut store, &mut buffers, &mut pending)?;
     let blocks = buffers
         .into_iter()
         .filter(|(_, b)| !b.segments.is_empty())

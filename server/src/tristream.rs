@@ -274,6 +274,33 @@ impl ChunkStore {
         self.push(encode_chunk(layout, raw, bounds, !resident))
     }
 
+    /// [`Self::push_records`] for many chunks, compressing the spilled ones on
+    /// all cores; ids are assigned in order, as if pushed one by one.
+    pub fn push_many(
+        &mut self,
+        layout: RecordLayout,
+        items: &[(Vec<u8>, Bounds)],
+    ) -> Result<Vec<usize>, ChunkError> {
+        use rayon::prelude::*;
+        let mut resident = self.resident_bytes;
+        let compress: Vec<bool> = items
+            .iter()
+            .map(|(raw, _)| {
+                let fits = resident + HEADER_LEN + raw.len() <= self.resident_limit;
+                if fits {
+                    resident += HEADER_LEN + raw.len();
+                }
+                !fits
+            })
+            .collect();
+        let chunks: Vec<Vec<u8>> = items
+            .par_iter()
+            .zip(compress)
+            .map(|((raw, bounds), compress)| encode_chunk(layout, raw, bounds, compress))
+            .collect();
+        chunks.into_iter().map(|c| self.push(c)).collect()
+    }
+
     /// Stores an encoded chunk and returns its id (ids count up from 0).
     pub fn push(&mut self, chunk: Vec<u8>) -> Result<usize, ChunkError> {
         let id = self.chunks.len();
