@@ -6,9 +6,11 @@
 //! against a peer (`voxstream bench`). The server side of
 //! [`http`] keeps its state in [`catalog`] (published scenes), [`uploads`]
 //! and [`jobs`] (builds of uploads), configured by [`config`], measured by
-//! [`metrics`]; [`thumbnail`] draws catalog pictures on the CPU.
+//! [`metrics`]; [`thumbnail`] draws catalog pictures on the CPU. Large inputs travel
+//! between the build's passes as a [`tristream`], binned out of core by [`bin_spill`].
 
 pub mod bench;
+pub mod bin_spill;
 pub mod build;
 pub mod catalog;
 pub mod config;
@@ -21,5 +23,6 @@ pub mod progress;
 pub mod store;
 pub mod synth;
 pub mod thumbnail;
+pub mod tristream;
 pub mod uploads;
 pub mod voxelize;

@@ -151,10 +151,12 @@ pub fn merge_children(key: BlockKey, children: &[&LodBlock]) -> Option<LodBlock>
     let reach: [f32; 256] = std::array::from_fn(|m| empty_octant_reach(m as u8));
     let child_edge = (1u64 << (key.level - 1)) as f32;
     let diagonal = 2.0 * child_edge * 3f32.sqrt();
+    // Copied out rather than `into_iter().collect()`, which could keep the multi-MB
+    // accumulator as every coarse block's allocation (in-place collect).
     let voxels = acc
-        .into_iter()
+        .iter()
         .filter(|(v, _)| v.solid != 0)
-        .map(|(mut v, mask)| {
+        .map(|&(mut v, mask)| {
             v.error = (v.error + child_edge * reach[mask as usize]).min(diagonal);
             v
         })

@@ -2,7 +2,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
-use voxstream::build::{BuildOptions, build_scene_reporting};
+use voxstream::build::{BuildOptions, build_scene_reporting, parse_byte_size};
 use voxstream::progress::Progress;
 use voxstream::voxelize::Topology;
 
@@ -16,7 +16,7 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Voxelize a mesh (OBJ or PLY) into LOD blocks and publish it to a store.
+    /// Voxelize a mesh (OBJ, PLY, STL, glTF/GLB) into LOD blocks and publish it to a store.
     Build {
         /// The mesh file.
         mesh: PathBuf,
@@ -33,6 +33,12 @@ enum Command {
         /// sets that still block 26- or 6-connected paths through a closed surface.
         #[arg(long, value_enum, default_value_t = TopologyArg::Conservative)]
         topology: TopologyArg,
+        /// Memory the build may hold (bytes, or with a K/M/G suffix: 1GiB, 512M); the rest goes to temp files.
+        #[arg(long, default_value = "1GiB", value_parser = parse_byte_size)]
+        memory_budget: u64,
+        /// Directory for the build's temporary files (default: inside --out); removed afterwards.
+        #[arg(long)]
+        tmp: Option<PathBuf>,
     },
     /// Write a synthetic scan (a displaced, finely tessellated sphere) as binary PLY.
     Synth {
@@ -80,7 +86,7 @@ fn main() -> ExitCode {
 
 fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
-        Command::Build { mesh, out, resolution, name, topology } => {
+        Command::Build { mesh, out, resolution, name, topology, memory_budget, tmp } => {
             let topology = match topology {
                 TopologyArg::Conservative => Topology::Conservative,
                 TopologyArg::Separating26 => Topology::Separating26,
@@ -101,7 +107,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             let result = build_scene_reporting(
                 &mesh,
                 &out,
-                &BuildOptions { resolution, name, topology, cancel: None },
+                &BuildOptions { resolution, name, topology, cancel: None, memory_budget, temp_dir: tmp },
                 &report,
             );
             bar.finish_and_clear();

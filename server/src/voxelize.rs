@@ -14,6 +14,7 @@ use voxstream_format::{BLOCK_SIZE, BLOCK_VOXELS, BlockKey, GridFrame, morton3};
 
 use crate::ingest::TriangleMesh;
 use crate::progress::{ProgressSink, Stage, StageCounter};
+use crate::tristream::Bounds;
 
 /// A voxel while the store is being built.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -69,12 +70,17 @@ pub fn check_resolution(resolution: u32) -> Result<(), VoxelizeError> {
 }
 
 /// A triangle in grid units, or `None` when it is degenerate or non-finite.
-fn to_grid(tri: [[f64; 3]; 3], frame: &GridFrame) -> Option<[[f64; 3]; 3]> {
-    let t = tri.map(|p| std::array::from_fn(|a| (p[a] - frame.origin[a]) / frame.voxel_size));
+pub(crate) fn to_grid(tri: [[f64; 3]; 3], frame: &GridFrame) -> Option<[[f64; 3]; 3]> {
+    let t = to_grid_unchecked(tri, frame);
     valid_triangle(&t).then_some(t)
 }
 
-fn valid_triangle(tri: &[[f64; 3]; 3]) -> bool {
+/// [`to_grid`] without the validity check, for triangles already checked by it.
+pub(crate) fn to_grid_unchecked(tri: [[f64; 3]; 3], frame: &GridFrame) -> [[f64; 3]; 3] {
+    tri.map(|p| std::array::from_fn(|a| (p[a] - frame.origin[a]) / frame.voxel_size))
+}
+
+pub(crate) fn valid_triangle(tri: &[[f64; 3]; 3]) -> bool {
     tri.iter().flatten().all(|c| c.is_finite()) && {
         let n = cross(sub(tri[1], tri[0]), sub(tri[2], tri[0]));
         dot(n, n) > 0.0
@@ -91,8 +97,7 @@ fn valid_triangle(tri: &[[f64; 3]; 3]) -> bool {
 /// The cube is enlarged by a hair so that no vertex lands on its far faces.
 pub fn choose_frame(mesh: &TriangleMesh, resolution: u32) -> Result<GridFrame, VoxelizeError> {
     check_resolution(resolution)?;
-    let mut lo = [f64::INFINITY; 3];
-    let mut hi = [f64::NEG_INFINITY; 3];
+    let mut bounds = Bounds::EMPTY;
     let mut skipped = 0;
     for t in 0..mesh.triangles.len() {
         let tri = mesh.triangle(t);
@@ -100,16 +105,19 @@ pub fn choose_frame(mesh: &TriangleMesh, resolution: u32) -> Result<GridFrame, V
             skipped += 1;
             continue;
         }
-        for p in tri {
-            for a in 0..3 {
-                lo[a] = lo[a].min(p[a]);
-                hi[a] = hi[a].max(p[a]);
-            }
-        }
+        bounds.add_triangle(&tri);
     }
-    if lo[0] > hi[0] {
+    frame_from_bounds(&bounds, resolution, skipped)
+}
+
+/// [`choose_frame`] from the bounds of the valid triangles (as the chunked
+/// stream's headers carry them); `skipped` only feeds the error.
+pub fn frame_from_bounds(bounds: &Bounds, resolution: u32, skipped: u64) -> Result<GridFrame, VoxelizeError> {
+    check_resolution(resolution)?;
+    if bounds.is_empty() {
         return Err(VoxelizeError::NoValidTriangle { skipped });
     }
+    let (lo, hi) = (bounds.min, bounds.max);
     // Positive: a valid triangle has non-zero area, so some axis has extent.
     let extent = (0..3).map(|a| hi[a] - lo[a]).fold(0.0, f64::max);
     let voxel_size = extent * (1.0 + 1e-6) / resolution as f64;
@@ -134,23 +142,19 @@ pub fn voxelize_reporting(
     let res = frame.resolution as i64;
     let mut stats = VoxelizeStats::default();
     let mut tris: Vec<[[f64; 3]; 3]> = Vec::with_capacity(mesh.triangles.len());
+    let mut colors: Vec<[f32; 3]> = Vec::new();
+    let colored = !mesh.colors.is_empty() && mesh.colors.len() == mesh.positions.len();
     let mut bins: BTreeMap<[u32; 3], Vec<u32>> = BTreeMap::new();
     for t in 0..mesh.triangles.len() {
         let Some(g) = to_grid(mesh.triangle(t), frame) else {
             stats.skipped += 1;
             continue;
         };
-        let (lo, hi) = voxel_range(&g, res);
-        let (blo, bhi) =
-            (lo.map(|v| (v / BLOCK_SIZE as i64) as u32), hi.map(|v| (v / BLOCK_SIZE as i64) as u32));
-        for bz in blo[2]..=bhi[2] {
-            for by in blo[1]..=bhi[1] {
-                for bx in blo[0]..=bhi[0] {
-                    bins.entry([bx, by, bz]).or_default().push(tris.len() as u32);
-                }
-            }
-        }
+        for_each_block(&g, res, |b| bins.entry(b).or_default().push(tris.len() as u32));
         tris.push(g);
+        if colored {
+            colors.push(mesh.triangle_color(t).unwrap_or_default());
+        }
     }
     stats.triangles = tris.len() as u64;
     if tris.is_empty() {
@@ -159,82 +163,170 @@ pub fn voxelize_reporting(
     let counter = StageCounter::new(progress, Stage::Voxelize, bins.len());
     let blocks: Vec<SparseBlock> = bins
         .into_par_iter()
-        .filter_map(|(coord, list)| {
+        .map(|(coord, list)| {
             let key = BlockKey::new(0, coord[0], coord[1], coord[2]);
-            let block = voxelize_block(key, &list, &tris, res, topology);
+            let block = with_block_voxelizer(|vox| {
+                for &t in &list {
+                    let color = colored.then(|| colors[t as usize]);
+                    vox.add(key, &tris[t as usize], color, res, topology);
+                }
+                vox.finish(key)
+            });
             counter.tick();
             block
         })
+        .filter_map(|b| b)
         .collect();
     Ok((blocks, stats))
+}
+
+/// The closed range of 64³ block coordinates a grid triangle's bounds overlap.
+pub(crate) fn block_range(g: &[[f64; 3]; 3], res: i64) -> ([u32; 3], [u32; 3]) {
+    let (lo, hi) = voxel_range(g, res);
+    (lo.map(|v| (v / BLOCK_SIZE as i64) as u32), hi.map(|v| (v / BLOCK_SIZE as i64) as u32))
+}
+
+/// Calls `f` with the coordinate of every 64³ block a grid triangle's bounds overlap.
+fn for_each_block(g: &[[f64; 3]; 3], res: i64, mut f: impl FnMut([u32; 3])) {
+    let (blo, bhi) = block_range(g, res);
+    for bz in blo[2]..=bhi[2] {
+        for by in blo[1]..=bhi[1] {
+            for bx in blo[0]..=bhi[0] {
+                f([bx, by, bz]);
+            }
+        }
+    }
 }
 
 /// Closed voxel index range of a grid-space triangle's bounds, clamped to the
 /// grid. A bound on an integer plane also touches the voxel below it, hence
 /// `ceil - 1` rather than `floor` at the low end.
 fn voxel_range(t: &[[f64; 3]; 3], res: i64) -> ([i64; 3], [i64; 3]) {
-    let lo = std::array::from_fn(|a| (t[0][a].min(t[1][a]).min(t[2][a]).ceil() as i64 - 1).clamp(0, res - 1));
-    let hi = std::array::from_fn(|a| (t[0][a].max(t[1][a]).max(t[2][a]).floor() as i64).clamp(0, res - 1));
+    let lo = std::array::from_fn(|a| (-fast_floor(-t[0][a].min(t[1][a]).min(t[2][a])) - 1).clamp(0, res - 1));
+    let hi = std::array::from_fn(|a| fast_floor(t[0][a].max(t[1][a]).max(t[2][a])).clamp(0, res - 1));
     (lo, hi)
 }
 
 /// A dense 64³ brick, indexed by local Morton code so that reading occupied
-/// voxels in index order yields them already sorted.
-struct DenseBrick {
+/// voxels in index order yields them already sorted. One per worker thread,
+/// reused block after block: finishing a block clears only the voxels it set.
+pub(crate) struct BlockVoxelizer {
     bits: Vec<u64>,
     normals: Vec<[f32; 3]>,
+    /// Area-weighted colour sums and the area behind them; allocated on the first coloured triangle.
+    colors: Vec<[f32; 4]>,
 }
 
-impl DenseBrick {
-    fn new() -> Self {
-        Self { bits: vec![0; BLOCK_VOXELS / 64], normals: vec![[0.0; 3]; BLOCK_VOXELS] }
-    }
+/// Heap bytes of one [`BlockVoxelizer`] with colours: what an in-flight block costs.
+pub(crate) const BLOCK_VOXELIZER_BYTES: usize = BLOCK_VOXELS / 8 + BLOCK_VOXELS * (12 + 16);
 
-    fn add(&mut self, m: u32, n: [f32; 3]) {
-        self.bits[m as usize / 64] |= 1 << (m % 64);
-        let s = &mut self.normals[m as usize];
-        for a in 0..3 {
-            s[a] += n[a];
+thread_local! {
+    /// Each worker thread's brick, allocated once (rayon's `map_init` would
+    /// allocate one per work split).
+    static BRICK: std::cell::RefCell<Option<BlockVoxelizer>> = const { std::cell::RefCell::new(None) };
+}
+
+/// Runs `f` with this thread's [`BlockVoxelizer`] (clear on entry, and left clear by `finish`).
+pub(crate) fn with_block_voxelizer<T>(f: impl FnOnce(&mut BlockVoxelizer) -> T) -> T {
+    BRICK.with(|cell| {
+        let mut slot = cell.borrow_mut();
+        let vox = slot.get_or_insert_with(BlockVoxelizer::new);
+        vox.clear();
+        f(vox)
+    })
+}
+
+impl BlockVoxelizer {
+    /// Drops whatever an interrupted block left behind (cheap when already clear).
+    fn clear(&mut self) {
+        if self.bits.iter().any(|&w| w != 0) {
+            self.finish(BlockKey::new(0, 0, 0, 0));
         }
     }
 
-    fn into_voxels(self) -> Vec<BuildVoxel> {
+    pub(crate) fn new() -> Self {
+        Self { bits: vec![0; BLOCK_VOXELS / 64], normals: vec![[0.0; 3]; BLOCK_VOXELS], colors: Vec::new() }
+    }
+
+    /// Adds a valid grid-space triangle (see [`to_grid`]) to block `key`.
+    pub(crate) fn add(
+        &mut self,
+        key: BlockKey,
+        tri: &[[f64; 3]; 3],
+        color: Option<[f32; 3]>,
+        res: i64,
+        topology: Topology,
+    ) {
+        let base = key.coord().map(|c| c as i64 * BLOCK_SIZE as i64);
+        let n = cross(sub(tri[1], tri[0]), sub(tri[2], tri[0]));
+        let nf = n.map(|c| c as f32);
+        // Colour weight: the triangle's area in voxel units.
+        let weighted = color.map(|c| {
+            let area = (0.5 * norm(n)) as f32;
+            [c[0] * area, c[1] * area, c[2] * area, area]
+        });
+        if weighted.is_some() && self.colors.is_empty() {
+            self.colors = vec![[0.0; 4]; BLOCK_VOXELS];
+        }
+        let (full_lo, full_hi) = voxel_range(tri, res);
+        let lo: [i64; 3] = std::array::from_fn(|a| full_lo[a].max(base[a]));
+        let hi: [i64; 3] = std::array::from_fn(|a| full_hi[a].min(base[a] + BLOCK_SIZE as i64 - 1));
+        let mut set = |v: [i64; 3]| {
+            let l = [v[0] - base[0], v[1] - base[1], v[2] - base[2]].map(|c| c as u32);
+            let m = morton3(l[0], l[1], l[2]) as usize;
+            self.bits[m / 64] |= 1 << (m % 64);
+            let s = &mut self.normals[m];
+            for a in 0..3 {
+                s[a] += nf[a];
+            }
+            if let Some(w) = weighted {
+                let c = &mut self.colors[m];
+                for a in 0..4 {
+                    c[a] += w[a];
+                }
+            }
+        };
+        if (0..3).filter(|&a| full_hi[a] > full_lo[a]).count() <= 1 {
+            // The triangle's bounds lie inside one voxel, or one row of voxels,
+            // open in the other two axes: it is connected and spans the row from
+            // end to end, so it touches every voxel of the row (the SAT would say
+            // the same, at many times the cost).
+            for x in lo[0]..=hi[0] {
+                for y in lo[1]..=hi[1] {
+                    for z in lo[2]..=hi[2] {
+                        if meets_segments(tri, [x, y, z], topology) {
+                            set([x, y, z]);
+                        }
+                    }
+                }
+            }
+            return;
+        }
+        for_each_touched_voxel(tri, n, lo, hi, topology, set);
+    }
+
+    /// The block's voxels in Morton order (`None` when empty); leaves the brick clear.
+    pub(crate) fn finish(&mut self, key: BlockKey) -> Option<SparseBlock> {
         let mut out = Vec::new();
-        for (w, &word) in self.bits.iter().enumerate() {
-            let mut bits = word;
+        for w in 0..self.bits.len() {
+            let mut bits = std::mem::take(&mut self.bits[w]);
             while bits != 0 {
                 let m = (w * 64) as u32 + bits.trailing_zeros();
                 bits &= bits - 1;
-                out.push(BuildVoxel { morton: m, normal_sum: self.normals[m as usize], ..BuildVoxel::EMPTY });
+                let normal_sum = std::mem::take(&mut self.normals[m as usize]);
+                let [r, g, b, weight] =
+                    self.colors.get_mut(m as usize).map(std::mem::take).unwrap_or_default();
+                out.push(BuildVoxel {
+                    morton: m,
+                    normal_sum,
+                    color_sum: [r, g, b],
+                    color_weight: weight,
+                    faces: 0,
+                });
             }
         }
-        out
+        (!out.is_empty()).then_some(SparseBlock { key, voxels: out })
     }
-}
-
-fn voxelize_block(
-    key: BlockKey,
-    list: &[u32],
-    tris: &[[[f64; 3]; 3]],
-    res: i64,
-    topology: Topology,
-) -> Option<SparseBlock> {
-    let base = key.coord().map(|c| c as i64 * BLOCK_SIZE as i64);
-    let mut brick = DenseBrick::new();
-    for &t in list {
-        let tri = &tris[t as usize];
-        let n = cross(sub(tri[1], tri[0]), sub(tri[2], tri[0]));
-        let nf = n.map(|c| c as f32);
-        let (lo, hi) = voxel_range(tri, res);
-        let lo: [i64; 3] = std::array::from_fn(|a| lo[a].max(base[a]));
-        let hi: [i64; 3] = std::array::from_fn(|a| hi[a].min(base[a] + BLOCK_SIZE as i64 - 1));
-        for_each_touched_voxel(tri, n, lo, hi, topology, |v| {
-            let l = [v[0] - base[0], v[1] - base[1], v[2] - base[2]].map(|c| c as u32);
-            brick.add(morton3(l[0], l[1], l[2]), nf);
-        });
-    }
-    let voxels = brick.into_voxels();
-    (!voxels.is_empty()).then_some(SparseBlock { key, voxels })
 }
 
 /// Which voxels a triangle sets (Laine, "A topological approach to
@@ -317,11 +409,13 @@ pub fn segment_meets_triangle(p0: [f64; 3], p1: [f64; 3], t: &[[f64; 3]; 3]) -> 
 
 /// Whether the triangle meets voxel `c`'s target for `topology`.
 pub fn triangle_meets_target(tri: &[[f64; 3]; 3], c: [i64; 3], topology: Topology) -> bool {
-    if !triangle_touches_voxel(tri, c) {
-        return false; // every target lies inside the closed cube
-    }
+    triangle_touches_voxel(tri, c) && meets_segments(tri, c, topology)
+}
+
+/// The segment part of [`triangle_meets_target`], for a voxel the triangle touches.
+fn meets_segments(tri: &[[f64; 3]; 3], c: [i64; 3], topology: Topology) -> bool {
     let segments = match topology {
-        Topology::Conservative => return true,
+        Topology::Conservative => return true, // every target lies inside the closed cube
         Topology::Separating26 => &TARGET_SEGMENTS[..],
         Topology::Separating6 => &TARGET_SEGMENTS[..3],
     };
@@ -345,32 +439,71 @@ pub fn for_each_touched_voxel(
     topology: Topology,
     mut hit: impl FnMut([i64; 3]),
 ) {
+    let sat = TriangleSat::new(tri, lo);
     let w = (0..3).max_by(|&a, &b| n[a].abs().total_cmp(&n[b].abs())).unwrap_or(2);
     let (u, v) = ((w + 1) % 3, (w + 2) % 3);
-    let d = dot(n, tri[0]);
+    // The plane as w = a - b·u - c·v; over a column's closed square [cu, cu+1] × [cv, cv+1]
+    // it spans [base - max(b,0) - max(c,0), base - min(b,0) - min(c,0)], base at the corner.
+    let a = dot(n, tri[0]) / n[w];
+    let (b, c) = (n[u] / n[w], n[v] / n[w]);
+    let (lo_off, hi_off) = (b.max(0.0) + c.max(0.0), b.min(0.0) + c.min(0.0));
+    // Voxel cw's cube spans [cw, cw+1] in w, so it can meet the plane iff
+    // cw ∈ [ceil(wmin) - 1, floor(wmax)], i.e. [floor(wmin - slack), floor(wmax + slack)]:
+    // the slack also covers rounding and the SAT's grown cube (≤ 3e-9 voxels).
+    // The SAT then decides every voxel in the slab.
+    const SLACK: f64 = 1e-7;
+    // SAT axes cross(unit_w, edge) (k = 3·edge + w) have no w component: their
+    // test is the same for a whole column, so it runs once per column. The
+    // other axes cost one multiply-add per voxel on top of the column's part.
+    let column_axes = [w, 3 + w, 6 + w];
+    let voxel_axes: [usize; 7] = {
+        let mut out = [9; 7];
+        for (i, k) in (0..9).filter(|k| k % 3 != w).enumerate() {
+            out[i] = k;
+        }
+        out
+    };
+    let centre = |c: i64, a: usize| (c - sat.origin[a]) as f64 + 0.5;
     for cu in lo[u]..=hi[u] {
+        let mu = centre(cu, u);
         for cv in lo[v]..=hi[v] {
-            // The plane's w over the column's closed square, at its four corners.
-            let mut wmin = f64::INFINITY;
-            let mut wmax = f64::NEG_INFINITY;
-            for (pu, pv) in [(cu, cv), (cu + 1, cv), (cu, cv + 1), (cu + 1, cv + 1)] {
-                let pw = (d - n[u] * pu as f64 - n[v] * pv as f64) / n[w];
-                wmin = wmin.min(pw);
-                wmax = wmax.max(pw);
+            let mv = centre(cv, v);
+            let in_column = column_axes.iter().all(|&k| {
+                let d = sat.axes[k][u] * mu + sat.axes[k][v] * mv;
+                d >= sat.lo[k] && d <= sat.hi[k]
+            });
+            if !in_column {
+                continue;
             }
-            let w0 = (wmin.floor() as i64 - 1).max(lo[w]);
-            let w1 = (wmax.floor() as i64 + 1).min(hi[w]);
+            let part = voxel_axes.map(|k| sat.axes[k][u] * mu + sat.axes[k][v] * mv);
+            let base = a - b * cu as f64 - c * cv as f64;
+            let w0 = fast_floor(base - lo_off - SLACK).max(lo[w]);
+            let w1 = fast_floor(base - hi_off + SLACK).min(hi[w]);
             for cw in w0..=w1 {
-                let mut c = [0i64; 3];
-                c[u] = cu;
-                c[v] = cv;
-                c[w] = cw;
-                if triangle_meets_target(tri, c, topology) {
-                    hit(c);
+                let mw = centre(cw, w);
+                let touches = (0..7).all(|i| {
+                    let k = voxel_axes[i];
+                    let d = part[i] + sat.axes[k][w] * mw;
+                    d >= sat.lo[k] && d <= sat.hi[k]
+                });
+                let mut p = [0i64; 3];
+                p[u] = cu;
+                p[v] = cv;
+                p[w] = cw;
+                if touches && meets_segments(tri, p, topology) {
+                    hit(p);
                 }
             }
         }
     }
+}
+
+/// `floor` without a libm call (the default x86-64 target has no SSE4.1 round);
+/// saturates far outside the grid, where the clamps above take over.
+#[inline]
+fn fast_floor(x: f64) -> i64 {
+    let i = x as i64;
+    if (i as f64) > x { i - 1 } else { i }
 }
 
 /// Separating-axis test (Akenine-Möller) of a triangle against the closed unit
@@ -380,20 +513,6 @@ pub fn triangle_touches_voxel(tri: &[[f64; 3]; 3], c: [i64; 3]) -> bool {
     const H: f64 = 0.5 + 1e-9;
     let centre = c.map(|v| v as f64 + 0.5);
     let p = tri.map(|q| sub(q, centre));
-    let e = [sub(p[1], p[0]), sub(p[2], p[1]), sub(p[0], p[2])];
-    // 9 edge cross axes.
-    for ei in e {
-        for a in 0..3 {
-            let mut axis = [0.0; 3];
-            axis[a] = 1.0;
-            let ax = cross(axis, ei);
-            let r = H * (ax[0].abs() + ax[1].abs() + ax[2].abs());
-            let (mn, mx) = project(&p, ax);
-            if mn > r || mx < -r {
-                return false;
-            }
-        }
-    }
     // 3 box face normals.
     for a in 0..3 {
         let (mn, mx) = project(&p, std::array::from_fn(|k| if k == a { 1.0 } else { 0.0 }));
@@ -401,10 +520,62 @@ pub fn triangle_touches_voxel(tri: &[[f64; 3]; 3], c: [i64; 3]) -> bool {
             return false;
         }
     }
-    // Triangle plane.
-    let n = cross(e[0], e[1]);
-    let r = H * (n[0].abs() + n[1].abs() + n[2].abs());
-    dot(n, p[0]).abs() <= r
+    TriangleSat::new(tri, c).touches(c)
+}
+
+/// The triangle's side of the separating-axis test, computed once: for the
+/// 9 edge × box-axis directions and the plane normal, the interval the
+/// triangle projects to, widened by the grown cube's radius. A voxel then
+/// costs one dot product per axis. The box face axes are not tested: callers
+/// only ask about voxels in the triangle's closed bounding box, whose cubes
+/// always overlap it on those axes.
+struct TriangleSat {
+    /// An integer corner near the triangle; coordinates are taken relative to
+    /// it so that products stay small and precise far from the grid origin.
+    origin: [i64; 3],
+    axes: [[f64; 3]; 10],
+    lo: [f64; 10],
+    hi: [f64; 10],
+}
+
+impl TriangleSat {
+    fn new(tri: &[[f64; 3]; 3], origin: [i64; 3]) -> Self {
+        const H: f64 = 0.5 + 1e-9;
+        let o = origin.map(|v| v as f64);
+        let p = tri.map(|q| sub(q, o));
+        let e = [sub(p[1], p[0]), sub(p[2], p[1]), sub(p[0], p[2])];
+        let mut axes = [[0.0; 3]; 10];
+        let mut lo = [0.0; 10];
+        let mut hi = [0.0; 10];
+        let mut k = 0;
+        for ei in e {
+            for a in 0..3 {
+                let mut unit = [0.0; 3];
+                unit[a] = 1.0;
+                axes[k] = cross(unit, ei);
+                k += 1;
+            }
+        }
+        axes[9] = cross(e[0], e[1]);
+        for k in 0..10 {
+            let ax = axes[k];
+            let r = H * (ax[0].abs() + ax[1].abs() + ax[2].abs());
+            let (mn, mx) = project(&p, ax);
+            lo[k] = mn - r;
+            hi[k] = mx + r;
+        }
+        Self { origin, axes, lo, hi }
+    }
+
+    /// Whether the closed (grown) cube at integer corner `c` meets the triangle.
+    #[inline]
+    fn touches(&self, c: [i64; 3]) -> bool {
+        let centre: [f64; 3] = std::array::from_fn(|a| (c[a] - self.origin[a]) as f64 + 0.5);
+        (0..10).all(|k| {
+            let d = dot(centre, self.axes[k]);
+            d >= self.lo[k] && d <= self.hi[k]
+        })
+    }
 }
 
 fn project(p: &[[f64; 3]; 3], ax: [f64; 3]) -> (f64, f64) {
@@ -422,4 +593,68 @@ pub(crate) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
 
 pub(crate) fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng, rngs::StdRng};
+
+    /// Every voxel of the block the SAT says the triangle touches (the reference),
+    /// searched over the triangle's bounds grown by two voxels.
+    fn by_sat(tri: &[[f64; 3]; 3], key: BlockKey) -> Vec<u32> {
+        let base = key.coord().map(|c| (c * BLOCK_SIZE) as i64);
+        let range = |a: usize| {
+            let lo = tri.iter().map(|p| p[a]).fold(f64::INFINITY, f64::min).floor() as i64 - 2;
+            let hi = tri.iter().map(|p| p[a]).fold(f64::NEG_INFINITY, f64::max).floor() as i64 + 2;
+            lo.max(base[a])..=hi.min(base[a] + BLOCK_SIZE as i64 - 1)
+        };
+        let mut out = Vec::new();
+        for z in range(2) {
+            for y in range(1) {
+                for x in range(0) {
+                    if triangle_touches_voxel(tri, [x, y, z]) {
+                        let l = [x - base[0], y - base[1], z - base[2]].map(|c| c as u32);
+                        out.push(morton3(l[0], l[1], l[2]));
+                    }
+                }
+            }
+        }
+        out.sort();
+        out
+    }
+
+    /// Small and thin triangles take the one-voxel and one-row shortcuts and
+    /// larger ones the column sweep; all must agree with the plain SAT, also
+    /// where a block boundary cuts the triangle.
+    #[test]
+    fn shortcuts_and_sweep_agree_with_the_sat() {
+        let mut rng = StdRng::seed_from_u64(3);
+        let mut vox = BlockVoxelizer::new();
+        let mut rows = 0;
+        for i in 0..3000 {
+            let size = [0.05, 0.3, 0.9, 3.0][i % 4];
+            let c: [f64; 3] = std::array::from_fn(|_| rng.random_range(60.0..68.0));
+            let mut tri: [[f64; 3]; 3] =
+                std::array::from_fn(|_| std::array::from_fn(|a| c[a] + rng.random_range(-size..size)));
+            if i % 7 == 0 {
+                // Flat in z on an integer plane: touching contacts.
+                for p in &mut tri {
+                    p[2] = c[2].floor();
+                }
+            }
+            if !valid_triangle(&tri) {
+                continue;
+            }
+            let (lo, hi) = voxel_range(&tri, 128);
+            rows += usize::from((0..3).filter(|&a| hi[a] > lo[a]).count() == 1);
+            for key in [BlockKey::new(0, 0, 0, 0), BlockKey::new(0, 1, 0, 0), BlockKey::new(0, 1, 1, 1)] {
+                vox.add(key, &tri, None, 128, Topology::Conservative);
+                let got: Vec<u32> =
+                    vox.finish(key).map(|b| b.voxels.iter().map(|v| v.morton).collect()).unwrap_or_default();
+                assert_eq!(got, by_sat(&tri, key), "triangle {i} {tri:?} in block {key}");
+            }
+        }
+        assert!(rows > 300, "only {rows} one-row triangles");
+    }
 }

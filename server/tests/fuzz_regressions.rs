@@ -1,4 +1,4 @@
-//! Inputs the fuzz targets (fuzz/, `bash scripts/fuzz.sh`) found that make a
+//! Inputs the fuzz targets (fuzz/, `bash scripts/fuzz.sh`) found that made a
 //! reader panic, minimized and embedded. Each is an invalid mesh: the reader
 //! must return an error naming the problem, never panic.
 

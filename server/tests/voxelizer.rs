@@ -198,10 +198,15 @@ fn degenerate_and_non_finite_triangles_are_skipped_and_counted() {
             [9.0, 1.0, 1.0],
         ],
         triangles: vec![[0, 1, 2], [0, 1, 3], [0, 1, 4], [2, 2, 2]],
+        ..Default::default()
     };
     let (_, stats) = voxelize::voxelize(&mesh, &unit_frame()).unwrap();
     assert_eq!((stats.triangles, stats.skipped), (1, 3));
-    let only_bad = TriangleMesh { positions: mesh.positions.clone(), triangles: vec![[0, 1, 3], [2, 2, 2]] };
+    let only_bad = TriangleMesh {
+        positions: mesh.positions.clone(),
+        triangles: vec![[0, 1, 3], [2, 2, 2]],
+        ..Default::default()
+    };
     assert!(matches!(
         voxelize::voxelize(&only_bad, &unit_frame()),
         Err(voxelize::VoxelizeError::NoValidTriangle { skipped: 2 })

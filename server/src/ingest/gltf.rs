@@ -79,6 +79,18 @@ fn validate(r: &Reader, root: &gltf::json::Root) -> Result<(), IngestError> {
             && (path.ends_with(r#".attributes["POSITION"].min"#)
                 || path.ends_with(r#".attributes["POSITION"].max"#))
     };
+    // gltf-json's POSITION hook indexes `accessors` before checking the index, so check first.
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for (p, prim) in mesh.primitives.iter().enumerate() {
+            if let Some(bad) = prim.attributes.values().find(|a| a.value() >= root.accessors.len()) {
+                return Err(r.parse(format!(
+                    "invalid glTF: meshes[{m}].primitives[{p}] uses accessor {}, but the file has {}",
+                    bad.value(),
+                    root.accessors.len()
+                )));
+            }
+        }
+    }
     let mut errors = Vec::new();
     root.validate(root, gltf::json::Path::new, &mut |path, e| {
         let path = path().to_string();

@@ -1,7 +1,23 @@
-//! Ingest: mesh files → an indexed triangle mesh in f64 source coordinates.
+//! Ingest: mesh files → triangles in f64 source coordinates.
 //!
-//! Invariant of the output: every index is < `positions.len()`. Triangles may
-//! still be degenerate or non-finite; the voxelizer skips and counts those.
+//! Every reader pushes triangles, in file order, into a [`TriangleSink`]:
+//! the build's sink writes them into the chunked triangle stream
+//! ([`crate::tristream`]) so a huge scan never sits in memory; the
+//! in-memory [`read_mesh`] / [`read_mesh_bytes`] (tests, fuzzing) collect a
+//! [`TriangleMesh`].
+//!
+//! What is streamed and what is held (see ARCHITECTURE.md, "Memory"):
+//! - PLY (ASCII, binary little/big endian): the vertex element is held as
+//!   compact arrays (f32 or f64 positions, optional sRGB u8 colour), which
+//!   must fit half the memory budget; faces are streamed. Element counts are
+//!   checked against the file size before anything is reserved.
+//! - binary STL: streamed record by record.
+//! - ASCII STL, OBJ (tobj) and glTF/GLB: parsed in memory, so the file must
+//!   fit the memory budget (a clear error otherwise), then streamed.
+//!
+//! Invariant of a [`TriangleMesh`]: every index is < `positions.len()`.
+//! Triangles may still be degenerate or non-finite; the voxelizer skips and
+//! counts those.
 
 mod gltf;
 mod obj;
@@ -9,13 +25,22 @@ mod ply;
 mod stl;
 
 use std::fmt;
+use std::fs::File;
+use std::io::{BufReader, Read};
 use std::path::Path;
+use std::sync::Arc;
+use std::sync::LazyLock;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+pub use crate::tristream::RecordLayout;
 
 /// An indexed triangle mesh in the source file's own coordinates and units.
 #[derive(Debug, Default, Clone, PartialEq)]
 pub struct TriangleMesh {
     pub positions: Vec<[f64; 3]>,
     pub triangles: Vec<[u32; 3]>,
+    /// Linear RGB in [0, 1] per vertex, or empty when the file has no colours.
+    pub colors: Vec<[f32; 3]>,
 }
 
 impl TriangleMesh {
@@ -23,17 +48,137 @@ impl TriangleMesh {
         self.triangles[t].map(|i| self.positions[i as usize])
     }
 
+    /// The mean of the triangle's vertex colours, if the mesh has colours.
+    pub fn triangle_color(&self, t: usize) -> Option<[f32; 3]> {
+        if self.colors.len() != self.positions.len() {
+            return None;
+        }
+        let c = self.triangles[t].map(|i| self.colors[i as usize]);
+        Some(std::array::from_fn(|a| (c[0][a] + c[1][a] + c[2][a]) / 3.0))
+    }
+
     /// Appends a polygon as a fan, rejecting indices outside the vertex list.
     fn push_polygon(&mut self, poly: &[u32], vertex_count: usize, face: usize) -> Result<(), IngestError> {
-        if let Some(&bad) = poly.iter().find(|&&i| i as usize >= vertex_count) {
-            return Err(IngestError::Invalid(format!(
-                "face {face} uses vertex {bad}, but the file has only {vertex_count} vertices"
-            )));
-        }
+        check_polygon(poly, vertex_count, face)?;
         for k in 1..poly.len().saturating_sub(1) {
             self.triangles.push([poly[0], poly[k], poly[k + 1]]);
         }
         Ok(())
+    }
+
+    /// Streams every triangle into `sink` (positions as f64, colours when present).
+    pub fn stream_into(&self, sink: &mut dyn TriangleSink) -> Result<(), IngestError> {
+        let color = self.colors.len() == self.positions.len() && !self.colors.is_empty();
+        sink.begin(RecordLayout { f64_positions: true, color })?;
+        for t in 0..self.triangles.len() {
+            sink.triangle(self.triangle(t), self.triangle_color(t).unwrap_or_default())?;
+            if t % TICK_EVERY == TICK_EVERY - 1 {
+                sink.tick()?;
+            }
+        }
+        Ok(())
+    }
+}
+
+fn check_polygon(poly: &[u32], vertex_count: usize, face: usize) -> Result<(), IngestError> {
+    if let Some(&bad) = poly.iter().find(|&&i| i as usize >= vertex_count) {
+        return Err(IngestError::Invalid(format!(
+            "face {face} uses vertex {bad}, but the file has only {vertex_count} vertices"
+        )));
+    }
+    Ok(())
+}
+
+/// How often readers call [`TriangleSink::tick`] (elements or triangles).
+pub(crate) const TICK_EVERY: usize = 1 << 16;
+
+/// Where readers put triangles, in file order.
+pub trait TriangleSink {
+    /// Called once, before the first triangle: what the triangles carry.
+    fn begin(&mut self, layout: RecordLayout) -> Result<(), IngestError>;
+    /// One triangle in source coordinates, with its linear colour (zeros without colours).
+    fn triangle(&mut self, tri: [[f64; 3]; 3], color: [f32; 3]) -> Result<(), IngestError>;
+    /// Called now and then during long reads: report progress, stop when cancelled.
+    fn tick(&mut self) -> Result<(), IngestError> {
+        Ok(())
+    }
+}
+
+/// Collects an unwelded [`TriangleMesh`] (three vertices per triangle).
+#[derive(Default)]
+struct MeshBuilder {
+    mesh: TriangleMesh,
+    color: bool,
+}
+
+impl TriangleSink for MeshBuilder {
+    fn begin(&mut self, layout: RecordLayout) -> Result<(), IngestError> {
+        self.color = layout.color;
+        Ok(())
+    }
+
+    fn triangle(&mut self, tri: [[f64; 3]; 3], color: [f32; 3]) -> Result<(), IngestError> {
+        let base = self.mesh.positions.len();
+        if base as u64 + 3 > u64::from(u32::MAX) + 1 {
+            return Err(IngestError::Invalid(format!(
+                "more than {} vertices do not fit 32-bit indices",
+                u64::from(u32::MAX) + 1
+            )));
+        }
+        self.mesh.positions.extend(tri);
+        if self.color {
+            self.mesh.colors.extend([color; 3]);
+        }
+        let base = base as u32;
+        self.mesh.triangles.push([base, base + 1, base + 2]);
+        Ok(())
+    }
+}
+
+/// sRGB-encoded 8-bit channel → linear [0, 1].
+pub(crate) static SRGB_TO_LINEAR: LazyLock<[f32; 256]> =
+    LazyLock::new(|| std::array::from_fn(|i| srgb_to_linear(i as f32 / 255.0)));
+
+/// sRGB-encoded channel in [0, 1] → linear (clamped; NaN becomes 0).
+pub(crate) fn srgb_to_linear(c: f32) -> f32 {
+    let c = if c.is_nan() { 0.0 } else { c.clamp(0.0, 1.0) };
+    if c <= 0.04045 { c / 12.92 } else { ((c + 0.055) / 1.055).powf(2.4) }
+}
+
+/// Limits and reporting for a streaming read.
+#[derive(Debug, Clone)]
+pub struct ReadOptions {
+    /// Bytes the reader may hold (PLY vertex table: half of it; whole-file formats: the file must fit).
+    pub memory_budget: u64,
+    /// Input bytes consumed so far, updated as the file is read.
+    pub bytes_read: Arc<AtomicU64>,
+}
+
+impl Default for ReadOptions {
+    fn default() -> Self {
+        Self { memory_budget: 1 << 30, bytes_read: Arc::new(AtomicU64::new(0)) }
+    }
+}
+
+/// Counts bytes read through it into a shared counter.
+struct CountingReader<R> {
+    inner: R,
+    count: Arc<AtomicU64>,
+}
+
+impl<R: Read> Read for CountingReader<R> {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        let n = self.inner.read(buf)?;
+        self.count.fetch_add(n as u64, Ordering::Relaxed);
+        Ok(n)
+    }
+}
+
+impl<R: std::io::Seek> std::io::Seek for CountingReader<R> {
+    fn seek(&mut self, pos: std::io::SeekFrom) -> std::io::Result<u64> {
+        let p = self.inner.seek(pos)?;
+        self.count.store(p, Ordering::Relaxed);
+        Ok(p)
     }
 }
 
@@ -72,6 +217,10 @@ pub enum IngestError {
     Unsupported { format: MeshFormat, message: String },
     #[error("invalid mesh: {0}")]
     Invalid(String),
+    #[error("input too large for the memory budget: {0}")]
+    TooLarge(String),
+    #[error("reading was cancelled")]
+    Cancelled,
 }
 
 impl MeshFormat {
@@ -96,7 +245,7 @@ impl MeshFormat {
     }
 }
 
-/// Reads a mesh file. OBJ never follows `mtllib`: materials are not needed.
+/// Reads a mesh file into memory. OBJ never follows `mtllib`: materials are not needed.
 pub fn read_mesh(path: &Path) -> Result<(TriangleMesh, MeshFormat), IngestError> {
     let io = |source| IngestError::Io { path: path.display().to_string(), source };
     let bytes = std::fs::read(path).map_err(io)?;
@@ -105,18 +254,96 @@ pub fn read_mesh(path: &Path) -> Result<(TriangleMesh, MeshFormat), IngestError>
     Ok((mesh, format))
 }
 
+/// Parses a whole file held in memory (the fuzzing entry point). PLY and STL
+/// come back unwelded, three vertices per triangle.
 pub fn read_mesh_bytes(bytes: &[u8], format: MeshFormat) -> Result<TriangleMesh, IngestError> {
     let mesh = match format {
         MeshFormat::Obj => obj::read(bytes)?,
-        MeshFormat::Ply => ply::read(bytes)?,
-        MeshFormat::Stl => stl::read(bytes)?,
         // The glTF reader tells JSON from GLB by the magic itself.
         MeshFormat::Gltf | MeshFormat::Glb => gltf::read(bytes)?,
+        MeshFormat::Ply | MeshFormat::Stl => {
+            let mut builder = MeshBuilder::default();
+            stream_mesh_bytes(
+                bytes,
+                format,
+                &mut builder,
+                &ReadOptions { memory_budget: u64::MAX, ..Default::default() },
+            )?;
+            builder.mesh
+        }
     };
     if mesh.triangles.is_empty() {
         return Err(IngestError::Invalid("the file holds no triangles".into()));
     }
     Ok(mesh)
+}
+
+/// Streams the triangles of a file held in memory into `sink`.
+pub fn stream_mesh_bytes(
+    bytes: &[u8],
+    format: MeshFormat,
+    sink: &mut dyn TriangleSink,
+    opts: &ReadOptions,
+) -> Result<(), IngestError> {
+    let len = bytes.len() as u64;
+    let input =
+        BufReader::new(CountingReader { inner: std::io::Cursor::new(bytes), count: opts.bytes_read.clone() });
+    match format {
+        MeshFormat::Ply => ply::stream(input, len, sink, opts),
+        MeshFormat::Stl => stl::stream(input, len, sink, opts),
+        MeshFormat::Obj => obj::read(bytes)?.stream_into(sink),
+        MeshFormat::Gltf | MeshFormat::Glb => gltf::read(bytes)?.stream_into(sink),
+    }
+}
+
+/// Streams a mesh file's triangles into `sink` in file order, within
+/// `opts.memory_budget`; returns the format read.
+pub fn stream_mesh(
+    path: &Path,
+    sink: &mut dyn TriangleSink,
+    opts: &ReadOptions,
+) -> Result<MeshFormat, IngestError> {
+    let io = |source| IngestError::Io { path: path.display().to_string(), source };
+    let mut file = File::open(path).map_err(io)?;
+    let len = file.metadata().map_err(io)?.len();
+    let mut head = Vec::with_capacity(8);
+    file.by_ref().take(8).read_to_end(&mut head).map_err(io)?;
+    let format = MeshFormat::detect(path, &head)?;
+    std::io::Seek::rewind(&mut file).map_err(io)?;
+    match format {
+        MeshFormat::Ply | MeshFormat::Stl => {
+            let input = BufReader::with_capacity(
+                1 << 20,
+                CountingReader { inner: file, count: opts.bytes_read.clone() },
+            );
+            if format == MeshFormat::Ply {
+                ply::stream(input, len, sink, opts)?;
+            } else {
+                stl::stream(input, len, sink, opts)?;
+            }
+        }
+        MeshFormat::Obj | MeshFormat::Gltf | MeshFormat::Glb => {
+            // Parsed in memory by their crates: roughly 4× the file's size at the peak.
+            if len.saturating_mul(4) > opts.memory_budget {
+                return Err(IngestError::TooLarge(format!(
+                    "{format} files are parsed in memory, and this {len}-byte file needs about {} bytes, \
+                     more than the memory budget of {} bytes: raise --memory-budget or convert it to binary PLY",
+                    len.saturating_mul(4),
+                    opts.memory_budget
+                )));
+            }
+            let mut bytes = Vec::with_capacity(len as usize);
+            file.read_to_end(&mut bytes).map_err(io)?;
+            opts.bytes_read.store(len, Ordering::Relaxed);
+            stream_mesh_bytes(
+                &bytes,
+                format,
+                sink,
+                &ReadOptions { bytes_read: Arc::new(AtomicU64::new(0)), ..opts.clone() },
+            )?;
+        }
+    }
+    Ok(format)
 }
 
 #[cfg(test)]

@@ -8,7 +8,8 @@
 
 use std::io::{self, Read, Seek, SeekFrom};
 
-use super::{IngestError, MeshFormat, TriangleMesh};
+use super::{IngestError, MeshFormat, ReadOptions, TICK_EVERY, TriangleSink};
+use crate::tristream::RecordLayout;
 
 const HEADER_LEN: usize = 80;
 /// Header plus the little-endian u32 triangle count.
@@ -17,29 +18,57 @@ const BINARY_PREFIX: usize = HEADER_LEN + 4;
 const RECORD_LEN: u64 = 50;
 /// How far an ASCII file is scanned for NUL bytes, which no ASCII STL holds.
 const TEXT_PROBE_LEN: usize = 1024;
+/// STL coordinates are f32: streams keep them exactly at half the bytes.
+const LAYOUT: RecordLayout = RecordLayout { f64_positions: false, color: false };
 
 fn parse_err(message: impl Into<String>) -> IngestError {
     IngestError::Parse { format: MeshFormat::Stl, message: message.into() }
 }
 
-pub(super) fn read(bytes: &[u8]) -> Result<TriangleMesh, IngestError> {
-    if let Some(count) = binary_count(bytes).filter(|&n| binary_len(n) == bytes.len() as u64) {
-        return read_binary(bytes, count);
+fn io_err(e: io::Error) -> IngestError {
+    parse_err(format!("read failed: {e}"))
+}
+
+/// Streams an STL's triangles into `sink`: binary record by record, ASCII
+/// from memory (so an ASCII file must fit the memory budget). `len` is the
+/// whole input's size.
+pub(super) fn stream<R: Read + Seek>(
+    mut input: R,
+    len: u64,
+    sink: &mut dyn TriangleSink,
+    opts: &ReadOptions,
+) -> Result<(), IngestError> {
+    let mut head = Vec::with_capacity(TEXT_PROBE_LEN);
+    input.by_ref().take(TEXT_PROBE_LEN as u64).read_to_end(&mut head).map_err(io_err)?;
+    if let Some(count) = binary_count(&head).filter(|&n| binary_len(n) == len) {
+        input.seek(SeekFrom::Start(BINARY_PREFIX as u64)).map_err(io_err)?;
+        return read_binary(input, count, sink);
     }
-    if looks_ascii(bytes) {
-        return read_ascii(bytes).map_err(|e| match binary_count(bytes) {
+    if looks_ascii(&head) {
+        if len.saturating_mul(2) > opts.memory_budget {
+            return Err(IngestError::TooLarge(format!(
+                "ASCII STL is parsed in memory and this file has {len} bytes, more than half the memory budget \
+                 of {} bytes: raise --memory-budget or convert it to binary STL",
+                opts.memory_budget
+            )));
+        }
+        let mut bytes = head;
+        input.read_to_end(&mut bytes).map_err(io_err)?;
+        sink.begin(LAYOUT)?;
+        return read_ascii(&bytes, sink).map_err(|e| match (e, binary_count(&bytes)) {
             // A binary file whose header starts with "solid" but whose count is wrong
             // lands here too: say both, so neither reading hides the other.
-            Some(n) => parse_err(format!("{e}; {}", size_mismatch(n, bytes.len()))),
-            None => e,
+            (IngestError::Parse { message, .. }, Some(n)) => {
+                parse_err(format!("{message}; {}", size_mismatch(n, len)))
+            }
+            (e, _) => e,
         });
     }
-    match binary_count(bytes) {
-        Some(n) => Err(parse_err(size_mismatch(n, bytes.len()))),
+    match binary_count(&head) {
+        Some(n) => Err(parse_err(size_mismatch(n, len))),
         None => Err(parse_err(format!(
-            "the file has {} bytes: too short for a binary STL ({BINARY_PREFIX}-byte header) \
-             and not an ASCII STL (which starts with \"solid\")",
-            bytes.len()
+            "the file has {len} bytes: too short for a binary STL ({BINARY_PREFIX}-byte header) \
+             and not an ASCII STL (which starts with \"solid\")"
         ))),
     }
 }
@@ -55,7 +84,7 @@ fn binary_len(count: u32) -> u64 {
     BINARY_PREFIX as u64 + RECORD_LEN * u64::from(count)
 }
 
-fn size_mismatch(count: u32, len: usize) -> String {
+fn size_mismatch(count: u32, len: u64) -> String {
     format!(
         "the binary STL header declares {count} triangles, which take {} bytes, but the file has {len} bytes",
         binary_len(count)
@@ -67,48 +96,51 @@ fn looks_ascii(bytes: &[u8]) -> bool {
     bytes.trim_ascii_start().starts_with(b"solid") && !probe.contains(&0)
 }
 
-fn read_binary(bytes: &[u8], count: u32) -> Result<TriangleMesh, IngestError> {
-    check_vertex_count(u64::from(count) * 3)?;
+/// `input` is positioned at the first record; the count was checked against the file size.
+fn read_binary<R: Read + Seek>(input: R, count: u32, sink: &mut dyn TriangleSink) -> Result<(), IngestError> {
     // A header whose first line is empty can never pass stl_io's ASCII probe.
     let mut head = [0u8; BINARY_PREFIX];
     head[0] = b'\n';
     head[HEADER_LEN..].copy_from_slice(&count.to_le_bytes());
-    let mut stream = Spliced::new(&head, &bytes[BINARY_PREFIX..]);
+    let mut stream = Spliced::new(&head, input, BINARY_PREFIX as u64, RECORD_LEN * u64::from(count));
     let triangles = stl_io::create_stl_reader(&mut stream).map_err(|e| parse_err(e.to_string()))?;
-
-    let mut mesh = TriangleMesh::default();
-    // The count was checked against the file size above, so reserving by it is
-    // bounded by the bytes already in memory.
-    mesh.positions.reserve(count as usize * 3);
-    mesh.triangles.reserve(count as usize);
+    sink.begin(LAYOUT)?;
+    let mut read = 0usize;
     for (i, t) in triangles.enumerate() {
         let t = t.map_err(|e| parse_err(format!("triangle {i}: {e}")))?;
-        push_triangle(&mut mesh, t)?;
+        push_triangle(sink, t)?;
+        read += 1;
+        if i % TICK_EVERY == TICK_EVERY - 1 {
+            sink.tick()?;
+        }
     }
-    if mesh.triangles.len() != count as usize {
-        return Err(parse_err(format!("read {} of {count} triangles", mesh.triangles.len())));
+    if read != count as usize {
+        return Err(parse_err(format!("read {read} of {count} triangles")));
     }
-    Ok(mesh)
+    Ok(())
 }
 
 /// Reads every `solid … endsolid` block: stl_io stops at the first `endsolid`,
 /// and some exporters write one solid per part.
-fn read_ascii(bytes: &[u8]) -> Result<TriangleMesh, IngestError> {
-    let mut mesh = TriangleMesh::default();
+fn read_ascii(bytes: &[u8], sink: &mut dyn TriangleSink) -> Result<(), IngestError> {
     for (s, solid) in ascii_solids(bytes).into_iter().enumerate() {
         let (first, body) = split_first_line(solid);
         let name = String::from_utf8_lossy(first.trim_ascii()["solid".len()..].trim_ascii()).into_owned();
         let at = |msg: String| parse_err(format!("solid {s} ({name:?}): {msg}"));
         check_after_endsolid(body).map_err(at)?;
         // stl_io wants "solid " with a space; a bare "solid" line is just as valid.
-        let mut stream = Spliced::new(b"solid \n", body);
+        let body_len = body.len() as u64;
+        let mut stream = Spliced::new(b"solid \n", io::Cursor::new(body), 0, body_len);
         let triangles = stl_io::create_stl_reader(&mut stream).map_err(|e| at(e.to_string()))?;
         for (i, t) in triangles.enumerate() {
             let t = t.map_err(|e| at(format!("facet {i}: {e}")))?;
-            push_triangle(&mut mesh, t)?;
+            push_triangle(sink, t)?;
+            if i % TICK_EVERY == TICK_EVERY - 1 {
+                sink.tick()?;
+            }
         }
     }
-    Ok(mesh)
+    Ok(())
 }
 
 /// Splits the text at each line that starts with `solid`; text before the first one is an error.
@@ -147,58 +179,59 @@ fn check_after_endsolid(body: &[u8]) -> Result<(), String> {
     Ok(())
 }
 
-fn check_vertex_count(vertices: u64) -> Result<(), IngestError> {
-    if vertices > u64::from(u32::MAX) + 1 {
-        return Err(IngestError::Invalid(format!(
-            "{vertices} vertices do not fit 32-bit indices ({} at most)",
-            u64::from(u32::MAX) + 1
-        )));
-    }
-    Ok(())
+/// Passes one triangle on; positions pass through as they are, NaN included.
+fn push_triangle(sink: &mut dyn TriangleSink, t: stl_io::Triangle) -> Result<(), IngestError> {
+    sink.triangle(t.vertices.map(|v| v.0.map(f64::from)), [0.0; 3])
 }
 
-/// Appends one unwelded triangle; positions pass through as they are, NaN included.
-fn push_triangle(mesh: &mut TriangleMesh, t: stl_io::Triangle) -> Result<(), IngestError> {
-    let base = mesh.positions.len();
-    check_vertex_count(base as u64 + 3)?;
-    mesh.positions.extend(t.vertices.map(|v| v.0.map(f64::from)));
-    let base = base as u32;
-    mesh.triangles.push([base, base + 1, base + 2]);
-    Ok(())
-}
-
-/// `head` followed by `tail` as one seekable stream, without copying `tail`.
-struct Spliced<'a> {
+/// `head` followed by `tail_len` bytes of `tail` from `tail_start`, as one
+/// seekable stream, without copying the tail.
+struct Spliced<'a, R> {
     head: &'a [u8],
-    tail: &'a [u8],
+    tail: R,
+    tail_start: u64,
+    tail_len: u64,
+    /// Where `tail` is positioned, relative to `tail_start`, when known.
+    tail_pos: Option<u64>,
     pos: u64,
 }
 
-impl<'a> Spliced<'a> {
-    fn new(head: &'a [u8], tail: &'a [u8]) -> Self {
-        Self { head, tail, pos: 0 }
+impl<'a, R: Read + Seek> Spliced<'a, R> {
+    fn new(head: &'a [u8], tail: R, tail_start: u64, tail_len: u64) -> Self {
+        Self { head, tail, tail_start, tail_len, tail_pos: None, pos: 0 }
     }
 
     fn len(&self) -> u64 {
-        (self.head.len() + self.tail.len()) as u64
+        self.head.len() as u64 + self.tail_len
     }
 }
 
-impl Read for Spliced<'_> {
+impl<R: Read + Seek> Read for Spliced<'_, R> {
     fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
-        let pos = self.pos.min(self.len()) as usize;
-        let rest = match pos.checked_sub(self.head.len()) {
-            None => &self.head[pos..],
-            Some(t) => &self.tail[t..],
+        let pos = self.pos.min(self.len());
+        let n = match pos.checked_sub(self.head.len() as u64) {
+            None => {
+                let rest = &self.head[pos as usize..];
+                let n = rest.len().min(buf.len());
+                buf[..n].copy_from_slice(&rest[..n]);
+                n
+            }
+            Some(t) => {
+                if self.tail_pos != Some(t) {
+                    self.tail.seek(SeekFrom::Start(self.tail_start + t))?;
+                }
+                let want = ((self.tail_len - t) as usize).min(buf.len());
+                let n = self.tail.read(&mut buf[..want])?;
+                self.tail_pos = Some(t + n as u64);
+                n
+            }
         };
-        let n = rest.len().min(buf.len());
-        buf[..n].copy_from_slice(&rest[..n]);
         self.pos += n as u64;
         Ok(n)
     }
 }
 
-impl Seek for Spliced<'_> {
+impl<R: Read + Seek> Seek for Spliced<'_, R> {
     fn seek(&mut self, to: SeekFrom) -> io::Result<u64> {
         let pos = match to {
             SeekFrom::Start(p) => Some(p),
@@ -212,7 +245,12 @@ impl Seek for Spliced<'_> {
 
 #[cfg(test)]
 mod tests {
+    use super::super::{TriangleMesh, read_mesh_bytes};
     use super::*;
+
+    fn read(bytes: &[u8]) -> Result<TriangleMesh, IngestError> {
+        read_mesh_bytes(bytes, MeshFormat::Stl)
+    }
 
     fn binary_stl(header: &[u8], triangles: &[[[f32; 3]; 3]]) -> Vec<u8> {
         let mut b = vec![0u8; HEADER_LEN];
@@ -320,7 +358,7 @@ mod tests {
 
     #[test]
     fn spliced_stream_reads_and_seeks() {
-        let mut s = Spliced::new(b"ab", b"cde");
+        let mut s = Spliced::new(b"ab", io::Cursor::new(b"xxcdeyy"), 2, 3);
         let mut all = String::new();
         s.read_to_string(&mut all).unwrap();
         assert_eq!(all, "abcde");

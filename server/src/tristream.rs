@@ -1,0 +1,454 @@
+//! The chunked triangle stream: how triangles travel between the build's
+//! passes without the whole mesh ever sitting in memory.
+//!
+//! A stream is a sequence of chunks. Each chunk is a fixed 68-byte header
+//! followed by its payload:
+//!
+//! ```text
+//! offset size  field
+//!      0    4  magic "VXTC"
+//!      4    1  flags: bit 0 = positions are f64 (else f32), bit 1 = a colour per triangle
+//!      5    1  codec: 0 = raw, 1 = one lz4_flex block
+//!      6    2  reserved, 0
+//!      8    4  triangle count (u32 LE, 1..=MAX_CHUNK_TRIANGLES)
+//!     12    4  raw payload length (u32 LE, = count × record size)
+//!     16    4  stored payload length (u32 LE)
+//!     20   48  bounds: min xyz, max xyz (f64 LE) of the chunk's vertices
+//!     68    …  payload
+//! ```
+//!
+//! The raw payload is `count` records, each 9 coordinates (v0 xyz, v1 xyz,
+//! v2 xyz; f32 or f64 LE) then, with bit 1, a linear RGB colour in [0, 1]
+//! as 3 × f32 LE. Readers whose source coordinates are f32 (binary STL,
+//! float PLY) store f32, so a stream is a lossless copy of the input at half
+//! the bytes; everything else stores f64.
+//!
+//! Chunks live in a [`ChunkStore`]: in memory until the store's resident
+//! limit, then appended to a spill file. Readers of our own chunks still
+//! check every length before allocating: the decompressed size is capped by
+//! the header's count, which is capped by [`MAX_CHUNK_TRIANGLES`].
+
+use std::fs::File;
+use std::io::{self, Write};
+use std::path::{Path, PathBuf};
+
+/// Triangles per chunk at most (and per bin segment).
+pub const MAX_CHUNK_TRIANGLES: usize = 1 << 14;
+pub const HEADER_LEN: usize = 68;
+const MAGIC: &[u8; 4] = b"VXTC";
+const FLAG_F64: u8 = 1;
+const FLAG_COLOR: u8 = 2;
+const CODEC_RAW: u8 = 0;
+const CODEC_LZ4: u8 = 1;
+
+/// What a stream's records hold.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RecordLayout {
+    /// Coordinates are f64; otherwise f32 (exact for sources read as f32).
+    pub f64_positions: bool,
+    /// A linear RGB colour follows the coordinates.
+    pub color: bool,
+}
+
+impl RecordLayout {
+    pub fn size(self) -> usize {
+        (if self.f64_positions { 72 } else { 36 }) + if self.color { 12 } else { 0 }
+    }
+
+    fn flags(self) -> u8 {
+        (if self.f64_positions { FLAG_F64 } else { 0 }) | if self.color { FLAG_COLOR } else { 0 }
+    }
+
+    fn from_flags(flags: u8) -> Option<Self> {
+        (flags & !(FLAG_F64 | FLAG_COLOR) == 0)
+            .then_some(Self { f64_positions: flags & FLAG_F64 != 0, color: flags & FLAG_COLOR != 0 })
+    }
+
+    /// Appends one record.
+    pub fn encode(self, out: &mut Vec<u8>, tri: &[[f64; 3]; 3], color: [f32; 3]) {
+        for c in tri.as_flattened() {
+            if self.f64_positions {
+                out.extend_from_slice(&c.to_le_bytes());
+            } else {
+                out.extend_from_slice(&(*c as f32).to_le_bytes());
+            }
+        }
+        if self.color {
+            for c in color {
+                out.extend_from_slice(&c.to_le_bytes());
+            }
+        }
+    }
+
+    /// Decodes one record of exactly [`Self::size`] bytes.
+    pub fn decode(self, rec: &[u8]) -> ([[f64; 3]; 3], [f32; 3]) {
+        let mut tri = [[0.0; 3]; 3];
+        let w = if self.f64_positions { 8 } else { 4 };
+        for (k, c) in tri.as_flattened_mut().iter_mut().enumerate() {
+            let b = &rec[k * w..(k + 1) * w];
+            *c = if self.f64_positions {
+                f64::from_le_bytes(b.try_into().expect("8 bytes"))
+            } else {
+                f32::from_le_bytes(b.try_into().expect("4 bytes")) as f64
+            };
+        }
+        let mut color = [0.0f32; 3];
+        if self.color {
+            let at = 9 * w;
+            for (k, c) in color.iter_mut().enumerate() {
+                *c = f32::from_le_bytes(rec[at + 4 * k..at + 4 * k + 4].try_into().expect("4 bytes"));
+            }
+        }
+        (tri, color)
+    }
+}
+
+/// Bounds of vertices, in f64 source coordinates.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Bounds {
+    pub min: [f64; 3],
+    pub max: [f64; 3],
+}
+
+impl Default for Bounds {
+    fn default() -> Self {
+        Bounds::EMPTY
+    }
+}
+
+impl Bounds {
+    pub const EMPTY: Bounds = Bounds { min: [f64::INFINITY; 3], max: [f64::NEG_INFINITY; 3] };
+
+    pub fn is_empty(&self) -> bool {
+        self.min[0].partial_cmp(&self.max[0]).is_none_or(|o| o.is_gt())
+    }
+
+    pub fn add_triangle(&mut self, tri: &[[f64; 3]; 3]) {
+        for p in tri {
+            self.union(&Bounds { min: *p, max: *p });
+        }
+    }
+
+    pub fn union(&mut self, other: &Bounds) {
+        for a in 0..3 {
+            self.min[a] = self.min[a].min(other.min[a]);
+            self.max[a] = self.max[a].max(other.max[a]);
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ChunkHeader {
+    pub layout: RecordLayout,
+    pub triangles: u32,
+    pub bounds: Bounds,
+    codec: u8,
+    raw_len: u32,
+    stored_len: u32,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ChunkError {
+    #[error("{action} {path}: {source}")]
+    Io { action: &'static str, path: PathBuf, source: io::Error },
+    #[error("damaged triangle chunk: {0}")]
+    Damaged(String),
+}
+
+/// Encodes `raw` (whole records of `layout`) as one chunk; with `compress`,
+/// as lz4 when that saves bytes.
+pub fn encode_chunk(layout: RecordLayout, raw: &[u8], bounds: &Bounds, compress: bool) -> Vec<u8> {
+    let triangles = raw.len() / layout.size();
+    debug_assert!(raw.len().is_multiple_of(layout.size()) && triangles <= MAX_CHUNK_TRIANGLES);
+    let packed = if compress { lz4_flex::block::compress(raw) } else { Vec::new() };
+    let (codec, payload) =
+        if compress && packed.len() < raw.len() { (CODEC_LZ4, &packed[..]) } else { (CODEC_RAW, raw) };
+    let mut out = Vec::with_capacity(HEADER_LEN + payload.len());
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&[layout.flags(), codec, 0, 0]);
+    for n in [triangles, raw.len(), payload.len()] {
+        out.extend_from_slice(&(n as u32).to_le_bytes());
+    }
+    for c in bounds.min.iter().chain(&bounds.max) {
+        out.extend_from_slice(&c.to_le_bytes());
+    }
+    out.extend_from_slice(payload);
+    out
+}
+
+pub fn decode_header(bytes: &[u8]) -> Result<ChunkHeader, ChunkError> {
+    let damaged = |m: &str| ChunkError::Damaged(m.to_string());
+    let h = bytes.get(..HEADER_LEN).ok_or_else(|| damaged("shorter than its header"))?;
+    if &h[..4] != MAGIC {
+        return Err(damaged("bad magic"));
+    }
+    let layout = RecordLayout::from_flags(h[4]).ok_or_else(|| damaged("unknown flags"))?;
+    let u32_at = |o: usize| u32::from_le_bytes(h[o..o + 4].try_into().expect("4 bytes"));
+    let f64_at = |o: usize| f64::from_le_bytes(h[o..o + 8].try_into().expect("8 bytes"));
+    let (triangles, raw_len, stored_len) = (u32_at(8), u32_at(12), u32_at(16));
+    if triangles == 0
+        || triangles as usize > MAX_CHUNK_TRIANGLES
+        || raw_len as usize != triangles as usize * layout.size()
+        || (h[5] == CODEC_RAW && stored_len != raw_len)
+        || h[5] > CODEC_LZ4
+    {
+        return Err(damaged("inconsistent counts"));
+    }
+    let bounds = Bounds {
+        min: std::array::from_fn(|a| f64_at(20 + 8 * a)),
+        max: std::array::from_fn(|a| f64_at(44 + 8 * a)),
+    };
+    Ok(ChunkHeader { layout, triangles, bounds, codec: h[5], raw_len, stored_len })
+}
+
+/// Decodes a whole chunk into its header and raw records.
+pub fn decode_chunk(bytes: &[u8]) -> Result<(ChunkHeader, Vec<u8>), ChunkError> {
+    let header = decode_header(bytes)?;
+    let payload = &bytes[HEADER_LEN..];
+    if payload.len() != header.stored_len as usize {
+        return Err(ChunkError::Damaged("payload length differs from the header".into()));
+    }
+    let raw = match header.codec {
+        CODEC_RAW => payload.to_vec(),
+        _ => {
+            // The output size is the header's raw length, itself capped by the triangle count.
+            let mut raw = vec![0u8; header.raw_len as usize];
+            let n = lz4_flex::block::decompress_into(payload, &mut raw)
+                .map_err(|e| ChunkError::Damaged(format!("lz4: {e}")))?;
+            if n != raw.len() {
+                return Err(ChunkError::Damaged("short lz4 payload".into()));
+            }
+            raw
+        }
+    };
+    Ok((header, raw))
+}
+
+#[derive(Debug, Clone, Copy)]
+enum Location {
+    Memory(usize),
+    Disk { offset: u64, len: u32 },
+}
+
+/// Encoded chunks, kept in memory up to a resident limit and appended to a
+/// spill file beyond it. Reads are positional, so many threads can read
+/// chunks at once.
+pub struct ChunkStore {
+    spill_path: PathBuf,
+    spill: Option<File>,
+    spill_len: u64,
+    resident: Vec<Vec<u8>>,
+    resident_bytes: usize,
+    resident_limit: usize,
+    chunks: Vec<Location>,
+}
+
+impl ChunkStore {
+    /// A store that spills to `spill_path` (created only when needed) once
+    /// more than `resident_limit` bytes are held.
+    pub fn new(spill_path: &Path, resident_limit: usize) -> Self {
+        Self {
+            spill_path: spill_path.to_path_buf(),
+            spill: None,
+            spill_len: 0,
+            resident: Vec::new(),
+            resident_bytes: 0,
+            resident_limit,
+            chunks: Vec::new(),
+        }
+    }
+
+    fn io(&self, action: &'static str) -> impl FnOnce(io::Error) -> ChunkError + '_ {
+        move |source| ChunkError::Io { action, path: self.spill_path.clone(), source }
+    }
+
+    /// Encodes and stores records as a chunk: raw while resident (no CPU spent
+    /// on compression), lz4 when spilled (fewer bytes to write and read).
+    pub fn push_records(
+        &mut self,
+        layout: RecordLayout,
+        raw: &[u8],
+        bounds: &Bounds,
+    ) -> Result<usize, ChunkError> {
+        let resident = self.resident_bytes + HEADER_LEN + raw.len() <= self.resident_limit;
+        self.push(encode_chunk(layout, raw, bounds, !resident))
+    }
+
+    /// [`Self::push_records`] for many chunks, compressing the spilled ones on
+    /// all cores; ids are assigned in order, as if pushed one by one.
+    pub fn push_many(
+        &mut self,
+        layout: RecordLayout,
+        items: &[(Vec<u8>, Bounds)],
+    ) -> Result<Vec<usize>, ChunkError> {
+        use rayon::prelude::*;
+        let mut resident = self.resident_bytes;
+        let compress: Vec<bool> = items
+            .iter()
+            .map(|(raw, _)| {
+                let fits = resident + HEADER_LEN + raw.len() <= self.resident_limit;
+                if fits {
+                    resident += HEADER_LEN + raw.len();
+                }
+                !fits
+            })
+            .collect();
+        let chunks: Vec<Vec<u8>> = items
+            .par_iter()
+            .zip(compress)
+            .map(|((raw, bounds), compress)| encode_chunk(layout, raw, bounds, compress))
+            .collect();
+        chunks.into_iter().map(|c| self.push(c)).collect()
+    }
+
+    /// Stores an encoded chunk and returns its id (ids count up from 0).
+    pub fn push(&mut self, chunk: Vec<u8>) -> Result<usize, ChunkError> {
+        let id = self.chunks.len();
+        if self.resident_bytes + chunk.len() <= self.resident_limit {
+            self.resident_bytes += chunk.len();
+            self.chunks.push(Location::Memory(self.resident.len()));
+            self.resident.push(chunk);
+            return Ok(id);
+        }
+        if self.spill.is_none() {
+            let f = File::options()
+                .read(true)
+                .write(true)
+                .create_new(true)
+                .open(&self.spill_path)
+                .map_err(self.io("create"))?;
+            self.spill = Some(f);
+        }
+        let mut f = self.spill.as_ref().expect("opened above");
+        f.write_all(&chunk).map_err(|source| ChunkError::Io {
+            action: "write",
+            path: self.spill_path.clone(),
+            source,
+        })?;
+        self.chunks.push(Location::Disk { offset: self.spill_len, len: chunk.len() as u32 });
+        self.spill_len += chunk.len() as u64;
+        Ok(id)
+    }
+
+    pub fn len(&self) -> usize {
+        self.chunks.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.chunks.is_empty()
+    }
+
+    /// Bytes written to the spill file so far.
+    pub fn spilled_bytes(&self) -> u64 {
+        self.spill_len
+    }
+
+    /// Calls `f` with chunk `id`'s encoded bytes.
+    pub fn with_chunk<T>(
+        &self,
+        id: usize,
+        f: impl FnOnce(&[u8]) -> Result<T, ChunkError>,
+    ) -> Result<T, ChunkError> {
+        match self.chunks.get(id) {
+            None => Err(ChunkError::Damaged(format!("no chunk {id}"))),
+            Some(Location::Memory(i)) => f(&self.resident[*i]),
+            Some(&Location::Disk { offset, len }) => {
+                let file = self.spill.as_ref().expect("a disk chunk implies a spill file");
+                let mut buf = vec![0u8; len as usize];
+                read_exact_at(file, &mut buf, offset).map_err(self.io("read"))?;
+                f(&buf)
+            }
+        }
+    }
+
+    /// Decodes chunk `id`.
+    pub fn read(&self, id: usize) -> Result<(ChunkHeader, Vec<u8>), ChunkError> {
+        self.with_chunk(id, decode_chunk)
+    }
+}
+
+#[cfg(unix)]
+fn read_exact_at(file: &File, buf: &mut [u8], offset: u64) -> io::Result<()> {
+    std::os::unix::fs::FileExt::read_exact_at(file, buf, offset)
+}
+
+#[cfg(windows)]
+fn read_exact_at(file: &File, mut buf: &mut [u8], mut offset: u64) -> io::Result<()> {
+    use std::os::windows::fs::FileExt;
+    while !buf.is_empty() {
+        match file.seek_read(buf, offset)? {
+            0 => return Err(io::ErrorKind::UnexpectedEof.into()),
+            n => {
+                buf = &mut buf[n..];
+                offset += n as u64;
+            }
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tri(k: f64) -> [[f64; 3]; 3] {
+        [[k, 0.5, -1.0], [k + 1.0, 2.0, 3.0], [0.25, k * 3.0, 1e7]]
+    }
+
+    #[test]
+    fn records_round_trip_in_both_precisions() {
+        for layout in [
+            RecordLayout { f64_positions: true, color: true },
+            RecordLayout { f64_positions: false, color: false },
+        ] {
+            let mut raw = Vec::new();
+            let mut bounds = Bounds::EMPTY;
+            for k in 0..100 {
+                layout.encode(&mut raw, &tri(k as f64), [0.1, 0.2, k as f32 / 100.0]);
+                bounds.add_triangle(&tri(k as f64));
+            }
+            assert_eq!(raw.len(), 100 * layout.size());
+            let chunk = encode_chunk(layout, &raw, &bounds, true);
+            let (h, back) = decode_chunk(&chunk).unwrap();
+            assert_eq!((h.triangles, h.layout, h.bounds), (100, layout, bounds));
+            assert_eq!(back, raw);
+            let (t, c) = layout.decode(&back[7 * layout.size()..8 * layout.size()]);
+            assert_eq!(t, tri(7.0));
+            assert_eq!(c, if layout.color { [0.1, 0.2, 0.07] } else { [0.0; 3] });
+        }
+    }
+
+    #[test]
+    fn damaged_chunks_are_errors_not_panics() {
+        let layout = RecordLayout { f64_positions: false, color: false };
+        let mut raw = Vec::new();
+        layout.encode(&mut raw, &tri(1.0), [0.0; 3]);
+        let chunk = encode_chunk(layout, &raw, &Bounds::EMPTY, true);
+        for len in 0..chunk.len() {
+            assert!(decode_chunk(&chunk[..len]).is_err(), "{len}");
+        }
+        let mut huge = chunk.clone();
+        huge[8..12].copy_from_slice(&u32::MAX.to_le_bytes());
+        assert!(decode_chunk(&huge).is_err());
+    }
+
+    #[test]
+    fn store_spills_past_its_limit_and_reads_back() {
+        let dir = tempfile::tempdir().unwrap();
+        let layout = RecordLayout { f64_positions: true, color: false };
+        let mut store = ChunkStore::new(&dir.path().join("spill"), 300);
+        let mut chunks = Vec::new();
+        for k in 0..5 {
+            let mut raw = Vec::new();
+            layout.encode(&mut raw, &tri(k as f64), [0.0; 3]);
+            let c = encode_chunk(layout, &raw, &Bounds::EMPTY, k % 2 == 0);
+            assert_eq!(store.push(c.clone()).unwrap(), k);
+            chunks.push(raw);
+        }
+        assert!(store.spilled_bytes() > 0 && dir.path().join("spill").exists());
+        for (k, raw) in chunks.iter().enumerate() {
+            assert_eq!(&store.read(k).unwrap().1, raw);
+        }
+        assert!(store.read(5).is_err());
+    }
+}
