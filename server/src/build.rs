@@ -134,8 +134,10 @@ pub fn build_scene_reporting(
     std::fs::create_dir_all(temp_parent)
         .map_err(|e| BuildError::Temp(format!("create {}: {e}", temp_parent.display())))?;
     // Dot-named, so a store never lists it; removed when dropped: on success, error and cancellation.
+    // The pid lets a restarted server tell a killed build's leftovers from a live build's.
+    let prefix = format!(".build-{}-", std::process::id());
     let temp = tempfile::Builder::new()
-        .prefix(".build-")
+        .prefix(&prefix)
         .tempdir_in(temp_parent)
         .map_err(|e| BuildError::Temp(format!("create a directory in {}: {e}", temp_parent.display())))?;
 

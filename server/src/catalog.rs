@@ -263,7 +263,7 @@ fn sync_dir(dir: &Path) {
 }
 
 /// Removes what interrupted work leaves in a store: build temp dirs
-/// (`.tmp-*`, unless their builder process still runs), scenes moved aside for
+/// (`.tmp-*` and `.build-*`, unless their builder process still runs), scenes moved aside for
 /// replacement (`.old-*`; restored when the replacement never arrived) and
 /// deleted scenes (`.trash-*`). Returns the names handled.
 pub fn remove_stale(store: &Path) -> Vec<String> {
@@ -283,7 +283,7 @@ pub fn remove_stale(store: &Path) -> Vec<String> {
             }
             continue;
         }
-        let stale = if name.starts_with(".tmp-") || name.starts_with(".old-") {
+        let stale = if name.starts_with(".tmp-") || name.starts_with(".build-") || name.starts_with(".old-") {
             !written_by_other_live_process(&name)
         } else {
             name.starts_with(".trash-")
@@ -295,11 +295,12 @@ pub fn remove_stale(store: &Path) -> Vec<String> {
     removed
 }
 
-/// `.tmp-<id>-<pid>-<nanos>` / `.old-<id>-<pid>`: a `voxstream build` may be
-/// writing into the same store right now.
+/// `.tmp-<id>-<pid>-<nanos>` / `.build-<pid>-<random>` / `.old-<id>-<pid>`: a
+/// `voxstream build` may be writing into the same store right now.
 fn written_by_other_live_process(name: &str) -> bool {
     let mut parts = name.rsplit('-');
-    let pid = if name.starts_with(".tmp-") { parts.nth(1) } else { parts.next() };
+    let pid =
+        if name.starts_with(".tmp-") || name.starts_with(".build-") { parts.nth(1) } else { parts.next() };
     let Some(pid) = pid.and_then(|p| p.parse::<u32>().ok()) else { return false };
     pid != std::process::id() && Path::new("/proc").join(pid.to_string()).exists()
 }
@@ -313,15 +314,29 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let own = std::process::id();
         // pid 1 is alive (init) and not us: kept; a pid far beyond pid_max is dead: removed.
-        for name in [".tmp-a-1-5", ".tmp-b-4194399999-5", ".trash-c-7", &format!(".tmp-d-{own}-1"), "keep"] {
+        for name in [
+            ".tmp-a-1-5",
+            ".tmp-b-4194399999-5",
+            ".trash-c-7",
+            &format!(".tmp-d-{own}-1"),
+            ".build-1-Xy7",
+            ".build-4194399999-Ab3",
+            "keep",
+        ] {
             fs::create_dir(dir.path().join(name)).unwrap();
         }
         let mut removed = remove_stale(dir.path());
         removed.sort();
         assert_eq!(
             removed,
-            vec![".tmp-b-4194399999-5".to_string(), format!(".tmp-d-{own}-1"), ".trash-c-7".into()]
+            vec![
+                ".build-4194399999-Ab3".to_string(),
+                ".tmp-b-4194399999-5".to_string(),
+                format!(".tmp-d-{own}-1"),
+                ".trash-c-7".into()
+            ]
         );
+        assert!(dir.path().join(".build-1-Xy7").exists());
         assert!(dir.path().join(".tmp-a-1-5").exists());
         assert!(dir.path().join("keep").exists());
     }

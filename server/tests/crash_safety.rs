@@ -99,6 +99,7 @@ async fn check_store(base: &str, store: &Path, http: &reqwest::Client) -> usize 
         let name = entry.unwrap().file_name().into_string().unwrap();
         assert!(
             name.starts_with(".tmp-")
+                || name.starts_with(".build-")
                 || name.starts_with(".old-")
                 || name == ".jobs"
                 || name == ".uploads"
@@ -198,7 +199,8 @@ async fn killed_servers_never_show_partial_scenes_and_resume_their_jobs() {
     assert_eq!(std::fs::read_dir(store.join(".uploads")).unwrap().count(), 0, "ended jobs leave no uploads");
     let no_tmp = std::fs::read_dir(&store)
         .unwrap()
-        .all(|e| !e.unwrap().file_name().to_string_lossy().starts_with(".tmp-"));
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .all(|name| !name.starts_with(".tmp-") && !name.starts_with(".build-"));
     assert!(no_tmp, "no build temp dir is left once all jobs ended");
     eprintln!(
         "{KILLS} kills ({killed_while_running} during a build), {uploads} uploads, {done} jobs done ({resumed} after a \
