@@ -215,15 +215,41 @@ fn write_scene_dir(
 fn publish(store: &Path, id: &str, tmp: &Path) -> Result<(), StoreError> {
     let dest = store.join(id);
     if dest.exists() {
-        // Move the old scene aside first: rename cannot replace a non-empty directory.
-        let old = store.join(format!(".old-{id}-{}", std::process::id()));
-        fs::rename(&dest, &old).map_err(io("move aside", &dest))?;
-        fs::rename(tmp, &dest).map_err(io("publish", &dest))?;
-        let _ = fs::remove_dir_all(&old);
+        // One atomic swap where the kernel offers it, so a reader never finds the
+        // scene missing; the old scene then sits at `tmp` until removed (a crash
+        // leaves it as a `.tmp-*` dir, which start-up cleanup removes).
+        if exchange_dirs(tmp, &dest).is_ok() {
+            let _ = fs::remove_dir_all(tmp);
+        } else {
+            // Move the old scene aside first: rename cannot replace a non-empty directory.
+            let old = store.join(format!(".old-{id}-{}", std::process::id()));
+            fs::rename(&dest, &old).map_err(io("move aside", &dest))?;
+            fs::rename(tmp, &dest).map_err(io("publish", &dest))?;
+            let _ = fs::remove_dir_all(&old);
+        }
     } else {
         fs::rename(tmp, &dest).map_err(io("publish", &dest))?;
     }
     fs::File::open(store).and_then(|d| d.sync_all()).map_err(io("sync", store))
+}
+
+/// Atomically swaps two directories (Linux `renameat2(RENAME_EXCHANGE)`).
+#[cfg(target_os = "linux")]
+fn exchange_dirs(a: &Path, b: &Path) -> std::io::Result<()> {
+    use std::ffi::CString;
+    use std::os::unix::ffi::OsStrExt;
+    let a = CString::new(a.as_os_str().as_bytes())?;
+    let b = CString::new(b.as_os_str().as_bytes())?;
+    // SAFETY: both are valid NUL-terminated paths that outlive the call.
+    let r = unsafe {
+        libc::renameat2(libc::AT_FDCWD, a.as_ptr(), libc::AT_FDCWD, b.as_ptr(), libc::RENAME_EXCHANGE)
+    };
+    if r == 0 { Ok(()) } else { Err(std::io::Error::last_os_error()) }
+}
+
+#[cfg(not(target_os = "linux"))]
+fn exchange_dirs(_a: &Path, _b: &Path) -> std::io::Result<()> {
+    Err(std::io::Error::from(std::io::ErrorKind::Unsupported))
 }
 
 /// A published scene, as the server reads it.

@@ -69,45 +69,79 @@ fn sphere_obj(path: &Path, n: usize) {
 }
 
 /// Every listed scene is complete on disk and served as it is on disk.
+///
+/// The restarted server keeps building while this looks, so a scene may be
+/// replaced in the middle of its check: a failure only counts when the scene's
+/// manifest did not change around it (else the check is repeated).
 async fn check_store(base: &str, store: &Path, http: &reqwest::Client) -> usize {
     let scenes: Vec<serde_json::Value> =
         http.get(format!("{base}/api/scenes")).send().await.unwrap().json().await.unwrap();
     for s in &scenes {
         let id = s["id"].as_str().unwrap();
-        let dir = store.join(id);
-        let manifest = Manifest::from_json(&std::fs::read(dir.join("manifest.json")).unwrap())
-            .unwrap_or_else(|e| panic!("scene {id}: {e}"));
-        for e in &manifest.blocks {
-            let bytes = std::fs::read(dir.join("blocks").join(format!("{}.vxb", e.key)))
-                .unwrap_or_else(|err| panic!("scene {id} block {}: {err}", e.key));
-            assert_eq!(blake3::hash(&bytes).to_hex().as_str(), e.hash, "scene {id} block {}", e.key);
-            let block =
-                decode_block(&bytes).unwrap_or_else(|err| panic!("scene {id} block {}: {err}", e.key));
-            assert_eq!(block.key, e.key);
-            assert_eq!(block.voxels.len() as u32, e.voxels);
-        }
-        let served = http.get(format!("{base}/api/scenes/{id}/manifest")).send().await.unwrap();
-        assert_eq!(Manifest::from_json(&served.bytes().await.unwrap()).unwrap(), manifest);
-        if let Some(e) = manifest.blocks.first() {
-            let r =
-                http.get(format!("{base}/api/scenes/{id}/blocks/{}.{}", e.key, e.hash)).send().await.unwrap();
-            assert_eq!(r.status(), 200, "scene {id}");
+        let manifest_path = store.join(id).join("manifest.json");
+        let mut attempt = 0;
+        loop {
+            let before = std::fs::read(&manifest_path);
+            let result = check_scene(base, store, id, http).await;
+            let after = std::fs::read(&manifest_path);
+            match result {
+                Ok(()) => break,
+                Err(e) if attempt < 20 && (before.is_err() || before.ok() != after.ok()) => {
+                    eprintln!("scene {id} was replaced during its check ({e}); checking again");
+                    attempt += 1;
+                }
+                Err(e) => panic!("{e}"),
+            }
         }
     }
     // Directories that are not scenes are the server's own or a build in progress of this process.
+    let listed = |name: &str, scenes: &[serde_json::Value]| scenes.iter().any(|s| s["id"] == name);
     for entry in std::fs::read_dir(store).unwrap() {
         let name = entry.unwrap().file_name().into_string().unwrap();
-        assert!(
-            name.starts_with(".tmp-")
-                || name.starts_with(".build-")
-                || name.starts_with(".old-")
-                || name == ".jobs"
-                || name == ".uploads"
-                || scenes.iter().any(|s| s["id"] == name),
-            "unexpected entry {name:?} in the store"
-        );
+        let ours = name.starts_with(".tmp-")
+            || name.starts_with(".build-")
+            || name.starts_with(".old-")
+            || name == ".jobs"
+            || name == ".uploads";
+        if ours || listed(&name, &scenes) {
+            continue;
+        }
+        // Published after the listing above? Then the server lists it now.
+        let now: Vec<serde_json::Value> =
+            http.get(format!("{base}/api/scenes")).send().await.unwrap().json().await.unwrap();
+        assert!(listed(&name, &now), "unexpected entry {name:?} in the store");
     }
     scenes.len()
+}
+
+async fn check_scene(base: &str, store: &Path, id: &str, http: &reqwest::Client) -> Result<(), String> {
+    let dir = store.join(id);
+    let bytes = std::fs::read(dir.join("manifest.json")).map_err(|e| format!("scene {id}: {e}"))?;
+    let manifest = Manifest::from_json(&bytes).map_err(|e| format!("scene {id}: {e}"))?;
+    for e in &manifest.blocks {
+        let bytes = std::fs::read(dir.join("blocks").join(format!("{}.vxb", e.key)))
+            .map_err(|err| format!("scene {id} block {}: {err}", e.key))?;
+        if blake3::hash(&bytes).to_hex().as_str() != e.hash {
+            return Err(format!("scene {id} block {}: hash mismatch", e.key));
+        }
+        let block = decode_block(&bytes).map_err(|err| format!("scene {id} block {}: {err}", e.key))?;
+        if block.key != e.key || block.voxels.len() as u32 != e.voxels {
+            return Err(format!("scene {id} block {}: decodes to another block", e.key));
+        }
+    }
+    let served = http.get(format!("{base}/api/scenes/{id}/manifest")).send().await.unwrap();
+    let served =
+        Manifest::from_json(&served.bytes().await.unwrap()).map_err(|e| format!("scene {id}: {e}"))?;
+    if served != manifest {
+        return Err(format!("scene {id}: the served manifest differs from the one on disk"));
+    }
+    if let Some(e) = manifest.blocks.first() {
+        let r = http.get(format!("{base}/api/scenes/{id}/blocks/{}.{}", e.key, e.hash)).send().await.unwrap();
+        if r.status() != 200 {
+            return Err(format!("scene {id} block {}: HTTP {}", e.key, r.status()));
+        }
+    }
+    Ok(())
 }
 
 async fn jobs(base: &str, http: &reqwest::Client) -> Vec<serde_json::Value> {
