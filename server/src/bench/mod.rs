@@ -22,7 +22,7 @@ use measure::{ChildRun, dir_size, proc_kib_field, run_child};
 use peer::{CLUSTER_TRIANGLES, PeerRun};
 use report::{
     Config, InputReport, Machine, PeerReport, Report, RunSample, VoxstreamReport, combine_goals,
-    evaluate_goals, goal_definitions, parse_size, parse_thread_list, ratios, summarize_peer, summarize_runs,
+    evaluate_goals, goal_definitions, parse_thread_list, ratios, summarize_peer, summarize_runs,
 };
 
 /// Inputs used when no `--input` is given, relative to the repository root.
@@ -285,7 +285,9 @@ impl Bench<'_> {
 pub fn run_bench(args: &BenchArgs) -> anyhow::Result<Report> {
     let threads = parse_thread_list(&args.threads).map_err(|e| anyhow::anyhow!("--threads: {e}"))?;
     let budget_bytes = match &args.memory_budget {
-        Some(b) => Some(parse_size(b).map_err(|e| anyhow::anyhow!("--memory-budget: {e}"))?),
+        Some(b) => {
+            Some(crate::build::parse_byte_size(b).map_err(|e| anyhow::anyhow!("--memory-budget: {e}"))?)
+        }
         None => None,
     };
     crate::voxelize::check_resolution(args.resolution)?;

@@ -288,27 +288,6 @@ pub fn parse_thread_list(s: &str) -> Result<Vec<usize>, String> {
     Ok(out)
 }
 
-/// `"4G"`, `"512MiB"`, `"1.5g"`, `"1000000"` → bytes (K/M/G/T are powers of 1024).
-pub fn parse_size(s: &str) -> Result<u64, String> {
-    let t = s.trim();
-    let split = t.find(|c: char| !(c.is_ascii_digit() || c == '.')).unwrap_or(t.len());
-    let (num, unit) = t.split_at(split);
-    let value: f64 = num.parse().map_err(|_| format!("{s:?} is not a size (e.g. 4G, 512M, 1000000)"))?;
-    let shift = match unit.trim().to_ascii_lowercase().as_str() {
-        "" | "b" => 0,
-        "k" | "kb" | "kib" => 10,
-        "m" | "mb" | "mib" => 20,
-        "g" | "gb" | "gib" => 30,
-        "t" | "tb" | "tib" => 40,
-        other => return Err(format!("unknown size unit {other:?} in {s:?} (use K, M, G or T)")),
-    };
-    let bytes = value * (1u64 << shift) as f64;
-    if !bytes.is_finite() || bytes < 1.0 || bytes >= u64::MAX as f64 {
-        return Err(format!("{s:?} is out of range"));
-    }
-    Ok(bytes as u64)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -478,14 +457,14 @@ mod tests {
         assert!(parse_thread_list("1,1").is_err());
         assert!(parse_thread_list("1,x").is_err());
         assert!(parse_thread_list("").is_err());
-        assert_eq!(parse_size("4G").unwrap(), 4 << 30);
-        assert_eq!(parse_size("512MiB").unwrap(), 512 << 20);
-        assert_eq!(parse_size("1.5g").unwrap(), 3 << 29);
-        assert_eq!(parse_size("1000000").unwrap(), 1_000_000);
-        assert_eq!(parse_size("64 kb").unwrap(), 64 << 10);
-        assert!(parse_size("4X").is_err());
-        assert!(parse_size("G").is_err());
-        assert!(parse_size("0").is_err());
-        assert!(parse_size("99999999T").is_err());
+        assert_eq!(crate::build::parse_byte_size("4G").unwrap(), 4 << 30);
+        assert_eq!(crate::build::parse_byte_size("512MiB").unwrap(), 512 << 20);
+        assert_eq!(crate::build::parse_byte_size("1.5g").unwrap(), 3 << 29);
+        assert_eq!(crate::build::parse_byte_size("1000000").unwrap(), 1_000_000);
+        assert_eq!(crate::build::parse_byte_size("64 kb").unwrap(), 64 << 10);
+        assert!(crate::build::parse_byte_size("4X").is_err());
+        assert!(crate::build::parse_byte_size("G").is_err());
+        assert!(crate::build::parse_byte_size("0").is_err());
+        assert!(crate::build::parse_byte_size("99999999T").is_err());
     }
 }
