@@ -80,6 +80,12 @@ shell_syntax() {
   return $rc
 }
 
+node_syntax() {
+  local f rc=0
+  for f in tests/browser/*.mjs; do node --check "$f" || rc=1; done
+  return $rc
+}
+
 # In CI, Cargo.lock must already be complete (a dependency added without its lock entry fails).
 LOCKED=()
 if [ "${CI:-}" = "true" ]; then
@@ -89,7 +95,7 @@ fi
 
 step "fmt" cargo fmt --all -- --check
 step "shell syntax" shell_syntax
-step "node syntax" node --check tests/browser/e2e.mjs
+step "node syntax" node_syntax
 step "clippy" cargo clippy --workspace --all-targets "${LOCKED[@]}" -- -D warnings
 # The fuzz crate is outside the workspace; type-check its targets against the current APIs
 # (stable rustc, no libFuzzer C++ build: see DEVELOPERS.md, "Fuzzing"). Running them is scripts/fuzz.sh.

@@ -13,25 +13,11 @@
 //   VOXSTREAM_CHROMIUM        browser binary (default /usr/bin/chromium)
 //   VOXSTREAM_E2E_TIMEOUT_MS  how long to wait for dataset.ready (default 240000; SwiftShader is slow)
 
-import { chromium } from 'playwright-core';
-import { mkdtempSync, mkdirSync, rmSync, writeFileSync, existsSync } from 'node:fs';
+import { mkdtempSync, mkdirSync, rmSync, writeFileSync } from 'node:fs';
 import { tmpdir } from 'node:os';
 import { join } from 'node:path';
+import { chromiumExecutable, launchPage } from './chromium.mjs';
 
-const CHROMIUM_ARGS = [
-  '--headless=new',
-  '--no-sandbox',
-  '--enable-unsafe-webgpu',
-  '--enable-features=Vulkan',
-  '--use-webgpu-adapter=swiftshader',
-  '--use-vulkan=swiftshader',
-  '--use-angle=swiftshader',
-  '--enable-unsafe-swiftshader',
-  '--disable-background-networking',
-  '--disable-component-update',
-  '--disable-sync',
-  '--no-first-run',
-];
 const VIEWPORT = { width: 640, height: 480 };
 const CANVAS = '#voxstream-canvas';
 
@@ -42,10 +28,9 @@ function die(msg) {
 
 const [url, outDir] = process.argv.slice(2);
 if (!url || !outDir) die('usage: node tests/browser/e2e.mjs <url> <out-dir>');
-const executablePath = process.env.VOXSTREAM_CHROMIUM || '/usr/bin/chromium';
-if (!existsSync(executablePath)) {
-  die(`${executablePath} not found; run scripts/setup.sh (installs chromium) or set VOXSTREAM_CHROMIUM`);
-}
+const browser = chromiumExecutable();
+if (browser.error) die(browser.error);
+const executablePath = browser.path;
 const readyTimeoutMs = Number(process.env.VOXSTREAM_E2E_TIMEOUT_MS || 240000);
 if (!Number.isFinite(readyTimeoutMs) || readyTimeoutMs <= 0) die('bad VOXSTREAM_E2E_TIMEOUT_MS');
 
@@ -66,20 +51,8 @@ let context;
 let failure = null;
 const pageErrors = [];
 try {
-  context = await chromium.launchPersistentContext(userDataDir, {
-    executablePath,
-    headless: true,
-    args: CHROMIUM_ARGS,
-    viewport: VIEWPORT,
-    deviceScaleFactor: 1,
-    timeout: 60000,
-  });
-  const page = context.pages()[0] ?? (await context.newPage());
-  page.on('console', (m) => console.log(`[console.${m.type()} ${since()}] ${m.text()}`));
-  page.on('pageerror', (e) => {
-    pageErrors.push(String(e?.stack || e));
-    console.log(`[pageerror ${since()}] ${e?.stack || e}`);
-  });
+  let page;
+  ({ context, page } = await launchPage({ userDataDir, executablePath, viewport: VIEWPORT, since, pageErrors }));
   page.on('requestfailed', (r) => console.log(`[requestfailed ${since()}] ${r.url()} ${r.failure()?.errorText}`));
   page.on('response', (r) => {
     if (r.status() >= 400) console.log(`[http ${r.status()} ${since()}] ${r.url()}`);

@@ -11,25 +11,11 @@
 //
 // Environment: VOXSTREAM_CHROMIUM (default /usr/bin/chromium), VOXSTREAM_E2E_TIMEOUT_MS (default 240000).
 
-import { chromium } from 'playwright-core';
-import { mkdtempSync, mkdirSync, readFileSync, rmSync, writeFileSync, existsSync } from 'node:fs';
+import { mkdtempSync, mkdirSync, readFileSync, rmSync, writeFileSync } from 'node:fs';
 import { tmpdir } from 'node:os';
 import { basename, join } from 'node:path';
+import { chromiumExecutable, launchPage } from './chromium.mjs';
 
-const CHROMIUM_ARGS = [
-  '--headless=new',
-  '--no-sandbox',
-  '--enable-unsafe-webgpu',
-  '--enable-features=Vulkan',
-  '--use-webgpu-adapter=swiftshader',
-  '--use-vulkan=swiftshader',
-  '--use-angle=swiftshader',
-  '--enable-unsafe-swiftshader',
-  '--disable-background-networking',
-  '--disable-component-update',
-  '--disable-sync',
-  '--no-first-run',
-];
 const CHUNK = 1 << 20;
 
 function die(msg) {
@@ -39,8 +25,9 @@ function die(msg) {
 
 const [base, meshPath, outDir] = process.argv.slice(2);
 if (!base || !meshPath || !outDir) die('usage: node tests/browser/upload.mjs <base-url> <mesh-file> <out-dir>');
-const executablePath = process.env.VOXSTREAM_CHROMIUM || '/usr/bin/chromium';
-if (!existsSync(executablePath)) die(`${executablePath} not found; run scripts/setup.sh or set VOXSTREAM_CHROMIUM`);
+const browser = chromiumExecutable();
+if (browser.error) die(browser.error);
+const executablePath = browser.path;
 const timeoutMs = Number(process.env.VOXSTREAM_E2E_TIMEOUT_MS || 240000);
 
 mkdirSync(outDir, { recursive: true });
@@ -77,20 +64,9 @@ let failure = null;
 const pageErrors = [];
 const requests = [];
 try {
-  context = await chromium.launchPersistentContext(userDataDir, {
-    executablePath,
-    headless: true,
-    args: CHROMIUM_ARGS,
-    viewport: { width: 1000, height: 800 },
-    deviceScaleFactor: 1,
-    timeout: 60000,
-  });
-  const page = context.pages()[0] ?? (await context.newPage());
-  page.on('console', (m) => console.log(`[console.${m.type()} ${since()}] ${m.text()}`));
-  page.on('pageerror', (e) => {
-    pageErrors.push(String(e?.stack || e));
-    console.log(`[pageerror ${since()}] ${e?.stack || e}`);
-  });
+  let page;
+  const viewport = { width: 1000, height: 800 };
+  ({ context, page } = await launchPage({ userDataDir, executablePath, viewport, since, pageErrors }));
   page.on('response', (r) => {
     if (r.url().includes('/api/uploads')) {
       requests.push({ method: r.request().method(), status: r.status(), offset: r.headers()['upload-offset'] ?? null });
