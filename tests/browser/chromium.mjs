@@ -3,7 +3,9 @@
 // Environment: VOXSTREAM_CHROMIUM  browser binary (default /usr/bin/chromium)
 
 import { chromium } from 'playwright-core';
-import { existsSync } from 'node:fs';
+import { existsSync, mkdtempSync, rmSync } from 'node:fs';
+import { tmpdir } from 'node:os';
+import { join } from 'node:path';
 
 export const CHROMIUM_ARGS = [
   '--headless=new',
@@ -27,6 +29,23 @@ export function chromiumExecutable() {
     return { error: `${path} not found; run scripts/setup.sh (installs chromium) or set VOXSTREAM_CHROMIUM` };
   }
   return { path };
+}
+
+/**
+ * A fresh browser profile dir, a clock for log lines (`since()`), and a watchdog: a wedged browser
+ * must not hang the test, so after `watchdogMs` the dir is removed and the process exits 3.
+ */
+export function startSession(name, watchdogMs) {
+  const userDataDir = mkdtempSync(join(tmpdir(), 'voxstream-chromium-'));
+  const t0 = Date.now();
+  const since = () => `${((Date.now() - t0) / 1000).toFixed(1)}s`;
+  const watchdog = setTimeout(() => {
+    console.error(`${name}: watchdog fired after ${since()}; aborting`);
+    rmSync(userDataDir, { recursive: true, force: true });
+    process.exit(3);
+  }, watchdogMs);
+  watchdog.unref();
+  return { userDataDir, t0, since };
 }
 
 /**

@@ -13,10 +13,9 @@
 //   VOXSTREAM_CHROMIUM        browser binary (default /usr/bin/chromium)
 //   VOXSTREAM_E2E_TIMEOUT_MS  how long to wait for dataset.ready (default 240000; SwiftShader is slow)
 
-import { mkdtempSync, mkdirSync, rmSync, writeFileSync } from 'node:fs';
-import { tmpdir } from 'node:os';
+import { mkdirSync, rmSync, writeFileSync } from 'node:fs';
 import { join } from 'node:path';
-import { chromiumExecutable, launchPage } from './chromium.mjs';
+import { chromiumExecutable, launchPage, startSession } from './chromium.mjs';
 
 const VIEWPORT = { width: 640, height: 480 };
 const CANVAS = '#voxstream-canvas';
@@ -35,17 +34,7 @@ const readyTimeoutMs = Number(process.env.VOXSTREAM_E2E_TIMEOUT_MS || 240000);
 if (!Number.isFinite(readyTimeoutMs) || readyTimeoutMs <= 0) die('bad VOXSTREAM_E2E_TIMEOUT_MS');
 
 mkdirSync(outDir, { recursive: true });
-const userDataDir = mkdtempSync(join(tmpdir(), 'voxstream-chromium-'));
-const t0 = Date.now();
-const since = () => `${((Date.now() - t0) / 1000).toFixed(1)}s`;
-
-// Last line of defence: a wedged browser must not hang the test forever.
-const watchdog = setTimeout(() => {
-  console.error(`e2e.mjs: watchdog fired after ${since()}; aborting`);
-  rmSync(userDataDir, { recursive: true, force: true });
-  process.exit(3);
-}, readyTimeoutMs + 120000);
-watchdog.unref();
+const { userDataDir, t0, since } = startSession('e2e.mjs', readyTimeoutMs + 120000);
 
 let context;
 let failure = null;

@@ -11,10 +11,9 @@
 //
 // Environment: VOXSTREAM_CHROMIUM (default /usr/bin/chromium), VOXSTREAM_E2E_TIMEOUT_MS (default 240000).
 
-import { mkdtempSync, mkdirSync, readFileSync, rmSync, writeFileSync } from 'node:fs';
-import { tmpdir } from 'node:os';
+import { mkdirSync, readFileSync, rmSync, writeFileSync } from 'node:fs';
 import { basename, join } from 'node:path';
-import { chromiumExecutable, launchPage } from './chromium.mjs';
+import { chromiumExecutable, launchPage, startSession } from './chromium.mjs';
 
 const CHUNK = 1 << 20;
 
@@ -31,15 +30,7 @@ const executablePath = browser.path;
 const timeoutMs = Number(process.env.VOXSTREAM_E2E_TIMEOUT_MS || 240000);
 
 mkdirSync(outDir, { recursive: true });
-const userDataDir = mkdtempSync(join(tmpdir(), 'voxstream-chromium-'));
-const t0 = Date.now();
-const since = () => `${((Date.now() - t0) / 1000).toFixed(1)}s`;
-const watchdog = setTimeout(() => {
-  console.error(`upload.mjs: watchdog fired after ${since()}; aborting`);
-  rmSync(userDataDir, { recursive: true, force: true });
-  process.exit(3);
-}, 2 * timeoutMs + 60000);
-watchdog.unref();
+const { userDataDir, t0, since } = startSession('upload.mjs', 2 * timeoutMs + 60000);
 
 /** Drops a file onto #drop-zone the way a browser does: dragenter, dragover, drop with a DataTransfer. */
 async function dropFile(page, name, bytes) {
