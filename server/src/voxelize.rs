@@ -124,7 +124,9 @@ pub fn frame_from_bounds(bounds: &Bounds, resolution: u32, skipped: u64) -> Resu
     Ok(GridFrame { origin: lo, voxel_size, resolution, units: None })
 }
 
-/// Voxelizes every valid triangle into level-0 blocks, sorted by key.
+/// Voxelizes every valid triangle into level-0 blocks, sorted by key, all in
+/// memory. The build goes through `bin_spill` instead (same per-block kernel,
+/// bounded memory); this form is the reference the tests compare it with.
 pub fn voxelize(
     mesh: &TriangleMesh,
     frame: &GridFrame,
