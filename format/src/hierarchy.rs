@@ -117,7 +117,7 @@ pub enum PageError {
 
 /// Whether blocks of `level` root pages, in a tree whose root is on `coarsest`.
 pub fn is_page_root_level(level: u8, coarsest: u8, page_levels: u8) -> bool {
-    level >= 1 && level <= coarsest && (coarsest - level) % page_levels.max(1) == 0
+    level >= 1 && level <= coarsest && (coarsest - level).is_multiple_of(page_levels.max(1))
 }
 
 /// The root of the page that lists `key`'s entry; `None` for the tree's root.
@@ -235,12 +235,11 @@ impl HierarchyPage {
         for e in &self.entries {
             put_key(&mut raw, &e.key);
             raw.push(e.child_mask);
-            let base = e.key.coord().map(|c| c * BLOCK_SIZE);
-            for a in 0..3 {
-                raw.push(e.bounds.min[a].saturating_sub(base[a]).min(255) as u8);
-            }
-            for a in 0..3 {
-                raw.push(e.bounds.max[a].saturating_sub(base[a]).min(255) as u8);
+            let base = e.key.coord().map(|c| c.wrapping_mul(BLOCK_SIZE));
+            for corner in [e.bounds.min, e.bounds.max] {
+                for (v, b) in corner.iter().zip(base) {
+                    raw.push(v.saturating_sub(b).min(255) as u8);
+                }
             }
             raw.extend_from_slice(&e.voxels.to_le_bytes());
             raw.extend_from_slice(&e.faces.to_le_bytes());
@@ -406,15 +405,14 @@ impl HierarchyPage {
                     ));
                 }
             }
-            let size = BLOCK_SIZE;
-            let base = e.key.coord().map(|c| c * size);
-            for a in 0..3 {
-                if !(base[a] <= e.bounds.min[a]
-                    && e.bounds.min[a] < e.bounds.max[a]
-                    && e.bounds.max[a] <= base[a] + size)
-                {
-                    return bad(format!("block {} has bounds outside the block", e.key));
-                }
+            let size = BLOCK_SIZE as u64;
+            let inside = (0..3).all(|a| {
+                let (lo, hi) = (e.bounds.min[a] as u64, e.bounds.max[a] as u64);
+                let base = e.key.coord()[a] as u64 * size;
+                base <= lo && lo < hi && hi <= base + size
+            });
+            if !inside {
+                return bad(format!("block {} has bounds outside the block", e.key));
             }
             if !(e.geometric_error.is_finite() && e.geometric_error >= 0.0) {
                 return bad(format!("block {} has geometric error {}", e.key, e.geometric_error));
