@@ -571,6 +571,7 @@ pub struct SceneIndex {
     /// Pages named by a loaded page (or the manifest) and not loaded yet, by root.
     pending: BTreeMap<BlockKey, PageRef>,
     pages_loaded: usize,
+    page_bytes_loaded: u64,
 }
 
 impl SceneIndex {
@@ -578,7 +579,7 @@ impl SceneIndex {
         let mut entries = HashMap::new();
         entries.insert(manifest.root.key, manifest.root.clone());
         let pending = manifest.root_page.iter().map(|r| (r.root, r.clone())).collect();
-        Self { page_levels: manifest.page_levels, entries, pending, pages_loaded: 0 }
+        Self { page_levels: manifest.page_levels, entries, pending, pages_loaded: 0, page_bytes_loaded: 0 }
     }
 
     pub fn block(&self, key: &BlockKey) -> Option<&BlockEntry> {
@@ -619,6 +620,11 @@ impl SceneIndex {
         self.pages_loaded
     }
 
+    /// Bytes of the pages loaded so far, as their references state them.
+    pub fn page_bytes_loaded(&self) -> u64 {
+        self.page_bytes_loaded
+    }
+
     pub fn is_complete(&self) -> bool {
         self.pending.is_empty()
     }
@@ -646,7 +652,9 @@ impl SceneIndex {
                 page.root
             )));
         }
-        self.pending.remove(&page.root);
+        if let Some(r) = self.pending.remove(&page.root) {
+            self.page_bytes_loaded += r.bytes as u64;
+        }
         for c in page.child_pages {
             self.pending.insert(c.root, c);
         }
