@@ -20,6 +20,7 @@ pub mod jobs;
 pub mod lod;
 pub mod metrics;
 pub mod progress;
+pub mod publish;
 pub mod store;
 pub mod synth;
 pub mod thumbnail;

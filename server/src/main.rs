@@ -56,6 +56,20 @@ enum Command {
     BenchMeshopt(voxstream::bench::BenchMeshoptArgs),
     /// Serve a store's scenes and the viewer over HTTP; take uploads and build them.
     Serve(voxstream::config::ServeArgs),
+    /// Write a scene and the viewer as a static site (any static file host serves it).
+    Publish {
+        /// The scene id.
+        scene: String,
+        /// The store holding the scene.
+        #[arg(long)]
+        store: PathBuf,
+        /// The folder to write (replaced whole if it holds an earlier publish).
+        #[arg(long)]
+        to: PathBuf,
+        /// Take the viewer's files from this built folder instead of the ones in this binary.
+        #[arg(long)]
+        web: Option<PathBuf>,
+    },
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -141,5 +155,22 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Bench(args) => voxstream::bench::bench_main(&args),
         Command::BenchMeshopt(args) => voxstream::bench::bench_meshopt_main(&args),
         Command::Serve(args) => voxstream::http::serve_command(args),
+        Command::Publish { scene, store, to, web } => {
+            let viewer = match &web {
+                Some(dir) => voxstream::publish::ViewerFiles::Dir(dir),
+                None => voxstream::publish::ViewerFiles::Embedded,
+            };
+            let r = voxstream::publish::publish(&store, &scene, &to, viewer)?;
+            println!(
+                "published scene {:?} to {}: {} files ({} blocks, {} pages), {} bytes",
+                r.id,
+                r.to.display(),
+                r.files,
+                r.blocks,
+                r.pages,
+                r.bytes
+            );
+            Ok(())
+        }
     }
 }

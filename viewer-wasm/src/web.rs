@@ -106,12 +106,22 @@ fn url_number(name: &str, range: std::ops::RangeInclusive<f32>) -> Option<f32> {
     }
 }
 
-/// The scene id: `?scene=<id>`, else the first scene the server lists.
+/// The page's default scene: `<meta name="voxstream-scene" content="<id>">`, which a static
+/// publish (`voxstream publish`) writes into its copy of index.html.
+fn meta_scene() -> Option<String> {
+    let doc = window().document()?;
+    let el = doc.query_selector("meta[name=\"voxstream-scene\"]").ok()??;
+    el.get_attribute("content").filter(|s| !s.is_empty())
+}
+
+/// The scene id: `?scene=<id>`, else the page's `voxstream-scene` meta tag, else the first
+/// scene the server lists. URLs are relative to the page (`api/scenes/...`), so the viewer
+/// works at a server's root and from a static publish in any folder.
 async fn scene_id() -> Result<String, String> {
-    if let Some(id) = url_param("scene") {
+    if let Some(id) = url_param("scene").or_else(meta_scene) {
         return Ok(id);
     }
-    let bytes = http::get_bytes("/api/scenes", "scene list").await.map_err(|e| e.to_string())?;
+    let bytes = http::get_bytes("api/scenes", "scene list").await.map_err(|e| e.to_string())?;
     let scenes: Vec<SceneSummary> = serde_json::from_slice(&bytes).map_err(|e| format!("scene list: {e}"))?;
     scenes.into_iter().next().map(|s| s.id).ok_or_else(|| "the server has no scenes".to_string())
 }
@@ -180,7 +190,7 @@ async fn run() -> Result<(), String> {
     let id = scene_id().await?;
     show_status(&format!("loading scene {id}…"));
     let source = BlockSource::Http {
-        scene_url: format!("/api/scenes/{}", String::from(js_sys::encode_uri_component(&id))),
+        scene_url: format!("api/scenes/{}", String::from(js_sys::encode_uri_component(&id))),
     };
     let manifest_bytes = source.manifest_bytes().await.map_err(|e| e.to_string())?;
     let manifest = Manifest::from_json(&manifest_bytes).map_err(|e| format!("scene {id}: {e}"))?;
