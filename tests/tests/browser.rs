@@ -143,22 +143,36 @@ fn browser_renders_koala_matching_cpu_coverage() {
 
     // 2. Server on an ephemeral port, running on its own runtime while this thread drives node.
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
-    let state = AppState::load(store.path(), Some(&web)).expect("AppState::load");
+    // No --web: the viewer compiled into the binary (server/build.rs, src/http/web.rs).
+    assert!(
+        voxstream::http::web::has_embedded_viewer(),
+        "the server embeds no viewer: run bash scripts/build-web.sh, then cargo test again"
+    );
+    let state = AppState::load(store.path(), None).expect("AppState::load");
     let listener = rt.block_on(tokio::net::TcpListener::bind("127.0.0.1:0")).expect("bind 127.0.0.1:0");
     let addr = listener.local_addr().unwrap();
     let server = rt.spawn(async move { axum::serve(listener, router(state)).await });
     let url = format!("http://{addr}/?scene={}", report.id);
 
-    // 3. Headless Chromium.
-    let out = artifacts_dir();
-    std::fs::create_dir_all(&out).unwrap();
+    // 3. Headless Chromium, with the checks below.
+    render_and_check(&url, &artifacts_dir(), &report.scene_dir);
+    assert!(!server.is_finished(), "the server stopped during the browser run: {:?}", rt.block_on(server));
+    server.abort();
+}
+
+/// Opens `url` in headless Chromium (tests/browser/e2e.mjs), waits for the ready marker and checks
+/// the screenshot's silhouette against the CPU coverage of the blocks the page says it drew, read
+/// from `scene_dir` (the store's scene folder). Artifacts go to `out`.
+fn render_and_check(url: &str, out: &Path, scene_dir: &Path) {
+    let root = workspace_root();
+    let script = root.join("tests/browser/e2e.mjs");
+    std::fs::create_dir_all(out).unwrap();
     for name in ["browser.png", "browser.json"] {
         let _ = std::fs::remove_file(out.join(name));
     }
     let mut cmd = Command::new("node");
-    cmd.arg(&script).arg(&url).arg(&out).current_dir(&root);
+    cmd.arg(&script).arg(url).arg(out).current_dir(&root);
     let (ok, log) = run_with_timeout(cmd, HARNESS_TIMEOUT);
-    assert!(!server.is_finished(), "the server stopped during the browser run: {:?}", rt.block_on(server));
     assert!(ok, "browser harness failed for {url}; its output (page console included):\n{log}");
 
     // 4. What the page reported.
@@ -203,7 +217,7 @@ fn browser_renders_koala_matching_cpu_coverage() {
         .iter()
         .map(|k| {
             let key: BlockKey = k.parse().unwrap_or_else(|e| panic!("bad block key {k:?}: {e}"));
-            let path = report.scene_dir.join("blocks").join(format!("{k}.vxb"));
+            let path = scene_dir.join("blocks").join(format!("{k}.vxb"));
             let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
             (key, decode_block(&bytes).unwrap_or_else(|e| panic!("decode {k}: {e}")))
         })
@@ -224,7 +238,6 @@ fn browser_renders_koala_matching_cpu_coverage() {
     let wrong = coverage::compare_masks(&silhouette, &coverage::coverage_mask(&blocks, &moved, w, h), w, h);
     assert!(!wrong.within_tolerance(), "a moved camera still matched the screenshot: {wrong:?}");
 
-    server.abort();
 }
 
 /// The upload page against the full server (jobs, tus, SSE, thumbnails) on an empty store:
@@ -387,4 +400,55 @@ fn upload_page_builds_and_opens_scene() {
         out.display()
     );
     server.abort();
+}
+
+/// `voxstream publish` writes a static site; a plain static file server (python3 -m http.server,
+/// no voxstream process) serves it and Chromium shows the scene with the same ready marker and
+/// silhouette check. The URL has no `?scene=`: the published index.html names it. Negative
+/// control: the viewer with absolute `/api/...` URLs, or without the meta tag, never gets ready
+/// here (there is no `/api/scenes` list on a static host).
+#[test]
+fn static_publish_renders_in_chromium() {
+    let root = workspace_root();
+    require(
+        &root.join("tests/browser/node_modules/playwright-core/package.json"),
+        "install the harness dependencies: bash scripts/setup.sh (npm ci in tests/browser)",
+    );
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = dir.path().join("store");
+    let report = build_scene(&root.join("data/koala.obj"), &store, &BuildOptions::default())
+        .expect("build_scene(data/koala.obj)");
+    // Served from a sub-folder of the host: the viewer's URLs are relative to its page.
+    let host_root = dir.path().join("www");
+    let site = host_root.join("scans/koala");
+    let viewer = if voxstream::http::web::has_embedded_viewer() {
+        voxstream::publish::ViewerFiles::Embedded
+    } else {
+        panic!("the server embeds no viewer: run bash scripts/build-web.sh, then cargo test again")
+    };
+    let published = voxstream::publish::publish(&store, &report.id, &site, viewer).expect("publish");
+    println!("published {} files, {} bytes", published.files, published.bytes);
+
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let mut server = Command::new("python3")
+        .args(["-m", "http.server", "--bind", "127.0.0.1", &port.to_string(), "--directory"])
+        .arg(&host_root)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("python3 -m http.server (python3 is on every Debian machine)");
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+        assert!(Instant::now() < deadline, "python3 -m http.server did not listen on {port}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let url = format!("http://127.0.0.1:{port}/scans/koala/");
+    let result = std::panic::catch_unwind(|| {
+        render_and_check(&url, &artifacts_dir().join("publish"), &report.scene_dir)
+    });
+    let _ = server.kill();
+    let _ = server.wait();
+    if let Err(e) = result {
+        std::panic::resume_unwind(e);
+    }
 }
