@@ -7,7 +7,8 @@
 use std::path::PathBuf;
 
 fn main() {
-    let manifest_dir = PathBuf::from(std::env::var_os("CARGO_MANIFEST_DIR").expect("cargo sets CARGO_MANIFEST_DIR"));
+    let manifest_dir =
+        PathBuf::from(std::env::var_os("CARGO_MANIFEST_DIR").expect("cargo sets CARGO_MANIFEST_DIR"));
     let dist = manifest_dir.join("../viewer-wasm/dist");
     println!("cargo:rerun-if-env-changed=VOXSTREAM_EMBED_WEB");
     // A directory: cargo re-runs this script when anything below it changes (or it appears).
@@ -17,7 +18,8 @@ fn main() {
         Some(dir) => PathBuf::from(dir),
         None if dist.join("index.html").is_file() => dist,
         None => {
-            let empty = PathBuf::from(std::env::var_os("OUT_DIR").expect("cargo sets OUT_DIR")).join("no-viewer");
+            let empty =
+                PathBuf::from(std::env::var_os("OUT_DIR").expect("cargo sets OUT_DIR")).join("no-viewer");
             std::fs::create_dir_all(&empty).expect("creating an empty viewer folder in OUT_DIR");
             println!(
                 "cargo:warning=viewer-wasm/dist/index.html is missing: this voxstream binary embeds no viewer \

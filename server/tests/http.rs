@@ -1177,7 +1177,11 @@ async fn embedded_viewer_is_served_without_web() {
         assert_eq!(resp.headers()["cache-control"], "no-cache", "{path}");
         let etag = resp.headers()["etag"].clone();
         let body = resp.bytes().await.unwrap();
-        assert_eq!(body.as_ref(), std::fs::read(dist.join(file)).unwrap().as_slice(), "{path} differs from dist/{file}");
+        assert_eq!(
+            body.as_ref(),
+            std::fs::read(dist.join(file)).unwrap().as_slice(),
+            "{path} differs from dist/{file}"
+        );
         let again = http.get(format!("{base}{path}")).header("if-none-match", etag).send().await.unwrap();
         assert_eq!(again.status(), 304, "{path}");
     }

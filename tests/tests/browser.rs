@@ -237,7 +237,6 @@ fn render_and_check(url: &str, out: &Path, scene_dir: &Path) {
     moved[12] += 0.1 * moved[15];
     let wrong = coverage::compare_masks(&silhouette, &coverage::coverage_mask(&blocks, &moved, w, h), w, h);
     assert!(!wrong.within_tolerance(), "a moved camera still matched the screenshot: {wrong:?}");
-
 }
 
 /// The upload page against the full server (jobs, tus, SSE, thumbnails) on an empty store:

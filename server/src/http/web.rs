@@ -68,7 +68,8 @@ pub async fn serve_embedded(method: Method, uri: Uri, headers: HeaderMap) -> Res
     };
     let etag = HeaderValue::from_str(&format!("\"{}\"", hex(&file.metadata.sha256_hash())))
         .expect("hex is a valid header value");
-    let mime = HeaderValue::from_str(file.metadata.mimetype()).unwrap_or(HeaderValue::from_static("application/octet-stream"));
+    let mime = HeaderValue::from_str(file.metadata.mimetype())
+        .unwrap_or(HeaderValue::from_static("application/octet-stream"));
     let cache = HeaderValue::from_static(VIEWER_CACHE_CONTROL);
     let matches = headers
         .get_all(header::IF_NONE_MATCH)
@@ -77,15 +78,14 @@ pub async fn serve_embedded(method: Method, uri: Uri, headers: HeaderMap) -> Res
         .flat_map(|v| v.split(','))
         .any(|t| t.trim() == etag || t.trim() == "*");
     if matches {
-        return (StatusCode::NOT_MODIFIED, [(header::ETAG, etag), (header::CACHE_CONTROL, cache)]).into_response();
+        return (StatusCode::NOT_MODIFIED, [(header::ETAG, etag), (header::CACHE_CONTROL, cache)])
+            .into_response();
     }
     let len = file.data.len();
     let body = if method == Method::HEAD { Body::empty() } else { Body::from(file.data) };
-    let mut resp = (
-        [(header::CONTENT_TYPE, mime), (header::ETAG, etag), (header::CACHE_CONTROL, cache)],
-        body,
-    )
-        .into_response();
+    let mut resp =
+        ([(header::CONTENT_TYPE, mime), (header::ETAG, etag), (header::CACHE_CONTROL, cache)], body)
+            .into_response();
     resp.headers_mut().insert(header::CONTENT_LENGTH, HeaderValue::from(len));
     resp
 }
