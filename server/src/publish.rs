@@ -52,11 +52,13 @@ pub enum ViewerFiles<'a> {
 
 /// Publishes scene `id` of the local store `store` as a static site at `to`.
 pub fn publish(store: &Path, id: &str, to: &Path, viewer: ViewerFiles) -> anyhow::Result<PublishReport> {
-    let scene = store::open_scene(store, id).with_context(|| format!("cannot open scene {id:?} in {}", store.display()))?;
+    let scene = store::open_scene(store, id)
+        .with_context(|| format!("cannot open scene {id:?} in {}", store.display()))?;
     let files = viewer_files(viewer)?;
     if to.exists() {
         let marked = to.join(PUBLISH_MARKER).is_file();
-        let empty = fs::read_dir(to).with_context(|| format!("cannot read {}", to.display()))?.next().is_none();
+        let empty =
+            fs::read_dir(to).with_context(|| format!("cannot read {}", to.display()))?.next().is_none();
         if !marked && !empty {
             bail!(
                 "{} exists and is not a voxstream publish (no {PUBLISH_MARKER}): refusing to replace it; \
@@ -127,7 +129,8 @@ pub fn index_with_scene(html: &[u8], id: &str) -> anyhow::Result<Vec<u8>> {
     let html = std::str::from_utf8(html).context("the viewer's index.html is not UTF-8")?;
     let at = html.find("<head>").context("the viewer's index.html has no <head>")? + "<head>".len();
     // Scene ids are [a-z0-9_-]: nothing to escape.
-    Ok(format!("{}\n  <meta name=\"voxstream-scene\" content=\"{id}\">{}", &html[..at], &html[at..]).into_bytes())
+    Ok(format!("{}\n  <meta name=\"voxstream-scene\" content=\"{id}\">{}", &html[..at], &html[at..])
+        .into_bytes())
 }
 
 fn write_file(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
@@ -139,9 +142,14 @@ fn write_file(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
     f.sync_all().with_context(|| format!("cannot sync {}", path.display()))
 }
 
-fn write_site(dir: &Path, scene: &StoredScene, viewer: &[(String, Vec<u8>)]) -> anyhow::Result<PublishReport> {
+fn write_site(
+    dir: &Path,
+    scene: &StoredScene,
+    viewer: &[(String, Vec<u8>)],
+) -> anyhow::Result<PublishReport> {
     let id = &scene.id;
-    let mut report = PublishReport { id: id.clone(), to: dir.to_path_buf(), files: 0, bytes: 0, blocks: 0, pages: 0 };
+    let mut report =
+        PublishReport { id: id.clone(), to: dir.to_path_buf(), files: 0, bytes: 0, blocks: 0, pages: 0 };
     let add = |path: &Path, bytes: &[u8], report: &mut PublishReport| -> anyhow::Result<()> {
         write_file(path, bytes)?;
         report.files += 1;
@@ -176,9 +184,13 @@ fn write_site(dir: &Path, scene: &StoredScene, viewer: &[(String, Vec<u8>)]) -> 
         .par_iter()
         .map(|e| -> anyhow::Result<u64> {
             let path = scene.block_path(&e.key);
-            let data = fs::read(&path).with_context(|| format!("cannot read block {} ({})", e.key, path.display()))?;
+            let data = fs::read(&path)
+                .with_context(|| format!("cannot read block {} ({})", e.key, path.display()))?;
             if blake3::hash(&data).to_hex().as_str() != e.hash {
-                bail!("block {} of scene {id:?} differs from its hash in the hierarchy (damaged store)", e.key);
+                bail!(
+                    "block {} of scene {id:?} differs from its hash in the hierarchy (damaged store)",
+                    e.key
+                );
             }
             write_file(&blocks_dir.join(format!("{}.{}", e.key, e.hash)), &data)?;
             Ok(data.len() as u64)
@@ -189,7 +201,9 @@ fn write_site(dir: &Path, scene: &StoredScene, viewer: &[(String, Vec<u8>)]) -> 
     report.bytes += bytes;
     add(&dir.join(PUBLISH_MARKER), format!("scene {id}\n").as_bytes(), &mut report)?;
     for d in [&blocks_dir, &scene_dir, dir] {
-        fs::File::open(d).and_then(|f| f.sync_all()).with_context(|| format!("cannot sync {}", d.display()))?;
+        fs::File::open(d)
+            .and_then(|f| f.sync_all())
+            .with_context(|| format!("cannot sync {}", d.display()))?;
     }
     Ok(report)
 }
@@ -202,7 +216,8 @@ fn replace_dir(tmp: &Path, to: &Path) -> anyhow::Result<()> {
             to.file_name().and_then(|n| n.to_str()).unwrap_or("site"),
             std::process::id()
         ));
-        fs::rename(to, &old).with_context(|| format!("cannot move the earlier publish {} aside", to.display()))?;
+        fs::rename(to, &old)
+            .with_context(|| format!("cannot move the earlier publish {} aside", to.display()))?;
         if let Err(e) = fs::rename(tmp, to) {
             let _ = fs::rename(&old, to);
             return Err(e).with_context(|| format!("cannot publish {}", to.display()));
@@ -222,7 +237,10 @@ mod tests {
     fn index_gets_the_scene() {
         let html = b"<!doctype html>\n<html><head>\n<title>x</title></head><body></body></html>";
         let out = String::from_utf8(index_with_scene(html, "koala").unwrap()).unwrap();
-        assert!(out.contains("<head>\n  <meta name=\"voxstream-scene\" content=\"koala\">\n<title>"), "{out}");
+        assert!(
+            out.contains("<head>\n  <meta name=\"voxstream-scene\" content=\"koala\">\n<title>"),
+            "{out}"
+        );
         assert!(index_with_scene(b"<html><body></body></html>", "koala").is_err());
     }
 }

@@ -61,7 +61,8 @@ fn write(dir: &tempfile::TempDir, name: &str, bytes: &[u8]) -> String {
 fn publish_writes_a_static_site_and_refuses_bad_targets() {
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("store");
-    let mesh = write(&dir, "tri.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n");
+    let mesh =
+        write(&dir, "tri.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n");
     let (ok, _, err) = voxstream(&["build", &mesh, "--out", store.to_str().unwrap(), "--resolution", "256"]);
     assert!(ok, "{err}");
     let site = dir.path().join("site");
