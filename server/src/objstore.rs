@@ -143,18 +143,9 @@ pub async fn connect(bucket: &str, prefix: &str, deadline: Duration) -> anyhow::
              environment or in the file VOXSTREAM_S3_ENV_FILE names (AWS_SKIP_SIGNATURE=true for a public bucket)"
         );
     }
-    let mut builder = AmazonS3Builder::new();
-    for (k, v) in &settings {
-        if let Ok(key) = k.to_ascii_lowercase().parse::<AmazonS3ConfigKey>() {
-            builder = builder.with_config(key, v.clone());
-        }
-    }
-    if get("AWS_REGION").is_none() && get("AWS_DEFAULT_REGION").is_none() {
-        // Garage and MinIO take any region name; AWS's default otherwise.
-        builder = builder.with_region("us-east-1");
-    }
-    let builder = builder
-        .with_bucket_name(bucket)
+    // Client options first: with_client_options replaces them whole, and AWS_ALLOW_HTTP (a client
+    // option) comes from the settings below.
+    let mut builder = AmazonS3Builder::new()
         .with_client_options(
             ClientOptions::new()
                 .with_connect_timeout(Duration::from_secs(3))
@@ -165,6 +156,16 @@ pub async fn connect(bucket: &str, prefix: &str, deadline: Duration) -> anyhow::
             retry_timeout: Duration::from_secs(20),
             ..Default::default()
         });
+    for (k, v) in &settings {
+        if let Ok(key) = k.to_ascii_lowercase().parse::<AmazonS3ConfigKey>() {
+            builder = builder.with_config(key, v.clone());
+        }
+    }
+    if get("AWS_REGION").is_none() && get("AWS_DEFAULT_REGION").is_none() {
+        // Garage and MinIO take any region name; AWS's default otherwise.
+        builder = builder.with_region("us-east-1");
+    }
+    let builder = builder.with_bucket_name(bucket);
     let store =
         builder.build().map_err(|e| anyhow::anyhow!("object store s3://{bucket} at {endpoint}: {e}"))?;
     let b =
