@@ -19,6 +19,7 @@ pub mod ingest;
 pub mod jobs;
 pub mod lod;
 pub mod metrics;
+pub mod objstore;
 pub mod progress;
 pub mod publish;
 pub mod store;

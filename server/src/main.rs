@@ -63,9 +63,10 @@ enum Command {
         /// The store holding the scene.
         #[arg(long)]
         store: PathBuf,
-        /// The folder to write (replaced whole if it holds an earlier publish).
+        /// The folder to write (replaced whole if it holds an earlier publish), or s3://bucket/prefix
+        /// (endpoint and credentials from AWS_* variables or VOXSTREAM_S3_ENV_FILE).
         #[arg(long)]
-        to: PathBuf,
+        to: String,
         /// Take the viewer's files from this built folder instead of the ones in this binary.
         #[arg(long)]
         web: Option<PathBuf>,
@@ -98,9 +99,23 @@ fn main() -> ExitCode {
     }
 }
 
+/// Stores are local folders for now: an `s3://` store is refused by name instead of being taken
+/// for a folder called "s3:" (only `publish --to` writes to a bucket).
+fn no_bucket_store(path: &std::path::Path, flag: &str) -> anyhow::Result<()> {
+    if path.to_str().is_some_and(|p| p.contains("://")) {
+        anyhow::bail!(
+            "{flag} {}: stores in object storage are not supported yet, only local folders \
+             (publish --to s3://bucket/prefix writes a static site to a bucket)",
+            path.display()
+        );
+    }
+    Ok(())
+}
+
 fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Build { mesh, out, resolution, name, topology, memory_budget, tmp } => {
+            no_bucket_store(&out, "build --out")?;
             let topology = match topology {
                 TopologyArg::Conservative => Topology::Conservative,
                 TopologyArg::Separating26 => Topology::Separating26,
@@ -154,13 +169,33 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Bench(args) => voxstream::bench::bench_main(&args),
         Command::BenchMeshopt(args) => voxstream::bench::bench_meshopt_main(&args),
-        Command::Serve(args) => voxstream::http::serve_command(args),
+        Command::Serve(args) => {
+            no_bucket_store(&args.store, "serve --store")?;
+            voxstream::http::serve_command(args)
+        }
         Command::Publish { scene, store, to, web } => {
             let viewer = match &web {
                 Some(dir) => voxstream::publish::ViewerFiles::Dir(dir),
                 None => voxstream::publish::ViewerFiles::Embedded,
             };
-            let r = voxstream::publish::publish(&store, &scene, &to, viewer)?;
+            no_bucket_store(&store, "publish --store")?;
+            let r = match voxstream::objstore::parse_location(&to).map_err(|e| anyhow::anyhow!("--to {e}"))? {
+                voxstream::objstore::Location::Local(dir) => {
+                    voxstream::publish::publish(&store, &scene, &dir, viewer)?
+                }
+                voxstream::objstore::Location::S3 { bucket, prefix } => {
+                    let rt = tokio::runtime::Runtime::new()?;
+                    rt.block_on(async {
+                        let b = voxstream::objstore::connect(
+                            &bucket,
+                            &prefix,
+                            std::time::Duration::from_secs(10),
+                        )
+                        .await?;
+                        voxstream::publish::publish_to_bucket(&store, &scene, &b, viewer).await
+                    })?
+                }
+            };
             println!(
                 "published scene {:?} to {}: {} files ({} blocks, {} pages), {} bytes",
                 r.id,

@@ -23,6 +23,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
+use futures_util::FutureExt;
 use rayon::prelude::*;
 use voxstream_format::{PageRef, load_scene_index};
 
@@ -164,15 +165,7 @@ fn write_site(
     // The manifest as stored (its hash names nothing; it is the scene's one mutable file).
     let manifest = fs::read(scene.dir.join("manifest.json")).context("cannot read the manifest")?;
     add(&scene_dir.join("manifest"), &manifest, &mut report)?;
-    // Pages: read again, each checked against its reference by the index loader.
-    let mut pages: Vec<(PageRef, Vec<u8>)> = Vec::new();
-    load_scene_index(&scene.manifest, |r| {
-        let bytes = fs::read(scene.page_path(&r.root))?;
-        pages.push((r.clone(), bytes.clone()));
-        Ok::<_, std::io::Error>(bytes)
-    })
-    .map_err(|e| anyhow::anyhow!("scene {id:?}: {e}"))?;
-    for (r, bytes) in &pages {
+    for (r, bytes) in &scene_pages(scene)? {
         add(&scene_dir.join("pages").join(format!("{}.{}", r.root, r.hash)), bytes, &mut report)?;
         report.pages += 1;
     }
@@ -205,6 +198,124 @@ fn write_site(
             .and_then(|f| f.sync_all())
             .with_context(|| format!("cannot sync {}", d.display()))?;
     }
+    Ok(report)
+}
+
+/// Every hierarchy page of the scene with its bytes, each checked against its reference.
+fn scene_pages(scene: &StoredScene) -> anyhow::Result<Vec<(PageRef, Vec<u8>)>> {
+    let mut pages: Vec<(PageRef, Vec<u8>)> = Vec::new();
+    load_scene_index(&scene.manifest, |r| {
+        let bytes = fs::read(scene.page_path(&r.root))?;
+        pages.push((r.clone(), bytes.clone()));
+        Ok::<_, std::io::Error>(bytes)
+    })
+    .map_err(|e| anyhow::anyhow!("scene {:?}: {e}", scene.id))?;
+    Ok(pages)
+}
+
+/// Content-Type of a site file by its extension.
+pub fn content_type(rel: &str) -> &'static str {
+    match rel.rsplit_once('.').map(|(_, ext)| ext) {
+        Some("html") => "text/html; charset=utf-8",
+        Some("css") => "text/css; charset=utf-8",
+        Some("js" | "mjs") => "text/javascript; charset=utf-8",
+        Some("wasm") => "application/wasm",
+        Some("json") => "application/json",
+        Some("png") => "image/png",
+        Some("svg") => "image/svg+xml",
+        _ => "application/octet-stream",
+    }
+}
+
+/// Objects written at once by [`publish_to_bucket`] (each at most one block or page in memory).
+pub const BUCKET_CONCURRENCY: usize = 16;
+
+/// Publishes scene `id` of the local store `store` to a bucket (S3, R2, MinIO, Garage with
+/// website hosting): blocks, pages and the viewer's files first, [`BUCKET_CONCURRENCY`] at a
+/// time, then the manifest, then `index.html`. Blocks and pages are content-addressed, so an
+/// earlier publish at the same prefix keeps working until the manifest (one atomic PUT) switches
+/// to the new scene; a failed publish leaves the earlier one as it was.
+pub async fn publish_to_bucket(
+    store: &Path,
+    id: &str,
+    bucket: &crate::objstore::Bucket,
+    viewer: ViewerFiles<'_>,
+) -> anyhow::Result<PublishReport> {
+    use futures_util::{StreamExt, TryStreamExt};
+    const IMMUTABLE: &str = "public, max-age=31536000, immutable";
+    const REVALIDATE: &str = "no-cache";
+    let scene = store::open_scene(store, id)
+        .with_context(|| format!("cannot open scene {id:?} in {}", store.display()))?;
+    let files = viewer_files(viewer)?;
+    let pages = scene_pages(&scene)?;
+    let scene_prefix = format!("api/scenes/{id}");
+    let mut report = PublishReport {
+        id: id.to_string(),
+        to: PathBuf::from(format!("s3://{}/{}", bucket.bucket, bucket.prefix)),
+        files: 0,
+        bytes: 0,
+        blocks: 0,
+        pages: pages.len() as u64,
+    };
+    // 1. Content-addressed objects and the viewer's files (not index.html).
+    let blocks: Vec<voxstream_format::BlockEntry> = scene.blocks().into_iter().cloned().collect();
+    let block_puts = futures_util::stream::iter(blocks.into_iter().map(|e| {
+        let path = scene.block_path(&e.key);
+        let rel = format!("{scene_prefix}/blocks/{}.{}", e.key, e.hash);
+        async move {
+            let data = tokio::fs::read(&path)
+                .await
+                .with_context(|| format!("cannot read block {} ({})", e.key, path.display()))?;
+            if blake3::hash(&data).to_hex().as_str() != e.hash {
+                bail!("block {} differs from its hash in the hierarchy (damaged store)", e.key);
+            }
+            let n = data.len() as u64;
+            bucket.put(&rel, data, "application/octet-stream", IMMUTABLE).await?;
+            Ok(n)
+        }
+        .boxed()
+    }));
+    let page_puts = futures_util::stream::iter(pages.into_iter().map(|(r, bytes)| {
+        let rel = format!("{scene_prefix}/pages/{}.{}", r.root, r.hash);
+        async move {
+            let n = bytes.len() as u64;
+            bucket.put(&rel, bytes, "application/octet-stream", IMMUTABLE).await?;
+            Ok(n)
+        }
+        .boxed()
+    }));
+    let mut index_html = None;
+    let mut viewer_puts = Vec::new();
+    for (rel, bytes) in files {
+        if rel == "index.html" {
+            index_html = Some(index_with_scene(&bytes, id)?);
+            continue;
+        }
+        viewer_puts.push(
+            async move {
+                let n = bytes.len() as u64;
+                bucket.put(&rel, bytes, content_type(&rel), REVALIDATE).await?;
+                Ok(n)
+            }
+            .boxed(),
+        );
+    }
+    let index_html = index_html.context("the viewer has no index.html")?;
+    let (count, bytes) = block_puts
+        .chain(page_puts)
+        .chain(futures_util::stream::iter(viewer_puts))
+        .buffer_unordered(BUCKET_CONCURRENCY)
+        .try_fold((0u64, 0u64), |(c, b), n| async move { Ok((c + 1, b + n)) })
+        .await?;
+    report.blocks = scene.blocks().len() as u64;
+    report.files += count;
+    report.bytes += bytes;
+    // 2. The scene's one mutable pointer, then the page that names it.
+    let manifest = fs::read(scene.dir.join("manifest.json")).context("cannot read the manifest")?;
+    report.bytes += manifest.len() as u64 + index_html.len() as u64;
+    bucket.put(&format!("{scene_prefix}/manifest"), manifest, "application/json", REVALIDATE).await?;
+    bucket.put("index.html", index_html, "text/html; charset=utf-8", REVALIDATE).await?;
+    report.files += 2;
     Ok(report)
 }
 

@@ -120,3 +120,70 @@ fn publish_writes_a_static_site_and_refuses_bad_targets() {
     }
     assert_eq!(std::fs::read(precious.join("thesis.tex")).unwrap(), b"keep me");
 }
+
+/// Bad object-storage configuration is one clear error and a non-zero exit within seconds, naming
+/// the endpoint and the cause and never the secret: no credentials, an endpoint nobody listens
+/// on, a malformed bucket URL, and a store URL where only a folder works. Negative control: a
+/// `publish --to s3://` that hung on the dead endpoint (connect retries without a deadline) fails
+/// the time bound; one that printed the secret fails the last check.
+#[test]
+fn object_store_misconfiguration_fails_fast_and_clearly() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let mesh = write(&dir, "tri.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n");
+    let (ok, _, err) = voxstream(&["build", &mesh, "--out", store.to_str().unwrap(), "--resolution", "64"]);
+    assert!(ok, "{err}");
+    let s = store.to_str().unwrap();
+    // A port that was free a moment ago: nothing listens there.
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let endpoint = format!("http://127.0.0.1:{port}");
+    let secret = "very-secret-key-0123456789";
+    let run = |env: &[(&str, &str)], args: &[&str]| {
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_voxstream"));
+        cmd.args(args);
+        for (k, _) in std::env::vars().filter(|(k, _)| k.starts_with("AWS_")) {
+            cmd.env_remove(k);
+        }
+        cmd.env_remove("VOXSTREAM_S3_ENV_FILE");
+        cmd.envs(env.iter().copied());
+        let t = std::time::Instant::now();
+        let out = cmd.output().unwrap();
+        (out.status.success(), String::from_utf8_lossy(&out.stderr).to_string(), t.elapsed())
+    };
+    let publish = ["publish", "tri", "--store", s, "--to", "s3://scans/site"];
+    let (ok, err, _) = run(&[("AWS_ENDPOINT_URL", &endpoint), ("AWS_ALLOW_HTTP", "true")], &publish);
+    assert!(!ok && err.contains("no credentials") && err.contains(&endpoint), "{err}");
+    let keys = [
+        ("AWS_ENDPOINT_URL", endpoint.as_str()),
+        ("AWS_ALLOW_HTTP", "true"),
+        ("AWS_ACCESS_KEY_ID", "GKtest"),
+        ("AWS_SECRET_ACCESS_KEY", secret),
+    ];
+    let (ok, err, took) = run(&keys, &publish);
+    assert!(!ok, "publish to a dead endpoint succeeded");
+    assert!(err.contains(&endpoint) && err.contains("scans"), "names the endpoint and bucket: {err}");
+    assert!(err.contains("connect"), "names the cause: {err}");
+    assert!(took < std::time::Duration::from_secs(30), "took {took:?}: {err}");
+    assert!(!err.contains(secret), "the secret was printed: {err}");
+    // The same settings from a file.
+    let env_file = write(
+        &dir,
+        "s3.env",
+        format!("export AWS_ACCESS_KEY_ID=GKtest\nAWS_SECRET_ACCESS_KEY={secret}\n").as_bytes(),
+    );
+    let (ok, err, _) = run(
+        &[("AWS_ENDPOINT_URL", &endpoint), ("AWS_ALLOW_HTTP", "true"), ("VOXSTREAM_S3_ENV_FILE", &env_file)],
+        &publish,
+    );
+    assert!(!ok && !err.contains("no credentials") && err.contains(&endpoint), "{err}");
+    for (args, expected) in [
+        (vec!["publish", "tri", "--store", s, "--to", "s3://A_B/x"], "bucket name"),
+        (vec!["publish", "tri", "--store", s, "--to", "gs://bucket/x"], "not supported"),
+        (vec!["publish", "tri", "--store", "s3://scans/store", "--to", "site"], "not supported yet"),
+        (vec!["serve", "--store", "s3://scans/store"], "not supported yet"),
+        (vec!["build", &mesh, "--out", "s3://scans/store"], "not supported yet"),
+    ] {
+        let (ok, err, _) = run(&keys, &args);
+        assert!(!ok && err.contains(expected), "{args:?}: expected {expected:?} in {err:?}");
+    }
+}
