@@ -2,6 +2,8 @@
 //!
 //! Data flows one way: [`ingest`] → [`voxelize`] → [`lod`] → [`store`] → [`http`];
 //! [`build`] runs the first four as one call, reporting [`progress`];
+//! [`render`] draws one view offscreen with the viewer's code and writes what
+//! its AO saw; [`reference`] ray-traces the AO reference and compares.
 //! [`synth`] writes synthetic scans for benchmarks; [`bench`] measures builds
 //! against a peer (`voxstream bench`). The server side of
 //! [`http`] keeps its state in [`catalog`] (published scenes), [`uploads`]
@@ -20,6 +22,8 @@ pub mod jobs;
 pub mod lod;
 pub mod metrics;
 pub mod progress;
+pub mod reference;
+pub mod render;
 pub mod store;
 pub mod synth;
 pub mod thumbnail;

@@ -55,6 +55,17 @@ pub struct OffscreenFrame {
     pub adapter: String,
 }
 
+/// A frame drawn with the G-buffer pass (`fs_gbuffer`): the shaded image plus,
+/// per pixel (rows top to bottom), what the AO was computed for.
+#[derive(Debug, Clone)]
+pub struct GBufferFrame {
+    pub frame: OffscreenFrame,
+    /// xyz: grid-unit position on the drawn voxel face, w: 1 on a surface, 0 on the background.
+    pub position: Vec<[f32; 4]>,
+    /// xyz: the AO hemisphere's unit normal, w: the visibility V.
+    pub normal_ao: Vec<[f32; 4]>,
+}
+
 /// A native device and queue.
 pub struct Gpu {
     pub device: wgpu::Device,
@@ -194,6 +205,58 @@ impl Offscreen {
         })
     }
 
+    /// Loads what the view wants and draws it with the G-buffer pass, reading
+    /// back the image, positions, normals and visibilities.
+    pub fn render_gbuffer(&mut self) -> Result<GBufferFrame, OffscreenError> {
+        let (width, height) = (self.target.width(), self.target.height());
+        let make = |label| {
+            self.renderer.device.create_texture(&wgpu::TextureDescriptor {
+                label: Some(label),
+                size: wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format: crate::render::GBUFFER_FORMAT,
+                usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+                view_formats: &[],
+            })
+        };
+        let (position, normal_ao) = (make("g-buffer position"), make("g-buffer normal + visibility"));
+        self.renderer.set_gbuffer(
+            position.create_view(&Default::default()),
+            normal_ao.create_view(&Default::default()),
+        );
+        let frame = self.render();
+        self.renderer.clear_gbuffer();
+        let frame = frame?;
+        let texels = |t: &wgpu::Texture| -> Result<Vec<[f32; 4]>, OffscreenError> {
+            Ok(read_texture_bytes(&self.renderer, t, 16)?.chunks_exact(16).map(bytemuck::pod_read_unaligned).collect())
+        };
+        Ok(GBufferFrame { position: texels(&position)?, normal_ao: texels(&normal_ao)?, frame })
+    }
+
+    /// Median milliseconds of `runs` frames of the loaded view at `ao_strength`
+    /// (0: no AO), each from encoding until the GPU is idle.
+    pub fn time_frames(&mut self, ao_strength: f32, runs: usize) -> Result<f64, OffscreenError> {
+        self.load_wanted();
+        let saved = self.scene.ao_strength;
+        self.scene.ao_strength = ao_strength;
+        let view = self.target.create_view(&Default::default());
+        let mut times = Vec::new();
+        // One untimed frame first: it rebuilds the occupancy volume when AO was off.
+        for i in 0..=runs.max(1) {
+            let start = Instant::now();
+            self.scene.draw(&mut self.renderer, &view, 0.0);
+            wait_idle(&self.renderer.device)?;
+            if i > 0 {
+                times.push(start.elapsed().as_secs_f64() * 1e3);
+            }
+        }
+        self.scene.ao_strength = saved;
+        times.sort_by(f64::total_cmp);
+        Ok(times[times.len() / 2])
+    }
+
     /// The indirect draw args the compute pass wrote for a cached block:
     /// (vertex_count, instance_count, first_vertex, first_instance).
     pub fn draw_args(&self, key: &BlockKey) -> Result<Option<[u32; 4]>, OffscreenError> {
@@ -259,8 +322,17 @@ pub fn read_buffer(renderer: &Renderer, buffer: &wgpu::Buffer) -> Result<Vec<u8>
 
 /// Copies an Rgba8 texture back, dropping the row padding wgpu requires.
 fn read_texture(renderer: &Renderer, texture: &wgpu::Texture) -> Result<Vec<u8>, OffscreenError> {
+    read_texture_bytes(renderer, texture, 4)
+}
+
+/// Copies a texture of `texel_bytes` per texel back, rows top to bottom, unpadded.
+fn read_texture_bytes(
+    renderer: &Renderer,
+    texture: &wgpu::Texture,
+    texel_bytes: u32,
+) -> Result<Vec<u8>, OffscreenError> {
     let (width, height) = (texture.width(), texture.height());
-    let row = width * 4;
+    let row = width * texel_bytes;
     let padded = row.div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
     let staging = renderer.device.create_buffer(&wgpu::BufferDescriptor {
         label: Some("frame readback"),

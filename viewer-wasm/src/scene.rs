@@ -31,6 +31,18 @@ struct CachedBlock {
     last_drawn: u64,
 }
 
+/// A view given by matrices instead of the orbit camera (native `voxstream
+/// render` with a camera.json); when set it replaces `Scene::camera`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FixedView {
+    /// Grid units → clip space (wgpu depth 0..1).
+    pub view_proj: Mat4,
+    /// Eye in grid units.
+    pub eye: Vec3,
+    /// Pixels per grid unit at distance 1 for this viewport.
+    pub focal_pixels: f32,
+}
+
 /// What a call to [`Scene::draw`] drew.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DrawnFrame {
@@ -43,12 +55,14 @@ pub struct DrawnFrame {
 pub struct Scene {
     pub manifest: Manifest,
     pub camera: OrbitCamera,
+    /// Overrides `camera` when set.
+    pub fixed_view: Option<FixedView>,
     pub select_params: SelectParams,
     /// 0 disables ambient occlusion; 1 is full strength.
     pub ao_strength: f32,
     pub stats: Stats,
     viewport: (u32, u32),
-    selected_for: Option<(OrbitCamera, (u32, u32))>,
+    selected_for: Option<(OrbitCamera, (u32, u32), Option<FixedView>)>,
     wanted: Vec<BlockKey>,
     cache: HashMap<BlockKey, CachedBlock>,
     pending: HashSet<BlockKey>,
@@ -66,6 +80,7 @@ impl Scene {
         Self {
             manifest,
             camera,
+            fixed_view: None,
             select_params: SelectParams::default(),
             ao_strength: 1.0,
             stats: Stats::default(),
@@ -95,17 +110,27 @@ impl Scene {
     }
 
     pub fn view_proj(&self) -> Mat4 {
-        self.camera.view_proj(self.aspect())
+        match &self.fixed_view {
+            Some(v) => v.view_proj,
+            None => self.camera.view_proj(self.aspect()),
+        }
+    }
+
+    /// The eye in grid units (of the fixed view when set).
+    pub fn eye(&self) -> Vec3 {
+        self.fixed_view.map_or_else(|| self.camera.eye(), |v| v.eye)
     }
 
     /// The blocks this view wants, recomputed when the camera or viewport changed.
     pub fn wanted(&mut self) -> &[BlockKey] {
-        let now = (self.camera, self.viewport);
+        let now = (self.camera, self.viewport, self.fixed_view);
         if self.selected_for != Some(now) {
             let view = ViewParams {
                 view_proj: self.view_proj(),
-                eye: self.camera.eye(),
-                focal_pixels: self.camera.focal_pixels(self.viewport.1 as f32),
+                eye: self.eye(),
+                focal_pixels: self
+                    .fixed_view
+                    .map_or_else(|| self.camera.focal_pixels(self.viewport.1 as f32), |v| v.focal_pixels),
             };
             self.wanted = select_blocks(&self.manifest, &view, &self.select_params);
             self.selected_for = Some(now);
@@ -140,7 +165,7 @@ impl Scene {
                 !self.cache.contains_key(k) && !self.pending.contains(k) && !self.failed.contains_key(k)
             })
             .collect();
-        let eye = self.camera.eye();
+        let eye = self.eye();
         let dist = |k: &BlockKey| {
             crate::select::block_bounds(&self.manifest, k).map_or(f32::INFINITY, |b| b.distance_to(eye))
         };
@@ -261,7 +286,7 @@ impl Scene {
         }
         let params = FrameParams {
             view_proj: self.view_proj(),
-            eye: self.camera.eye(),
+            eye: self.eye(),
             grid_resolution: self.manifest.grid.resolution as f32,
             ao_strength: self.ao_strength,
         };
