@@ -49,7 +49,7 @@ fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, cell: f32, max_mip: f3
             break;
         }
         let height = max(dot(s - p, n), cell);
-        let diameter = clamp(2.0 * tan_half * d, cell, max(height, cell));
+        let diameter = clamp(2.0 * tan_half * d, cell, max(height / 3.0, cell));
         let mip = clamp(log2(diameter / cell), 0.0, max_mip);
         let step_len = max(step_fraction * diameter, 0.5 * cell);
         if skip && mip + 2.0 <= max_mip {

@@ -167,12 +167,14 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     return shade(in).colour;
 }
 
+// Colour last: with a 16-byte-aligned f32 target first, the three fit
+// WebGPU's 32 bytes of colour attachments per sample (16 + 8 + 4).
 struct GBufferOut {
-    @location(0) colour: vec4<f32>,
-    // xyz: the grid position the AO was computed for, w: 1 (0 = background).
-    @location(1) position: vec4<f32>,
-    // xyz: the AO hemisphere's unit normal, w: visibility V.
-    @location(2) normal_ao: vec4<f32>,
+    // xyz: the grid position the AO was computed for, w: visibility V.
+    @location(0) position_ao: vec4<f32>,
+    // xyz: the AO hemisphere's unit normal, w: 1 (0 = background).
+    @location(1) normal: vec4<f32>,
+    @location(2) colour: vec4<f32>,
 }
 
 // The native `voxstream render` pass: the same shading plus what the AO saw.
@@ -181,7 +183,7 @@ fn fs_gbuffer(in: VertexOut) -> GBufferOut {
     let s = shade(in);
     var out: GBufferOut;
     out.colour = s.colour;
-    out.position = vec4<f32>(in.grid_pos, 1.0);
-    out.normal_ao = vec4<f32>(s.normal, s.visibility);
+    out.position_ao = vec4<f32>(in.grid_pos, s.visibility);
+    out.normal = vec4<f32>(s.normal, 1.0);
     return out;
 }

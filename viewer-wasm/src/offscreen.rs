@@ -60,10 +60,10 @@ pub struct OffscreenFrame {
 #[derive(Debug, Clone)]
 pub struct GBufferFrame {
     pub frame: OffscreenFrame,
-    /// xyz: grid-unit position on the drawn voxel face, w: 1 on a surface, 0 on the background.
-    pub position: Vec<[f32; 4]>,
-    /// xyz: the AO hemisphere's unit normal, w: the visibility V.
-    pub normal_ao: Vec<[f32; 4]>,
+    /// xyz: grid-unit position on the drawn voxel face, w: the visibility V.
+    pub position_ao: Vec<[f32; 4]>,
+    /// xyz: the AO hemisphere's unit normal (f16 precision), w: 1 on a surface, 0 on the background.
+    pub normal: Vec<[f32; 4]>,
 }
 
 /// A native device and queue.
@@ -209,30 +209,34 @@ impl Offscreen {
     /// back the image, positions, normals and visibilities.
     pub fn render_gbuffer(&mut self) -> Result<GBufferFrame, OffscreenError> {
         let (width, height) = (self.target.width(), self.target.height());
-        let make = |label| {
+        let make = |label, format| {
             self.renderer.device.create_texture(&wgpu::TextureDescriptor {
                 label: Some(label),
                 size: wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
                 mip_level_count: 1,
                 sample_count: 1,
                 dimension: wgpu::TextureDimension::D2,
-                format: crate::render::GBUFFER_FORMAT,
+                format,
                 usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
                 view_formats: &[],
             })
         };
-        let (position, normal_ao) = (make("g-buffer position"), make("g-buffer normal + visibility"));
-        self.renderer.set_gbuffer(
-            position.create_view(&Default::default()),
-            normal_ao.create_view(&Default::default()),
-        );
+        let position = make("g-buffer position + visibility", crate::render::GBUFFER_POSITION_FORMAT);
+        let normal = make("g-buffer normal", crate::render::GBUFFER_NORMAL_FORMAT);
+        self.renderer
+            .set_gbuffer(position.create_view(&Default::default()), normal.create_view(&Default::default()));
         let frame = self.render();
         self.renderer.clear_gbuffer();
         let frame = frame?;
-        let texels = |t: &wgpu::Texture| -> Result<Vec<[f32; 4]>, OffscreenError> {
-            Ok(read_texture_bytes(&self.renderer, t, 16)?.chunks_exact(16).map(bytemuck::pod_read_unaligned).collect())
-        };
-        Ok(GBufferFrame { position: texels(&position)?, normal_ao: texels(&normal_ao)?, frame })
+        let position_ao = read_texture_bytes(&self.renderer, &position, 16)?
+            .chunks_exact(16)
+            .map(bytemuck::pod_read_unaligned)
+            .collect();
+        let normal = read_texture_bytes(&self.renderer, &normal, 8)?
+            .chunks_exact(8)
+            .map(|t| std::array::from_fn(|i| f16_to_f32(u16::from_le_bytes([t[2 * i], t[2 * i + 1]]))))
+            .collect();
+        Ok(GBufferFrame { position_ao, normal, frame })
     }
 
     /// Median milliseconds of `runs` frames of the loaded view at `ao_strength`
@@ -282,6 +286,19 @@ impl Offscreen {
 /// selected block is loaded.
 pub fn render_scene(scene_dir: &Path, width: u32, height: u32) -> Result<OffscreenFrame, OffscreenError> {
     Offscreen::open(scene_dir, &RenderOptions::new(width, height))?.render()
+}
+
+/// IEEE half → f32 (the G-buffer's normal target).
+fn f16_to_f32(h: u16) -> f32 {
+    let sign = if h & 0x8000 != 0 { -1.0 } else { 1.0 };
+    let exp = ((h >> 10) & 0x1f) as i32;
+    let frac = (h & 0x3ff) as f32;
+    match exp {
+        0 => sign * frac * 2f32.powi(-24),
+        31 if frac == 0.0 => sign * f32::INFINITY,
+        31 => f32::NAN,
+        _ => sign * (1.0 + frac / 1024.0) * 2f32.powi(exp - 15),
+    }
 }
 
 fn wait_idle(device: &wgpu::Device) -> Result<(), OffscreenError> {
@@ -361,4 +378,18 @@ fn read_texture_bytes(
     renderer.queue.submit([encoder.finish()]);
     let bytes = map_and_read(renderer, &staging)?;
     Ok(bytes.chunks_exact(padded as usize).flat_map(|r| &r[..row as usize]).copied().collect())
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn half_floats_decode() {
+        use super::f16_to_f32;
+        assert_eq!(f16_to_f32(0x3c00), 1.0);
+        assert_eq!(f16_to_f32(0xbc00), -1.0);
+        assert_eq!(f16_to_f32(0x3800), 0.5);
+        assert_eq!(f16_to_f32(0x0000), 0.0);
+        assert_eq!(f16_to_f32(0x3555), 0.333_251_95);
+        assert!(f16_to_f32(0x7e00).is_nan());
+    }
 }

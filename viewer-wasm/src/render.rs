@@ -24,8 +24,10 @@ pub struct FrameUniform {
     pub ao: AoUniform,
 }
 
-/// Format of the G-buffer's position and normal/visibility targets.
-pub const GBUFFER_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
+/// Format of the G-buffer's position + visibility target.
+pub const GBUFFER_POSITION_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
+/// Format of the G-buffer's normal target.
+pub const GBUFFER_NORMAL_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
 
 /// What one frame is drawn with.
 #[derive(Debug, Clone, Copy)]
@@ -65,9 +67,9 @@ pub struct Renderer {
     module: wgpu::ShaderModule,
     layout: wgpu::PipelineLayout,
     gbuffer_pipeline: Option<wgpu::RenderPipeline>,
-    /// When set, frames are drawn with `fs_gbuffer` into the colour target and
-    /// these two ([`GBUFFER_FORMAT`]): position (grid units, w = 1 on a
-    /// surface) and normal + visibility.
+    /// When set, frames are drawn with `fs_gbuffer` into these two and the
+    /// colour target: position + visibility ([`GBUFFER_POSITION_FORMAT`]) and
+    /// normal (w = 1 on a surface, [`GBUFFER_NORMAL_FORMAT`]).
     gbuffer: Option<[wgpu::TextureView; 2]>,
 }
 
@@ -164,19 +166,19 @@ impl Renderer {
         }
     }
 
-    /// Draws the following frames into the G-buffer targets `position` and
-    /// `normal_ao` ([`GBUFFER_FORMAT`], the colour target's size) as well.
-    pub fn set_gbuffer(&mut self, position: wgpu::TextureView, normal_ao: wgpu::TextureView) {
+    /// Draws the following frames into the G-buffer targets `position_ao` and
+    /// `normal` (the colour target's size) as well.
+    pub fn set_gbuffer(&mut self, position_ao: wgpu::TextureView, normal: wgpu::TextureView) {
         if self.gbuffer_pipeline.is_none() {
             let targets = [
+                Some(GBUFFER_POSITION_FORMAT.into()),
+                Some(GBUFFER_NORMAL_FORMAT.into()),
                 Some(self.color_format.into()),
-                Some(GBUFFER_FORMAT.into()),
-                Some(GBUFFER_FORMAT.into()),
             ];
             self.gbuffer_pipeline =
                 Some(voxel_pipeline(&self.device, &self.module, &self.layout, &targets, "fs_gbuffer"));
         }
-        self.gbuffer = Some([position, normal_ao]);
+        self.gbuffer = Some([position_ao, normal]);
     }
 
     /// Back to drawing the colour target only.
@@ -289,13 +291,16 @@ impl Renderer {
         self.queue.write_buffer(&self.frame_uniform, 0, bytemuck::bytes_of(&uniform));
         let (width, height) = (size.0.max(1), size.1.max(1));
         let depth = self.depth_view(width, height).clone();
-        let mut attachments = vec![attachment(target, background_color())];
-        let pipeline = match (&self.gbuffer, &self.gbuffer_pipeline) {
-            (Some(views), Some(pipeline)) => {
-                attachments.extend(views.iter().map(|v| attachment(v, wgpu::Color::TRANSPARENT)));
-                pipeline
-            }
-            _ => &self.pipeline,
+        let (attachments, pipeline) = match (&self.gbuffer, &self.gbuffer_pipeline) {
+            (Some([position, normal]), Some(pipeline)) => (
+                vec![
+                    attachment(position, wgpu::Color::TRANSPARENT),
+                    attachment(normal, wgpu::Color::TRANSPARENT),
+                    attachment(target, background_color()),
+                ],
+                pipeline,
+            ),
+            _ => (vec![attachment(target, background_color())], &self.pipeline),
         };
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("voxels"),

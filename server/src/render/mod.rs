@@ -260,18 +260,18 @@ pub fn render_view(req: &RenderRequest) -> anyhow::Result<RenderOutput> {
     let mut normal = vec![[f32::NAN; 3]; n];
     let mut surface_pixels = 0;
     for i in 0..n {
-        let p = g.position[i];
-        let na = g.normal_ao[i];
-        if p[3] < 0.5 {
+        let p = g.position_ao[i];
+        let na = g.normal[i];
+        if na[3] < 0.5 {
             continue;
         }
         let nv = glam::Vec3::new(na[0], na[1], na[2]);
         // The shader writes finite values; anything else stays NaN (no surface).
-        if !(p.iter().all(|v| v.is_finite()) && nv.is_finite() && na[3].is_finite()) {
+        if !(p.iter().all(|v| v.is_finite()) && nv.is_finite() && nv.length() > 0.5) {
             continue;
         }
         surface_pixels += 1;
-        ao_out[i] = na[3].clamp(0.0, 1.0);
+        ao_out[i] = p[3].clamp(0.0, 1.0);
         position[i] = std::array::from_fn(|a| grid.origin[a] + p[a] as f64 * grid.voxel_size);
         normal[i] = nv.normalize_or(glam::Vec3::Z).to_array();
     }
