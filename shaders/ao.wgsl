@@ -63,7 +63,9 @@ fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, cell: f32, max_mip: f3
         if o > 0.0 {
             let edge = cell * exp2(mip);
             let a = 1.0 - pow(max(1.0 - o, 0.0), step_len / edge);
-            let w = 1.0 / (1.0 + falloff * d / radius);
+            // The opacity ramps up over the texel edge before a surface, so a
+            // step's occlusion sits about half an edge further than its sample.
+            let w = 1.0 / (1.0 + falloff * (d + 0.5 * edge) / radius);
             occlusion += (1.0 - alpha) * a * w;
             alpha += (1.0 - alpha) * a;
         }

@@ -44,6 +44,19 @@ fn render(scene_dir: &Path, scene: &AnalyticScene, ao: AoSettings, max_distance:
 fn error_against_exact(scene: &AnalyticScene, out: &RenderOutput) -> ExactError {
     // Exact values with the R and λ the render recorded.
     let exact = exact_image(&scene.shapes, out, QUADRATURE);
+    // AO, exact and 5 × |AO − exact| from top to bottom, for people to look
+    // at: <target>/e2e/ao-<scene>.png.
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).parent().expect("target").join("e2e");
+    std::fs::create_dir_all(&dir).unwrap();
+    let error: Vec<f32> = out.ao.iter().zip(&exact).map(|(a, e)| 5.0 * (a - e).abs()).collect();
+    let both: Vec<f32> = out.ao.iter().chain(&exact).chain(&error).copied().collect();
+    voxstream::render::write_png_rgba(
+        &dir.join(format!("ao-{}.png", scene.name)),
+        WIDTH,
+        3 * HEIGHT,
+        &voxstream::render::grey_rgba(&both),
+    )
+    .unwrap();
     exact_error(&out.ao, &exact)
 }
 
@@ -85,24 +98,29 @@ fn analytic_scenes_match_exact_values() {
     }
 }
 
+/// The check above ("every analytic scene within 0.03") must fail for a
+/// deliberately wrong AO: cones laid around +Z whatever the normal, and R ten
+/// times too small in the renderer (exact values keep the true R).
 #[test]
 fn negative_controls_fail_the_exact_check() {
     let store = tempfile::tempdir().unwrap();
-    let scene = analytic::scenes().into_iter().find(|s| s.name == "sphere_on_plane").unwrap();
-    let dir = analytic::build(&scene, store.path(), RESOLUTION).expect("build");
-    let good = render(&dir, &scene, AoSettings::default(), None);
-    let r = good.info.ao.max_distance;
-    // Cones laid around +Z whatever the normal.
-    let wrong = render(&dir, &scene, AoSettings { ignore_normal: true, ..AoSettings::default() }, None);
-    let e = error_against_exact(&scene, &wrong);
-    println!("ignore the normal: {e:?}");
-    assert!(e.mae > GOAL_MAE, "cones that ignore the normal passed: {e:?}");
-    // R ten times too small in the renderer; exact values with the true R.
-    let mut short = render(&dir, &scene, AoSettings::default(), Some(r / 10.0));
-    short.info.ao.max_distance = r;
-    let e = error_against_exact(&scene, &short);
-    println!("R / 10: {e:?}");
-    assert!(e.mae > GOAL_MAE, "R ten times too small passed: {e:?}");
+    let (mut worst_normal, mut worst_r) = (0f64, 0f64);
+    for scene in analytic::scenes() {
+        let dir = analytic::build(&scene, store.path(), RESOLUTION).expect("build");
+        let good = render(&dir, &scene, AoSettings::default(), None);
+        let r = good.info.ao.max_distance;
+        let wrong = render(&dir, &scene, AoSettings { ignore_normal: true, ..AoSettings::default() }, None);
+        let e = error_against_exact(&scene, &wrong);
+        println!("{:16} ignoring the normal: MAE {:.4} bias {:+.4}", scene.name, e.mae, e.bias);
+        worst_normal = worst_normal.max(e.mae);
+        let mut short = render(&dir, &scene, AoSettings::default(), Some(r / 10.0));
+        short.info.ao.max_distance = r;
+        let e = error_against_exact(&scene, &short);
+        println!("{:16} R / 10:              MAE {:.4} bias {:+.4}", scene.name, e.mae, e.bias);
+        worst_r = worst_r.max(e.mae);
+    }
+    assert!(worst_normal > GOAL_MAE, "cones that ignore the normal pass on every scene");
+    assert!(worst_r > GOAL_MAE, "R ten times too small passes on every scene");
 }
 
 #[test]
