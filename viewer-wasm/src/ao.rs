@@ -54,13 +54,13 @@ pub struct AoSettings {
 impl Default for AoSettings {
     fn default() -> Self {
         Self {
-            cones: 16,
+            cones: 6,
             aperture_deg: None,
-            step: 0.5,
+            step: 1.0,
             offset_cells: 1.5,
             max_distance: None,
             falloff: 1.0,
-            empty_skip: true,
+            empty_skip: false,
             ignore_normal: false,
         }
     }

@@ -17,9 +17,16 @@ use crate::render::CameraSpec;
 /// A piece of exact geometry; both sides count.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Shape {
-    Sphere { centre: DVec3, radius: f64 },
+    Sphere {
+        centre: DVec3,
+        radius: f64,
+    },
     /// The parallelogram corner + s·u + t·v, s, t in [0, 1].
-    Rect { corner: DVec3, u: DVec3, v: DVec3 },
+    Rect {
+        corner: DVec3,
+        u: DVec3,
+        v: DVec3,
+    },
 }
 
 impl Shape {
@@ -63,7 +70,14 @@ impl Shape {
 /// Exact V(p, n) against `shapes` by midpoint quadrature of the
 /// cosine-weighted hemisphere on an `m`×`m` grid of (u1, u2) cells
 /// (u1 = sin²θ, u2 = φ / 2π: equal projected solid angle per cell).
-pub fn exact_visibility(shapes: &[Shape], p: DVec3, n: DVec3, max_distance: f64, falloff: f64, m: u32) -> f64 {
+pub fn exact_visibility(
+    shapes: &[Shape],
+    p: DVec3,
+    n: DVec3,
+    max_distance: f64,
+    falloff: f64,
+    m: u32,
+) -> f64 {
     let n = n.normalize();
     let (t, b) = basis(n);
     let mut sum = 0.0;
@@ -201,9 +215,14 @@ pub fn scenes() -> Vec<AnalyticScene> {
                 rect([-1.5, 0.0, -1.5], [0.0, 0.0, 3.0], [3.0, 0.0, 0.0]),
                 rect([-1.5, 0.2, -1.5], [0.0, 0.0, 3.0], [3.0, 0.0, 0.0]),
             ],
-            camera([1.3, 0.1, 1.2], [-1.0, 0.1, -0.9]),
+            // Inside the gap, looking up at the upper plate from near the lower one.
+            camera([0.0, 0.04, 0.0], [0.6, 0.2, 0.3]),
         ),
-        scene_from_shapes("lone_sphere", vec![sphere([0.0, 0.0, 0.0], 0.8)], camera([0.4, 0.6, 2.6], [0.0, 0.0, 0.0])),
+        scene_from_shapes(
+            "lone_sphere",
+            vec![sphere([0.0, 0.0, 0.0], 0.8)],
+            camera([0.4, 0.6, 2.6], [0.0, 0.0, 0.0]),
+        ),
         scene_from_shapes(
             "closed_room",
             {
@@ -283,7 +302,8 @@ pub fn exact_error(ao: &[f32], exact: &[f32]) -> ExactError {
     d.iter_mut().for_each(|x| *x = x.abs());
     d.sort_by(f64::total_cmp);
     let mae = d.iter().sum::<f64>() / n;
-    let p95 = d.get(((d.len() as f64 * 0.95) as usize).min(d.len().saturating_sub(1))).copied().unwrap_or(f64::NAN);
+    let p95 =
+        d.get(((d.len() as f64 * 0.95) as usize).min(d.len().saturating_sub(1))).copied().unwrap_or(f64::NAN);
     ExactError { pixels: d.len(), mae, bias, rmse, p95, max_abs: d.last().copied().unwrap_or(f64::NAN) }
 }
 

@@ -32,7 +32,14 @@ pub struct Comparison {
 
 /// Compares `ao` with `reference` (both W·H, NaN = no value). `variance` is
 /// the per-pixel one-ray variance of the reference, `rays` its ray count.
-pub fn compare(ao: &[f32], reference: &[f32], variance: &[f32], rays: u32, width: u32, height: u32) -> Comparison {
+pub fn compare(
+    ao: &[f32],
+    reference: &[f32],
+    variance: &[f32],
+    rays: u32,
+    width: u32,
+    height: u32,
+) -> Comparison {
     let valid: Vec<bool> = ao.iter().zip(reference).map(|(a, r)| a.is_finite() && r.is_finite()).collect();
     let (mut n, mut se, mut sum, mut sa, mut max_abs, mut var) = (0usize, 0.0, 0.0, 0.0, 0f64, 0.0);
     for i in 0..ao.len() {
@@ -52,7 +59,8 @@ pub fn compare(ao: &[f32], reference: &[f32], variance: &[f32], rays: u32, width
     let one_ray_variance = var / k;
     let reference_mse = one_ray_variance / rays.max(1) as f64;
     let true_mse = mse - reference_mse;
-    let equal_error_rays = (n > 0 && true_mse > reference_mse * 0.1 && true_mse > 0.0).then(|| one_ray_variance / true_mse);
+    let equal_error_rays =
+        (n > 0 && true_mse > reference_mse * 0.1 && true_mse > 0.0).then(|| one_ray_variance / true_mse);
     Comparison {
         pixels: n,
         rmse: mse.sqrt(),
@@ -71,7 +79,8 @@ pub fn ssim(a: &[f32], b: &[f32], valid: &[bool], width: usize, height: usize) -
     const RADIUS: isize = 5;
     const SIGMA: f64 = 1.5;
     let (c1, c2) = (0.01f64 * 0.01, 0.03f64 * 0.03);
-    let kernel: Vec<f64> = (-RADIUS..=RADIUS).map(|i| (-(i * i) as f64 / (2.0 * SIGMA * SIGMA)).exp()).collect();
+    let kernel: Vec<f64> =
+        (-RADIUS..=RADIUS).map(|i| (-(i * i) as f64 / (2.0 * SIGMA * SIGMA)).exp()).collect();
     let (mut total, mut count) = (0.0, 0usize);
     for y in 0..height as isize {
         for x in 0..width as isize {

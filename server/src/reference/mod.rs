@@ -100,7 +100,10 @@ impl MeshBvh {
                 Triangle { v0: local(a), v1: local(b), v2: local(c) }
             })
             .filter(|t| {
-                t.v0.is_finite() && t.v1.is_finite() && t.v2.is_finite() && (t.v1 - t.v0).cross(t.v2 - t.v0).length() > 0.0
+                t.v0.is_finite()
+                    && t.v1.is_finite()
+                    && t.v2.is_finite()
+                    && (t.v1 - t.v0).cross(t.v2 - t.v0).length() > 0.0
             })
             .collect();
         let bvh = build_bvh2_from_tris(&tris, BvhBuildParams::medium_build(), &mut Duration::default());
@@ -118,7 +121,9 @@ impl MeshBvh {
         }
         let ray = Ray::new(o.into(), dir.into(), tmin, tmax);
         let mut hit = RayHit::none();
-        if self.bvh.ray_traverse(ray, &mut hit, |r, id| self.tris[self.bvh.primitive_indices[id] as usize].intersect(r)) {
+        if self.bvh.ray_traverse(ray, &mut hit, |r, id| {
+            self.tris[self.bvh.primitive_indices[id] as usize].intersect(r)
+        }) {
             Some((hit.t, self.bvh.primitive_indices[hit.primitive_id as usize] as usize))
         } else {
             None
@@ -141,7 +146,9 @@ impl MeshBvh {
         for _ in 0..rays {
             let dir = cosine_direction(n, &mut rng);
             let w = match self.closest_hit(o, dir.as_vec3(), 0.0, tmax) {
-                Some((t, _)) => falloff_weight(t as f64 + params.epsilon, params.max_distance, params.falloff),
+                Some((t, _)) => {
+                    falloff_weight(t as f64 + params.epsilon, params.max_distance, params.falloff)
+                }
                 None => 0.0,
             };
             sum += w;
@@ -194,10 +201,13 @@ pub fn reference_at(
         .map(|(i, (p, n))| {
             let p = DVec3::from(*p);
             let n = Vec3::from(*n).as_dvec3();
-            (p.is_finite() && n.is_finite() && n.length() > 0.0).then(|| bvh.visibility(p, n, params, rays, i as u64))
+            (p.is_finite() && n.is_finite() && n.length() > 0.0)
+                .then(|| bvh.visibility(p, n, params, rays, i as u64))
         })
         .collect();
-    let pick = |f: fn(&Sample) -> f64| samples.iter().map(|s| s.as_ref().map_or(f32::NAN, |s| f(s) as f32)).collect();
+    let pick = |f: fn(&Sample) -> f64| {
+        samples.iter().map(|s| s.as_ref().map_or(f32::NAN, |s| f(s) as f32)).collect()
+    };
     ReferenceImage { v: pick(|s| s.v), stderr: pick(|s| s.stderr), variance: pick(|s| s.variance) }
 }
 
@@ -246,11 +256,17 @@ pub struct CompareReport {
 }
 
 /// Runs `reference-ao` on a render directory and writes its outputs there.
-pub fn reference_command(mesh_path: &Path, render_dir: &Path, rays: u32, primary: bool) -> anyhow::Result<CompareReport> {
+pub fn reference_command(
+    mesh_path: &Path,
+    render_dir: &Path,
+    rays: u32,
+    primary: bool,
+) -> anyhow::Result<CompareReport> {
     ensure!((1..=1 << 20).contains(&rays), "--rays must be 1..=1048576, got {rays}");
     let start = std::time::Instant::now();
     let (info, ao, positions, normals) = read_outputs(render_dir)?;
-    let (mesh, _) = crate::ingest::read_mesh(mesh_path).with_context(|| format!("reading {}", mesh_path.display()))?;
+    let (mesh, _) =
+        crate::ingest::read_mesh(mesh_path).with_context(|| format!("reading {}", mesh_path.display()))?;
     ensure!(!mesh.triangles.is_empty(), "{} has no triangles", mesh_path.display());
     let bvh = MeshBvh::new(&mesh, info.grid_origin);
     let params = AoParams {
@@ -269,7 +285,8 @@ pub fn reference_command(mesh_path: &Path, render_dir: &Path, rays: u32, primary
         let (pp, pn) = primary_hits(&bvh, &info);
         let prim = reference_at(&bvh, &pp, &pn, &params, rays);
         against_primary = Some(compare(&ao, &prim.v, &prim.variance, rays, info.width, info.height));
-        silhouette_mismatch = Some(ao.iter().zip(&prim.v).filter(|(a, b)| a.is_finite() != b.is_finite()).count());
+        silhouette_mismatch =
+            Some(ao.iter().zip(&prim.v).filter(|(a, b)| a.is_finite() != b.is_finite()).count());
         write_file(&render_dir.join("primary.f32"), &crate::render::f32_bytes(&prim.v))?;
         write_png_rgba(&render_dir.join("primary.png"), info.width, info.height, &grey_rgba(&prim.v))?;
     }

@@ -42,7 +42,11 @@ impl CameraSpec {
     }
 
     pub fn validate(&self) -> anyhow::Result<()> {
-        let all = self.eye.iter().chain(&self.target).chain(&self.up).chain([&self.fov_y_deg, &self.near, &self.far]);
+        let all = self.eye.iter().chain(&self.target).chain(&self.up).chain([
+            &self.fov_y_deg,
+            &self.near,
+            &self.far,
+        ]);
         ensure!(all.into_iter().all(|v| v.is_finite()), "camera: every value must be a finite number");
         let forward = DVec3::from(self.target) - DVec3::from(self.eye);
         ensure!(forward.length() > 0.0, "camera: eye and target are the same point");
@@ -332,7 +336,8 @@ pub fn write_outputs(dir: &Path, out: &RenderOutput) -> anyhow::Result<()> {
 pub fn read_outputs(dir: &Path) -> anyhow::Result<(RenderInfo, Vec<f32>, Vec<[f64; 3]>, Vec<[f32; 3]>)> {
     let read = |name: &str| {
         let p = dir.join(name);
-        std::fs::read(&p).with_context(|| format!("reading {} (is --render a `voxstream render` output?)", p.display()))
+        std::fs::read(&p)
+            .with_context(|| format!("reading {} (is --render a `voxstream render` output?)", p.display()))
     };
     let info: RenderInfo = serde_json::from_slice(&read("render.json")?)
         .with_context(|| format!("{} is not a render.json", dir.join("render.json").display()))?;
@@ -344,17 +349,29 @@ pub fn read_outputs(dir: &Path) -> anyhow::Result<(RenderInfo, Vec<f32>, Vec<[f6
     );
     info.camera.validate()?;
     ensure!(
-        info.ao.max_distance.is_finite() && info.ao.max_distance > 0.0 && info.ao.falloff.is_finite() && info.ao.falloff >= 0.0,
+        info.ao.max_distance.is_finite()
+            && info.ao.max_distance > 0.0
+            && info.ao.falloff.is_finite()
+            && info.ao.falloff >= 0.0,
         "render.json: ao.max_distance must be > 0 and ao.falloff >= 0"
     );
     let n = (info.width * info.height) as usize;
     let ao = read("ao.f32")?;
-    ensure!(ao.len() == n * 4, "ao.f32 has {} bytes, expected {} for {}x{}", ao.len(), n * 4, info.width, info.height);
+    ensure!(
+        ao.len() == n * 4,
+        "ao.f32 has {} bytes, expected {} for {}x{}",
+        ao.len(),
+        n * 4,
+        info.width,
+        info.height
+    );
     let pos = read("position.f64")?;
     ensure!(pos.len() == n * 24, "position.f64 has {} bytes, expected {}", pos.len(), n * 24);
     let nrm = read("normal.f32")?;
     ensure!(nrm.len() == n * 12, "normal.f32 has {} bytes, expected {}", nrm.len(), n * 12);
-    let f32s = |b: &[u8]| -> Vec<f32> { b.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().expect("4"))).collect() };
+    let f32s = |b: &[u8]| -> Vec<f32> {
+        b.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().expect("4"))).collect()
+    };
     let ao = f32s(&ao);
     let position = pos
         .chunks_exact(24)
@@ -424,12 +441,23 @@ mod tests {
 
     #[test]
     fn view_matrix_puts_the_target_at_the_centre_and_is_translation_exact() {
-        let c = CameraSpec { eye: [3.0, 2.0, 5.0], target: [1.0, 1.0, 1.0], up: [0.0, 1.0, 0.0], fov_y_deg: 50.0, near: 0.1, far: 50.0 };
+        let c = CameraSpec {
+            eye: [3.0, 2.0, 5.0],
+            target: [1.0, 1.0, 1.0],
+            up: [0.0, 1.0, 0.0],
+            fov_y_deg: 50.0,
+            near: 0.1,
+            far: 50.0,
+        };
         let m = c.view_proj_grid([0.0; 3], 0.5, 200, 100);
         let t = m * DVec4::new(2.0, 2.0, 2.0, 1.0); // target in grid units
         assert!((t.x / t.w).abs() < 1e-12 && (t.y / t.w).abs() < 1e-12);
         // The same camera and scene moved by 1e6: identical grid-space matrix.
-        let moved = CameraSpec { eye: [1e6 + 3.0, 2.0 - 1e6, 5.0 + 1e6], target: [1e6 + 1.0, 1.0 - 1e6, 1.0 + 1e6], ..c };
+        let moved = CameraSpec {
+            eye: [1e6 + 3.0, 2.0 - 1e6, 5.0 + 1e6],
+            target: [1e6 + 1.0, 1.0 - 1e6, 1.0 + 1e6],
+            ..c
+        };
         let m2 = moved.view_proj_grid([1e6, -1e6, 1e6], 0.5, 200, 100);
         assert!(m.abs_diff_eq(m2, 1e-9), "{m} vs {m2}");
         // The pixel ray through the centre is the view direction; row 0 looks up.
@@ -468,7 +496,13 @@ mod tests {
                     occupancy_cell_size: 0.1,
                     cone_directions: vec![],
                 },
-                timings: Timings { frame_ms: None, frame_no_ao_ms: None, ao_pass_ms: None, ao_over_frame: None, runs: 0 },
+                timings: Timings {
+                    frame_ms: None,
+                    frame_no_ao_ms: None,
+                    ao_pass_ms: None,
+                    ao_over_frame: None,
+                    runs: 0,
+                },
                 adapter: "test".into(),
                 blocks_drawn: 0,
                 levels_drawn: vec![],
