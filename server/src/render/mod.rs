@@ -332,8 +332,11 @@ pub fn write_outputs(dir: &Path, out: &RenderOutput) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// render.json, ao.f32, position.f64 and normal.f32 as read back.
+pub type RenderFiles = (RenderInfo, Vec<f32>, Vec<[f64; 3]>, Vec<[f32; 3]>);
+
 /// Reads back what [`write_outputs`] wrote, checking every size.
-pub fn read_outputs(dir: &Path) -> anyhow::Result<(RenderInfo, Vec<f32>, Vec<[f64; 3]>, Vec<[f32; 3]>)> {
+pub fn read_outputs(dir: &Path) -> anyhow::Result<RenderFiles> {
     let read = |name: &str| {
         let p = dir.join(name);
         std::fs::read(&p)
