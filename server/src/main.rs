@@ -59,6 +59,9 @@ enum Command {
     /// Render one view of a stored scene offscreen (Vulkan; lavapipe without a GPU) and write
     /// image.png, ao.f32, position.f64, normal.f32 and render.json.
     Render(RenderArgs),
+    /// Benchmark the cone-traced AO: run time against error over a sweep of settings on the
+    /// analytic scenes and the named views; writes docs/ao-benchmark.md and docs/ao-pareto.png.
+    AoBench(voxstream::reference::bench::AoBenchArgs),
     /// Ray-trace the AO reference on the CPU at the points a `render` wrote, against the
     /// original mesh; writes reference.f32, reference_stderr.f32, reference.png, primary.f32
     /// and compare.json.
@@ -264,6 +267,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             println!("{}", serde_json::to_string_pretty(&out.info)?);
             Ok(())
         }
+        Command::AoBench(args) => voxstream::reference::bench::ao_bench_main(&args),
         Command::ReferenceAo { mesh, render, rays, no_primary } => {
             let report = voxstream::reference::reference_command(&mesh, &render, rays, !no_primary)?;
             println!("{}", serde_json::to_string_pretty(&report)?);

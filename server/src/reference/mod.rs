@@ -13,6 +13,7 @@
 //! 1e6 gives the same reference.
 
 pub mod analytic;
+pub mod bench;
 pub mod metrics;
 
 use std::path::Path;
