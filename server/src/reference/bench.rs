@@ -66,7 +66,11 @@ fn sweep() -> Vec<Point> {
         settings: AoSettings { aperture_deg: Some(d.aperture() * 1.5), ..d },
         scale: 1,
     });
-    points.push(Point { label: "6 cones, empty skip".into(), settings: AoSettings { empty_skip: true, ..d }, scale: 1 });
+    points.push(Point {
+        label: "6 cones, empty skip".into(),
+        settings: AoSettings { empty_skip: true, ..d },
+        scale: 1,
+    });
     points.push(Point { label: "6 cones, 2x resolution".into(), settings: d, scale: 2 });
     points
 }
@@ -89,6 +93,17 @@ pub struct Row {
     /// Against the ray-traced view of the mesh (voxelization included).
     pub primary_rmse: f64,
     pub primary_bias: f64,
+}
+
+/// One image scale's reference: scale, the points, V, one-ray variance, exact V
+/// (analytic views) and V of the ray-traced view.
+struct ScaleReference {
+    scale: u32,
+    positions: Vec<[f64; 3]>,
+    v: Vec<f32>,
+    variance: Vec<f32>,
+    exact: Option<Vec<f32>>,
+    primary: Vec<f32>,
 }
 
 struct View {
@@ -175,7 +190,7 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
         let (mesh, _) = crate::ingest::read_mesh(&view.mesh)?;
         let mut bvh: Option<MeshBvh> = None;
         // Reference per image scale, at the default render's points.
-        let mut references: Vec<(u32, Vec<[f64; 3]>, Vec<f32>, Vec<f32>, Option<Vec<f32>>, Vec<f32>)> = Vec::new();
+        let mut references: Vec<ScaleReference> = Vec::new();
         for point in &points {
             let (w, h) = (args.width * point.scale, args.height * point.scale);
             let out = render_view(&RenderRequest {
@@ -188,7 +203,7 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
                 timing_runs: 3,
             })?;
             let bvh = bvh.get_or_insert_with(|| MeshBvh::new(&mesh, out.info.grid_origin));
-            if !references.iter().any(|r| r.0 == point.scale) {
+            if !references.iter().any(|r| r.scale == point.scale) {
                 let params = AoParams {
                     max_distance: out.info.ao.max_distance,
                     falloff: out.info.ao.falloff,
@@ -198,10 +213,17 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
                 let exact = view.shapes.as_ref().map(|s| exact_image(s, &out, 32));
                 let (pp, pn) = crate::reference::primary_hits(bvh, &out.info);
                 let primary = reference_at(bvh, &pp, &pn, &params, args.rays / 4);
-                references.push((point.scale, out.position.clone(), reference.v, reference.variance, exact, primary.v));
+                references.push(ScaleReference {
+                    scale: point.scale,
+                    positions: out.position.clone(),
+                    v: reference.v,
+                    variance: reference.variance,
+                    exact,
+                    primary: primary.v,
+                });
             }
-            let (_, positions, reference, variance, exact, primary) =
-                references.iter().find(|r| r.0 == point.scale).expect("just made");
+            let ScaleReference { positions, v: reference, variance, exact, primary, .. } =
+                references.iter().find(|r| r.scale == point.scale).expect("just made");
             anyhow::ensure!(
                 positions.iter().zip(&out.position).all(|(a, b)| a == b || (a[0].is_nan() && b[0].is_nan())),
                 "{}: the render's points changed with the AO setting",
@@ -292,7 +314,13 @@ fn fmt_opt(v: Option<f64>, digits: usize) -> String {
     v.map_or("—".to_string(), |v| format!("{v:.digits$}"))
 }
 
-fn write_markdown(path: &Path, args: &AoBenchArgs, rows: &[Row], summary: &[Summary], skipped: &[String]) -> anyhow::Result<()> {
+fn write_markdown(
+    path: &Path,
+    args: &AoBenchArgs,
+    rows: &[Row],
+    summary: &[Summary],
+    skipped: &[String],
+) -> anyhow::Result<()> {
     use std::fmt::Write;
     let adapter = voxstream_viewer::offscreen::Gpu::new().map(|g| g.adapter_name()).unwrap_or_default();
     let mut s = String::new();
@@ -300,7 +328,11 @@ fn write_markdown(path: &Path, args: &AoBenchArgs, rows: &[Row], summary: &[Summ
     writeln!(
         s,
         "Written by `voxstream ao-bench` (server/src/reference/bench.rs) on {adapter}: scenes built at {}³, images {}×{} (2× for one point), reference {} cosine-weighted rays per pixel at the render's own points (obvhs BVH over the original triangles), the ray-traced view of the mesh with {} rays. Times are medians of three frames, with AO and without (the AO is traced in the fragment shader; `AO/frame` = (with − without) / without). Equal-error rays: k with mean σ²/k = the renderer's MSE (— where the error is below what the reference resolves). Exact MAE: analytic scenes only, against the exact geometry's quadrature.\n",
-        args.resolution, args.width, args.height, args.rays, args.rays / 4
+        args.resolution,
+        args.width,
+        args.height,
+        args.rays,
+        args.rays / 4
     )?;
     if !skipped.is_empty() {
         writeln!(s, "Views skipped: {}.\n", skipped.join("; "))?;
@@ -322,7 +354,10 @@ fn write_markdown(path: &Path, args: &AoBenchArgs, rows: &[Row], summary: &[Summ
         )?;
     }
     writeln!(s, "\n## Every view and setting\n")?;
-    writeln!(s, "| view | setting | size | frame ms | no-AO ms | AO/frame | RMSE | bias | SSIM | eq. rays | exact MAE | RMSE vs ray-traced view | bias vs ray-traced view |")?;
+    writeln!(
+        s,
+        "| view | setting | size | frame ms | no-AO ms | AO/frame | RMSE | bias | SSIM | eq. rays | exact MAE | RMSE vs ray-traced view | bias vs ray-traced view |"
+    )?;
     writeln!(s, "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")?;
     for r in rows {
         writeln!(
@@ -354,7 +389,8 @@ fn write_pareto_png(path: &Path, summary: &[Summary]) -> anyhow::Result<()> {
     let (w, h) = (640usize, 480usize);
     let mut img = vec![255u8; w * h * 3];
     let (l, r, t, b) = (60.0, 620.0, 20.0, 440.0);
-    let finite: Vec<&Summary> = summary.iter().filter(|s| s.mean_frame_ms > 0.0 && s.mean_rmse.is_finite()).collect();
+    let finite: Vec<&Summary> =
+        summary.iter().filter(|s| s.mean_frame_ms > 0.0 && s.mean_rmse.is_finite()).collect();
     let tmin = finite.iter().map(|s| s.mean_frame_ms).fold(f64::INFINITY, f64::min).ln();
     let tmax = finite.iter().map(|s| s.mean_frame_ms).fold(0.0, f64::max).ln();
     let emax = finite.iter().map(|s| s.mean_rmse).fold(0.0, f64::max) * 1.1;
@@ -375,7 +411,12 @@ fn write_pareto_png(path: &Path, summary: &[Summary]) -> anyhow::Result<()> {
     let mut front: Vec<&&Summary> = finite.iter().filter(|s| s.pareto).collect();
     front.sort_by(|a, b| a.mean_frame_ms.total_cmp(&b.mean_frame_ms));
     for pair in front.windows(2) {
-        let (x0, y0, x1, y1) = (px(pair[0].mean_frame_ms), py(pair[0].mean_rmse), px(pair[1].mean_frame_ms), py(pair[1].mean_rmse));
+        let (x0, y0, x1, y1) = (
+            px(pair[0].mean_frame_ms),
+            py(pair[0].mean_rmse),
+            px(pair[1].mean_frame_ms),
+            py(pair[1].mean_rmse),
+        );
         let n = ((x1 - x0).abs().max((y1 - y0).abs()) as usize).max(1);
         for k in 0..=n {
             let f = k as f64 / n as f64;
