@@ -220,6 +220,13 @@ pub fn build_scene_reporting(
             triangles: stats.triangles + stats.skipped,
             skipped_triangles: stats.skipped,
         },
+        resolution_choice: voxstream_format::ResolutionChoice {
+            mode: "explicit".into(),
+            resolution: frame.resolution,
+            voxel_size: frame.voxel_size,
+            median_edge: None,
+            reason: format!("--resolution {} was asked for", frame.resolution),
+        },
         grid: frame,
         levels: &levels,
     };
@@ -231,7 +238,7 @@ pub fn build_scene_reporting(
         triangles: manifest.source.triangles,
         skipped_triangles: stats.skipped,
         voxels: manifest.levels[0].voxels,
-        blocks: manifest.blocks.len() as u32,
+        blocks: manifest.block_count() as u32,
         levels: manifest.levels.len() as u8,
         bytes: manifest.levels.iter().map(|l| l.bytes).sum(),
         seconds: start.elapsed().as_secs_f64(),

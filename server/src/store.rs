@@ -11,9 +11,11 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
+use voxstream_format::hierarchy::page_path;
 use voxstream_format::{
-    BLOCK_SIZE, Block, BlockEntry, BlockKey, FORMAT_VERSION, GridFrame, LevelInfo, Manifest, PackedVoxel,
-    SourceInfo, VoxelBounds, coverage_from_count, encode_block, oct_encode,
+    BLOCK_SIZE, Block, BlockEntry, BlockKey, BlockLocation, FORMAT_VERSION, GridFrame, LevelInfo, Manifest,
+    PAGE_LEVELS, PackedVoxel, PageBuilder, PageError, ResolutionChoice, SceneIndex, SourceInfo, VoxelBounds,
+    coverage_from_count, encode_block, load_scene_index, oct_encode,
 };
 
 use crate::lod::{LodBlock, local_position};
@@ -118,6 +120,7 @@ pub struct SceneContent<'a> {
     pub name: String,
     pub source: SourceInfo,
     pub grid: GridFrame,
+    pub resolution_choice: ResolutionChoice,
     /// Blocks per level, finest first, each level sorted by key.
     pub levels: &'a [Vec<LodBlock>],
 }
@@ -165,27 +168,21 @@ fn write_scene_dir(
 ) -> Result<Manifest, StoreError> {
     let counter = StageCounter::new(progress, Stage::Write, content.levels.iter().map(Vec::len).sum());
     let blocks_dir = dir.join("blocks");
-    fs::create_dir_all(&blocks_dir).map_err(io("create directory", &blocks_dir))?;
+    let pages_dir = dir.join("pages");
+    for d in [&blocks_dir, &pages_dir] {
+        fs::create_dir_all(d).map_err(io("create directory", d))?;
+    }
+    let coarsest = (content.levels.len().max(1) - 1) as u8;
+    let mut pages = PageBuilder::new(coarsest, PAGE_LEVELS);
     let mut levels = Vec::new();
-    let mut blocks = Vec::new();
+    // Finest level first: children reach the page builder before their parents.
     for (l, level) in content.levels.iter().enumerate() {
         let entries: Vec<BlockEntry> = level
             .par_iter()
             .map(|b| {
-                let packed = packed_block(b);
-                let bytes = encode_block(&packed);
-                let path = blocks_dir.join(format!("{}.vxb", b.key));
-                write_synced(&path, &bytes)?;
+                let entry = write_block(&blocks_dir, b)?;
                 counter.tick();
-                Ok(BlockEntry {
-                    key: b.key,
-                    bounds: tight_bounds(b),
-                    voxels: packed.voxels.len() as u32,
-                    faces: packed.face_count(),
-                    bytes: bytes.len() as u32,
-                    hash: blake3::hash(&bytes).to_hex().to_string(),
-                    geometric_error: b.geometric_error(),
-                })
+                Ok(entry)
             })
             .collect::<Result<_, StoreError>>()?;
         levels.push(LevelInfo {
@@ -195,9 +192,13 @@ fn write_scene_dir(
             voxels: entries.iter().map(|e| e.voxels as u64).sum(),
             bytes: entries.iter().map(|e| e.bytes as u64).sum(),
         });
-        blocks.extend(entries);
+        for e in entries {
+            if let Some((page_ref, bytes)) = pages.add(e).map_err(page_err)? {
+                write_synced(&dir.join(page_path(&page_ref.root)), &bytes)?;
+            }
+        }
     }
-    blocks.sort_by_key(|b| b.key);
+    let (root, root_page) = pages.finish().map_err(page_err)?;
     let manifest = Manifest {
         format_version: FORMAT_VERSION,
         name: content.name.clone(),
@@ -205,11 +206,39 @@ fn write_scene_dir(
         grid: content.grid.clone(),
         block_size: BLOCK_SIZE,
         levels,
-        blocks,
+        resolution_choice: content.resolution_choice.clone(),
+        page_levels: PAGE_LEVELS,
+        root,
+        root_page,
     };
     write_synced(&dir.join("manifest.json"), &manifest.to_json())?;
-    fs::File::open(&blocks_dir).and_then(|d| d.sync_all()).map_err(io("sync", &blocks_dir))?;
+    for d in [&blocks_dir, &pages_dir] {
+        fs::File::open(d).and_then(|f| f.sync_all()).map_err(io("sync", d))?;
+    }
     Ok(manifest)
+}
+
+fn page_err(e: PageError) -> StoreError {
+    StoreError::Damaged { id: "(being written)".into(), message: format!("hierarchy: {e}") }
+}
+
+/// Packs, encodes and writes one block as `blocks/<key>.vxb`; returns its entry
+/// (child mask still 0: the page builder fills it in).
+pub fn write_block(blocks_dir: &Path, b: &LodBlock) -> Result<BlockEntry, StoreError> {
+    let packed = packed_block(b);
+    let bytes = encode_block(&packed);
+    write_synced(&blocks_dir.join(format!("{}.vxb", b.key)), &bytes)?;
+    Ok(BlockEntry {
+        key: b.key,
+        bounds: tight_bounds(b),
+        voxels: packed.voxels.len() as u32,
+        faces: packed.face_count(),
+        bytes: bytes.len() as u32,
+        hash: blake3::hash(&bytes).to_hex().to_string(),
+        geometric_error: b.geometric_error(),
+        child_mask: 0,
+        location: BlockLocation::FILE,
+    })
 }
 
 fn publish(store: &Path, id: &str, tmp: &Path) -> Result<(), StoreError> {
@@ -252,18 +281,36 @@ fn exchange_dirs(_a: &Path, _b: &Path) -> std::io::Result<()> {
     Err(std::io::Error::from(std::io::ErrorKind::Unsupported))
 }
 
-/// A published scene, as the server reads it.
+/// A published scene, as the server reads it: the manifest and every page,
+/// checked when opened, so a listed scene's hierarchy is complete.
 #[derive(Debug, Clone)]
 pub struct StoredScene {
     pub id: String,
     pub dir: PathBuf,
     pub manifest: Manifest,
+    pub index: std::sync::Arc<SceneIndex>,
 }
 
 impl StoredScene {
     pub fn block_path(&self, key: &BlockKey) -> PathBuf {
         self.dir.join("blocks").join(format!("{key}.vxb"))
     }
+
+    pub fn page_path(&self, root: &BlockKey) -> PathBuf {
+        self.dir.join(page_path(root))
+    }
+
+    /// Every block entry, sorted by key.
+    pub fn blocks(&self) -> Vec<&BlockEntry> {
+        let mut all: Vec<&BlockEntry> = self.index.blocks().collect();
+        all.sort_by_key(|b| b.key);
+        all
+    }
+}
+
+/// Reads every hierarchy page of the scene in `dir`.
+pub fn read_scene_index(dir: &Path, manifest: &Manifest) -> Result<SceneIndex, String> {
+    load_scene_index(manifest, |r| fs::read(dir.join(page_path(&r.root)))).map_err(|e| e.to_string())
 }
 
 /// Lists the published scenes of a store, sorted by id. A missing store is empty.
@@ -291,9 +338,10 @@ pub fn open_scene(store: &Path, id: &str) -> Result<StoredScene, StoreError> {
     let dir = store.join(id);
     let path = dir.join("manifest.json");
     let bytes = fs::read(&path).map_err(io("read", &path))?;
-    let manifest = Manifest::from_json(&bytes)
-        .map_err(|e| StoreError::Damaged { id: id.to_string(), message: e.to_string() })?;
-    Ok(StoredScene { id: id.to_string(), dir, manifest })
+    let damaged = |message: String| StoreError::Damaged { id: id.to_string(), message };
+    let manifest = Manifest::from_json(&bytes).map_err(|e| damaged(e.to_string()))?;
+    let index = read_scene_index(&dir, &manifest).map_err(damaged)?;
+    Ok(StoredScene { id: id.to_string(), dir, manifest, index: std::sync::Arc::new(index) })
 }
 
 #[cfg(test)]
