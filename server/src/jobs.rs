@@ -20,12 +20,12 @@ use tokio::sync::{Semaphore, watch};
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
-use crate::build::{BuildError, BuildOptions, build_scene_reporting};
 use crate::catalog::{BuildInfo, Catalog, now_unix, write_build_info};
 use crate::metrics::Metrics;
-use crate::progress::Progress;
+use crate::pipeline::progress::Progress;
+use crate::pipeline::voxelize::Topology;
+use crate::pipeline::{BuildError, BuildOptions, build_scene_reporting};
 use crate::uploads::{Uploads, write_json_atomic};
-use crate::voxelize::Topology;
 
 pub const JOBS_DIR: &str = ".jobs";
 /// Starts of one job that may be cut short by a crash before it is given up:

@@ -2,9 +2,9 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
-use voxstream::build::{BuildOptions, build_scene_reporting, parse_byte_size};
-use voxstream::progress::Progress;
-use voxstream::voxelize::Topology;
+use voxstream::pipeline::progress::Progress;
+use voxstream::pipeline::voxelize::Topology;
+use voxstream::pipeline::{BuildOptions, build_scene_reporting, parse_byte_size};
 
 /// voxstream: huge 3D scans as streamed voxel blocks.
 #[derive(Parser)]

@@ -355,7 +355,7 @@ pub async fn get_thumbnail(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::build::{BuildOptions, build_scene};
+    use crate::pipeline::{BuildOptions, build_scene};
     use crate::store::open_scene;
     use std::fmt::Write as _;
 

@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::ingest::MeshFormat;
+use crate::pipeline::read::MeshFormat;
 
 pub const UPLOADS_DIR: &str = ".uploads";
 const RECORD: &str = "upload.json";

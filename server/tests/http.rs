@@ -10,9 +10,9 @@ use std::time::Duration;
 use base64::Engine;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_util::sync::CancellationToken;
-use voxstream::build::{BuildOptions, build_scene};
 use voxstream::config::ServerConfig;
 use voxstream::http::{AppState, BLOCK_CACHE_CONTROL, router};
+use voxstream::pipeline::{BuildOptions, build_scene};
 use voxstream_format::{Manifest, SceneSummary, decode_block};
 
 const TOKEN: &str = "s3cret-token";

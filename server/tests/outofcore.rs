@@ -8,11 +8,11 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 
-use voxstream::build::{BuildError, BuildOptions, build_scene, parse_byte_size};
-use voxstream::ingest::{TriangleMesh, read_mesh};
-use voxstream::lod::build_levels;
-use voxstream::store::packed_block;
-use voxstream::voxelize::{choose_frame, voxelize};
+use voxstream::pipeline::pyramid::build_levels;
+use voxstream::pipeline::read::{TriangleMesh, read_mesh};
+use voxstream::pipeline::voxelize::{choose_frame, voxelize};
+use voxstream::pipeline::write::packed_block;
+use voxstream::pipeline::{BuildError, BuildOptions, build_scene, parse_byte_size};
 use voxstream_format::encode_block;
 
 fn koala() -> PathBuf {

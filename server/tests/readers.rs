@@ -6,11 +6,11 @@
 use std::path::{Path, PathBuf};
 
 use serde_json::json;
-use voxstream::build::{BuildOptions, build_scene};
-use voxstream::ingest::{
+use voxstream::pipeline::read::{
     IngestError, MeshFormat, ReadOptions, RecordLayout, TriangleMesh, TriangleSink, read_mesh,
     read_mesh_bytes, stream_mesh, stream_mesh_bytes,
 };
+use voxstream::pipeline::{BuildOptions, build_scene};
 
 /// The shared meshes live beside the repository (never in it); tests that need
 /// one skip, saying so, where it is absent.

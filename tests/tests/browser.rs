@@ -16,8 +16,8 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use serde_json::Value;
-use voxstream::build::{BuildOptions, build_scene};
 use voxstream::http::{AppState, router};
+use voxstream::pipeline::{BuildOptions, build_scene};
 use voxstream_e2e::coverage;
 use voxstream_format::{BlockKey, decode_block};
 use voxstream_viewer::BACKGROUND_RGBA8;
@@ -323,7 +323,7 @@ fn upload_page_builds_and_opens_scene() {
     let scenes = scenes.as_array().expect("a JSON array");
     assert_eq!(scenes.len(), 1, "one upload, one scene: {scenes:?}");
     let scene = &scenes[0];
-    let (mesh_data, _) = voxstream::ingest::read_mesh(&mesh).expect("read koala.obj");
+    let (mesh_data, _) = voxstream::pipeline::read::read_mesh(&mesh).expect("read koala.obj");
     assert_eq!(scene["id"], "koala");
     assert_eq!(scene["triangles"].as_u64(), Some(mesh_data.triangles.len() as u64), "{scene}");
     assert_eq!(scene["resolution"], 64, "the server default applies: {scene}");

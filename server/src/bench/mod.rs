@@ -286,11 +286,11 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<Report> {
     let threads = parse_thread_list(&args.threads).map_err(|e| anyhow::anyhow!("--threads: {e}"))?;
     let budget_bytes = match &args.memory_budget {
         Some(b) => {
-            Some(crate::build::parse_byte_size(b).map_err(|e| anyhow::anyhow!("--memory-budget: {e}"))?)
+            Some(crate::pipeline::parse_byte_size(b).map_err(|e| anyhow::anyhow!("--memory-budget: {e}"))?)
         }
         None => None,
     };
-    crate::voxelize::check_resolution(args.resolution)?;
+    crate::pipeline::voxelize::check_resolution(args.resolution)?;
     let machine = machine();
     let exe = std::env::current_exe().context("locating the voxstream binary")?;
     let mut inputs: Vec<PathBuf> = if args.inputs.is_empty() {

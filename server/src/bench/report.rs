@@ -457,14 +457,14 @@ mod tests {
         assert!(parse_thread_list("1,1").is_err());
         assert!(parse_thread_list("1,x").is_err());
         assert!(parse_thread_list("").is_err());
-        assert_eq!(crate::build::parse_byte_size("4G").unwrap(), 4 << 30);
-        assert_eq!(crate::build::parse_byte_size("512MiB").unwrap(), 512 << 20);
-        assert_eq!(crate::build::parse_byte_size("1.5g").unwrap(), 3 << 29);
-        assert_eq!(crate::build::parse_byte_size("1000000").unwrap(), 1_000_000);
-        assert_eq!(crate::build::parse_byte_size("64 kb").unwrap(), 64 << 10);
-        assert!(crate::build::parse_byte_size("4X").is_err());
-        assert!(crate::build::parse_byte_size("G").is_err());
-        assert!(crate::build::parse_byte_size("0").is_err());
-        assert!(crate::build::parse_byte_size("99999999T").is_err());
+        assert_eq!(crate::pipeline::parse_byte_size("4G").unwrap(), 4 << 30);
+        assert_eq!(crate::pipeline::parse_byte_size("512MiB").unwrap(), 512 << 20);
+        assert_eq!(crate::pipeline::parse_byte_size("1.5g").unwrap(), 3 << 29);
+        assert_eq!(crate::pipeline::parse_byte_size("1000000").unwrap(), 1_000_000);
+        assert_eq!(crate::pipeline::parse_byte_size("64 kb").unwrap(), 64 << 10);
+        assert!(crate::pipeline::parse_byte_size("4X").is_err());
+        assert!(crate::pipeline::parse_byte_size("G").is_err());
+        assert!(crate::pipeline::parse_byte_size("0").is_err());
+        assert!(crate::pipeline::parse_byte_size("99999999T").is_err());
     }
 }

@@ -1,4 +1,16 @@
-//! The build pipeline: ingest → voxelize → lod → store, as one call.
+//! The build pipeline, one stage a module, in data-flow order:
+//! [`read`] (mesh files) → [`stream`] (chunked triangle stream) → [`bin`]
+//! (triangles binned by 64³ block, out of core) → [`voxelize`] (one brick a
+//! block) → [`pyramid`] (faces, coarser levels) → [`write`] (pack, encode,
+//! publish). [`build_scene`] runs them as one call, reporting [`progress`].
+
+pub mod bin;
+pub mod progress;
+pub mod pyramid;
+pub mod read;
+pub mod stream;
+pub mod voxelize;
+pub mod write;
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -7,13 +19,13 @@ use std::time::Instant;
 
 use voxstream_format::SourceInfo;
 
-use crate::bin_spill::{self, StreamSink};
-use crate::ingest::{self, IngestError, ReadOptions};
-use crate::lod;
-use crate::progress::{Progress, ProgressSink, Stage};
-use crate::store::{self, SceneContent, StoreError};
-use crate::tristream::ChunkStore;
-use crate::voxelize::{self, Topology, VoxelizeError};
+use crate::pipeline::bin::StreamSink;
+use crate::pipeline::progress::{Progress, ProgressSink, Stage};
+use crate::pipeline::read::{IngestError, ReadOptions};
+use crate::pipeline::stream::ChunkStore;
+use crate::pipeline::voxelize::{Topology, VoxelizeError};
+use crate::pipeline::write::SceneContent;
+use crate::store::{self, StoreError};
 
 #[derive(Debug, Clone)]
 pub struct BuildOptions {
@@ -155,7 +167,7 @@ pub fn build_scene_reporting(
     };
     let stream_store = ChunkStore::new(&temp.path().join("stream.vxt"), (opts.memory_budget / 8) as usize);
     let mut sink = StreamSink::new(stream_store, &mut on_tick);
-    let format = ingest::stream_mesh(input, &mut sink, &read_opts).and_then(|f| sink.finish().map(|()| f));
+    let format = read::stream_mesh(input, &mut sink, &read_opts).and_then(|f| sink.finish().map(|()| f));
     let format = match format {
         Err(IngestError::Cancelled) => return Err(BuildError::Cancelled),
         r => r?,
@@ -179,14 +191,8 @@ pub fn build_scene_reporting(
     // Pass 2 and 3: bin by block, then voxelize blocks in parallel.
     let frame = voxelize::frame_from_bounds(&bounds, opts.resolution, read_skipped)?;
     progress.stage(Stage::Voxelize, 0.0);
-    let bins = bin_spill::bin_triangles(
-        &stream_store,
-        layout,
-        &frame,
-        &temp.path().join("bins.vxt"),
-        opts,
-        &progress,
-    )?;
+    let bins =
+        bin::bin_triangles(&stream_store, layout, &frame, &temp.path().join("bins.vxt"), opts, &progress)?;
     tracing::debug!(
         seconds = start.elapsed().as_secs_f64(),
         stream_chunks = stream_store.len(),
@@ -196,8 +202,8 @@ pub fn build_scene_reporting(
         "build: bin done"
     );
     drop(stream_store);
-    let (level0, mut stats) = bin_spill::voxelize_bins(&bins, &frame, opts.topology, opts, &progress)
-        .map_err(|e| match e {
+    let (level0, mut stats) =
+        bin::voxelize_bins(&bins, &frame, opts.topology, opts, &progress).map_err(|e| match e {
             BuildError::Voxelize(VoxelizeError::NoValidTriangle { skipped }) => {
                 VoxelizeError::NoValidTriangle { skipped: skipped + read_skipped }.into()
             }
@@ -208,7 +214,7 @@ pub fn build_scene_reporting(
     tracing::debug!(seconds = start.elapsed().as_secs_f64(), "build: vox done");
     opts.check_cancelled()?;
     progress.stage(Stage::Lod, 0.0);
-    let levels = lod::build_levels(level0, frame.resolution);
+    let levels = pyramid::build_levels(level0, frame.resolution);
     progress.stage(Stage::Lod, 1.0);
     tracing::debug!(seconds = start.elapsed().as_secs_f64(), "build: lod done");
     opts.check_cancelled()?;
@@ -223,7 +229,7 @@ pub fn build_scene_reporting(
         grid: frame,
         levels: &levels,
     };
-    let manifest = store::write_scene_reporting(store_dir, &id, &content, &progress)?;
+    let manifest = write::write_scene_reporting(store_dir, &id, &content, &progress)?;
     drop(temp);
     Ok(BuildReport {
         scene_dir: store_dir.join(&id),

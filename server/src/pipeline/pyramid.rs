@@ -1,7 +1,7 @@
 //! LOD: exposed-face masks and the 2³ merge that builds coarser levels
 //! (seed 003 §3): a parent voxel exists if any of its 8 children does, its
 //! face mask is the OR of theirs and its normal and colour sums are the sums
-//! of theirs (averaged when packed: `store::packed_block`).
+//! of theirs (averaged when packed: `write::packed_block`).
 //!
 //! Skirts: a level-0 face on a block's boundary is always marked exposed,
 //! whatever the neighbour block holds, so a block next to a coarser or finer
@@ -29,7 +29,7 @@ use std::collections::BTreeMap;
 use rayon::prelude::*;
 use voxstream_format::{BLOCK_SIZE, BLOCK_VOXELS, BlockKey, Face, demorton3, morton3};
 
-use crate::voxelize::{BuildVoxel, SparseBlock};
+use crate::pipeline::voxelize::{BuildVoxel, SparseBlock};
 
 /// A voxel on any level while the LOD is built.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -1,5 +1,5 @@
 //! Out-of-core voxelization: the build's three passes over the chunked
-//! triangle stream ([`crate::tristream`]), each within the memory budget.
+//! triangle stream ([`crate::pipeline::stream`]), each within the memory budget.
 //!
 //! 1. **Stream** ([`StreamSink`]): the reader pushes triangles; valid ones
 //!    (finite, non-zero area) are packed into chunks whose headers carry
@@ -33,14 +33,14 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use rayon::prelude::*;
 use voxstream_format::{BlockKey, GridFrame};
 
-use crate::build::{BuildError, BuildOptions};
-use crate::ingest::{IngestError, TriangleSink};
-use crate::progress::{ProgressSink, Stage};
-use crate::tristream::{Bounds, ChunkStore, MAX_CHUNK_TRIANGLES, RecordLayout};
-use crate::voxelize::{
+use crate::pipeline::progress::{ProgressSink, Stage};
+use crate::pipeline::read::{IngestError, TriangleSink};
+use crate::pipeline::stream::{Bounds, ChunkStore, MAX_CHUNK_TRIANGLES, RecordLayout};
+use crate::pipeline::voxelize::{
     BLOCK_VOXELIZER_BYTES, BuildVoxel, SparseBlock, Topology, VoxelizeError, VoxelizeStats, block_range,
     to_grid, to_grid_unchecked, valid_triangle, with_block_voxelizer,
 };
+use crate::pipeline::{BuildError, BuildOptions};
 
 /// Chunks encoded (lz4 when spilled) together on all cores.
 const PENDING_CHUNKS: usize = 8;
@@ -156,7 +156,7 @@ impl Bins {
     }
 }
 
-fn temp_err(e: crate::tristream::ChunkError) -> BuildError {
+fn temp_err(e: crate::pipeline::stream::ChunkError) -> BuildError {
     BuildError::Temp(e.to_string())
 }
 

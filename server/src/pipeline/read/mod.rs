@@ -2,7 +2,7 @@
 //!
 //! Every reader pushes triangles, in file order, into a [`TriangleSink`]:
 //! the build's sink writes them into the chunked triangle stream
-//! ([`crate::tristream`]) so a huge scan never sits in memory; the
+//! ([`crate::pipeline::stream`]) so a huge scan never sits in memory; the
 //! in-memory [`read_mesh`] / [`read_mesh_bytes`] (tests, fuzzing) collect a
 //! [`TriangleMesh`].
 //!
@@ -32,7 +32,7 @@ use std::sync::Arc;
 use std::sync::LazyLock;
 use std::sync::atomic::{AtomicU64, Ordering};
 
-pub use crate::tristream::RecordLayout;
+pub use crate::pipeline::stream::RecordLayout;
 
 /// An indexed triangle mesh in the source file's own coordinates and units.
 #[derive(Debug, Default, Clone, PartialEq)]

@@ -18,7 +18,7 @@ use ply_rs_bw::ply::{
 };
 
 use super::{IngestError, MeshFormat, ReadOptions, SRGB_TO_LINEAR, TICK_EVERY, TriangleSink, check_polygon};
-use crate::tristream::RecordLayout;
+use crate::pipeline::stream::RecordLayout;
 
 /// One vertex as read: position and colour channels in [0, 1] (NaN = absent).
 struct VertexRecord {

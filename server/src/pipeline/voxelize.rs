@@ -12,9 +12,9 @@ use std::collections::BTreeMap;
 use rayon::prelude::*;
 use voxstream_format::{BLOCK_SIZE, BLOCK_VOXELS, BlockKey, GridFrame, morton3};
 
-use crate::ingest::TriangleMesh;
-use crate::progress::{ProgressSink, Stage, StageCounter};
-use crate::tristream::Bounds;
+use crate::pipeline::progress::{ProgressSink, Stage, StageCounter};
+use crate::pipeline::read::TriangleMesh;
+use crate::pipeline::stream::Bounds;
 
 /// A voxel while the store is being built.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -125,7 +125,7 @@ pub fn frame_from_bounds(bounds: &Bounds, resolution: u32, skipped: u64) -> Resu
 }
 
 /// Voxelizes every valid triangle into level-0 blocks, sorted by key, all in
-/// memory. The build goes through `bin_spill` instead (same per-block kernel,
+/// memory. The build goes through `pipeline::bin` instead (same per-block kernel,
 /// bounded memory); this form is the reference the tests compare it with.
 pub fn voxelize(
     mesh: &TriangleMesh,
