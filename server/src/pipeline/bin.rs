@@ -11,34 +11,35 @@
 //!    the bin store; when all buffers together pass their share of the
 //!    budget, every buffer is flushed. Segments of one block stay in input
 //!    order.
-//! 3. **Voxelize** ([`voxelize_bins`]): blocks in key order, in parallel
-//!    (rayon), each reading its segments one at a time into a reused dense
-//!    brick, so a block costs one brick and one segment however many
-//!    triangles it has. At most `budget / 4 / brick` blocks are in flight.
+//! 3. **Voxelize** ([`voxelize_bin`]): one block's segments, read one at a
+//!    time into a reused dense brick, so a block costs one brick and one
+//!    segment however many triangles it has. The pipeline runs blocks in the
+//!    Morton order of [`Bins::blocks`], in parallel batches.
 //!
 //! Determinism: passes 1 and 2 are sequential, and in pass 3 each block is
 //! one thread's work over its triangles in input order, so the output does
-//! not depend on the thread count.
+//! not depend on the thread count or on where buffers were flushed.
 //!
-//! Memory: stream and bin stores each keep up to budget/8 of encoded chunks
-//! resident and spill the rest to files in the build's temp dir; bin
-//! buffers take up to budget/16 (budget/32 of records, capacity doubling).
-//! Level-0 output is ~36 bytes a voxel (`BuildVoxel`) and must fit the
-//! budget; a clear error says so otherwise.
+//! Memory (shares from [`crate::pipeline::MemoryPlan`]): stream and bin
+//! stores keep their resident share of encoded chunks and spill the rest to
+//! files in the build's temp dir; bin buffers, with their per-block
+//! bookkeeping, stay within their share (all are flushed when they pass it,
+//! and the per-block state is dropped with them). What stays is the bin
+//! index: 8 bytes a segment here plus the store's location table, counted by
+//! [`Bins::index_bytes`].
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::HashMap;
 use std::path::Path;
-use std::sync::atomic::{AtomicU64, Ordering};
 
 use rayon::prelude::*;
 use voxstream_format::{BlockKey, GridFrame};
 
 use crate::pipeline::progress::{ProgressSink, Stage};
+use crate::pipeline::pyramid::{LodBlock, LodVoxel, block_coord, block_morton};
 use crate::pipeline::read::{IngestError, TriangleSink};
 use crate::pipeline::stream::{Bounds, ChunkStore, MAX_CHUNK_TRIANGLES, RecordLayout};
 use crate::pipeline::voxelize::{
-    BLOCK_VOXELIZER_BYTES, BuildVoxel, SparseBlock, Topology, VoxelizeError, VoxelizeStats, block_range,
-    to_grid, to_grid_unchecked, valid_triangle, with_block_voxelizer,
+    Topology, block_range, to_grid, to_grid_unchecked, valid_triangle, with_block_voxelizer,
 };
 use crate::pipeline::{BuildError, BuildOptions};
 
@@ -132,27 +133,47 @@ impl TriangleSink for StreamSink<'_> {
     }
 }
 
-/// One block's pending records and the segments already stored.
-#[derive(Default)]
+/// One block's records not yet stored as a segment.
 struct BinBuffer {
+    morton: u64,
     raw: Vec<u8>,
     bounds: Bounds,
-    segments: Vec<usize>,
 }
+
+/// Bookkeeping bytes of one active buffer (entry, map slot), counted against the buffer share.
+const BUFFER_ENTRY_BYTES: usize = std::mem::size_of::<BinBuffer>() + 32;
+
+/// Segment ids take the low bits of an index entry, the block's Morton code the rest.
+const SEGMENT_BITS: u32 = 34;
 
 /// The bins: for each non-empty block, its segments in the bin store, in input order.
 pub struct Bins {
     pub store: ChunkStore,
     pub layout: RecordLayout,
-    blocks: BTreeMap<BlockKey, Vec<usize>>,
+    /// `block_morton << SEGMENT_BITS | segment`, sorted: blocks in Morton
+    /// order, each block's segments in input order.
+    index: Vec<u64>,
     /// Triangles that became degenerate or non-finite in grid units.
     pub skipped: u64,
     pub triangles: u64,
 }
 
 impl Bins {
+    /// The non-empty level-0 blocks in Morton order, each with its index entries.
+    pub fn blocks(&self) -> impl Iterator<Item = (BlockKey, &[u64])> {
+        self.index.chunk_by(|a, b| a >> SEGMENT_BITS == b >> SEGMENT_BITS).map(|segs| {
+            let c = block_coord(segs[0] >> SEGMENT_BITS);
+            (BlockKey::new(0, c[0], c[1], c[2]), segs)
+        })
+    }
+
     pub fn block_count(&self) -> usize {
-        self.blocks.len()
+        self.blocks().count()
+    }
+
+    /// Memory the index holds while the blocks are voxelized (it grows with the input).
+    pub fn index_bytes(&self) -> usize {
+        self.index.capacity() * 8 + self.store.index_bytes()
     }
 }
 
@@ -164,43 +185,49 @@ fn temp_err(e: crate::pipeline::stream::ChunkError) -> BuildError {
 type Placement = ([u32; 3], [u32; 3], Bounds);
 
 /// Pass 2: bins the stream's triangles by the 64³ blocks they overlap.
+/// `resident` bytes of segments stay in memory; buffers and their
+/// bookkeeping are flushed when they pass `buffer_limit` bytes (counted by
+/// length; capacities reach at most twice that).
 pub fn bin_triangles(
     stream: &ChunkStore,
     layout: RecordLayout,
     frame: &GridFrame,
     spill_path: &Path,
+    (resident, buffer_limit): (usize, usize),
     opts: &BuildOptions,
     progress: &ProgressSink,
 ) -> Result<Bins, BuildError> {
     let res = frame.resolution as i64;
     let rec = layout.size();
-    // Counted by length; capacities reach at most twice that.
-    let buffer_limit = (opts.memory_budget / 32).max(1 << 20) as usize;
-    let mut store = ChunkStore::new(spill_path, (opts.memory_budget / 8) as usize);
+    let mut store = ChunkStore::new(spill_path, resident);
     // Buffers in first-hit order, found through a map and a one-entry cache
     // (consecutive triangles mostly share a block).
-    let mut buffers: Vec<([u32; 3], BinBuffer)> = Vec::new();
-    let mut index: HashMap<[u32; 3], usize> = HashMap::new();
-    let mut last: Option<([u32; 3], usize)> = None;
+    let mut buffers: Vec<BinBuffer> = Vec::new();
+    let mut lookup: HashMap<u64, usize> = HashMap::new();
+    let mut last: Option<(u64, usize)> = None;
     let mut buffered = 0usize;
+    let mut index: Vec<u64> = Vec::new();
     let (mut skipped, mut triangles) = (0u64, 0u64);
-    // Full buffers wait here (buffer index, records, bounds) and are encoded together.
-    let mut pending: Vec<(usize, Vec<u8>, Bounds)> = Vec::new();
-    let take = |b: &mut BinBuffer, i: usize, pending: &mut Vec<(usize, Vec<u8>, Bounds)>| {
+    // Full buffers wait here (block, records, bounds) and are encoded together.
+    let mut pending: Vec<(u64, Vec<u8>, Bounds)> = Vec::new();
+    let take = |b: &mut BinBuffer, pending: &mut Vec<(u64, Vec<u8>, Bounds)>| {
         if !b.raw.is_empty() {
             // Moved out, not cleared: idle blocks must not keep their high-water capacity.
-            pending.push((i, std::mem::take(&mut b.raw), std::mem::take(&mut b.bounds)));
+            pending.push((b.morton, std::mem::take(&mut b.raw), std::mem::take(&mut b.bounds)));
         }
     };
     let drain = |store: &mut ChunkStore,
-                 buffers: &mut Vec<([u32; 3], BinBuffer)>,
-                 pending: &mut Vec<(usize, Vec<u8>, Bounds)>|
+                 index: &mut Vec<u64>,
+                 pending: &mut Vec<(u64, Vec<u8>, Bounds)>|
      -> Result<(), BuildError> {
         let items: Vec<(Vec<u8>, Bounds)> =
             pending.iter_mut().map(|(_, r, b)| (std::mem::take(r), *b)).collect();
         let ids = store.push_many(layout, &items).map_err(temp_err)?;
-        for ((i, _, _), id) in pending.drain(..).zip(ids) {
-            buffers[i].1.segments.push(id);
+        for ((m, _, _), id) in pending.drain(..).zip(ids) {
+            if id as u64 >= 1 << SEGMENT_BITS {
+                return Err(BuildError::Temp(format!("more than 2^{SEGMENT_BITS} bin segments")));
+            }
+            index.push(m << SEGMENT_BITS | id as u64);
         }
         Ok(())
     };
@@ -229,115 +256,84 @@ pub fn bin_triangles(
             for bz in blo[2]..=bhi[2] {
                 for by in blo[1]..=bhi[1] {
                     for bx in blo[0]..=bhi[0] {
-                        let key = [bx, by, bz];
+                        let m = block_morton([bx, by, bz]);
                         let i = match last {
-                            Some((k, i)) if k == key => i,
+                            Some((k, i)) if k == m => i,
                             _ => {
-                                let i = *index.entry(key).or_insert_with(|| {
-                                    buffers.push((key, BinBuffer::default()));
+                                let i = *lookup.entry(m).or_insert_with(|| {
+                                    buffers.push(BinBuffer {
+                                        morton: m,
+                                        raw: Vec::new(),
+                                        bounds: Bounds::EMPTY,
+                                    });
+                                    buffered += BUFFER_ENTRY_BYTES;
                                     buffers.len() - 1
                                 });
-                                last = Some((key, i));
+                                last = Some((m, i));
                                 i
                             }
                         };
-                        let buf = &mut buffers[i].1;
+                        let buf = &mut buffers[i];
                         buf.raw.extend_from_slice(record);
                         buf.bounds.union(&bounds);
                         buffered += rec;
                         if buf.raw.len() >= MAX_CHUNK_TRIANGLES * rec {
                             buffered -= buf.raw.len();
-                            take(buf, i, &mut pending);
+                            take(buf, &mut pending);
                             if pending.len() >= PENDING_CHUNKS {
-                                drain(&mut store, &mut buffers, &mut pending)?;
+                                drain(&mut store, &mut index, &mut pending)?;
                             }
                         }
                     }
                 }
             }
             if buffered > buffer_limit {
-                for (i, (_, buf)) in buffers.iter_mut().enumerate() {
-                    take(buf, i, &mut pending);
+                // Everything goes, bookkeeping included, so many blocks cost no more than few.
+                for buf in &mut buffers {
+                    take(buf, &mut pending);
                 }
-                drain(&mut store, &mut buffers, &mut pending)?;
+                drain(&mut store, &mut index, &mut pending)?;
+                buffers = Vec::new();
+                lookup = HashMap::new();
+                last = None;
                 buffered = 0;
             }
         }
         progress.stage(Stage::Voxelize, 0.3 * (id + 1) as f64 / stream.len() as f64);
     }
-    for (i, (_, buf)) in buffers.iter_mut().enumerate() {
-        take(buf, i, &mut pending);
+    for buf in &mut buffers {
+        take(buf, &mut pending);
     }
-    drain(&mut store, &mut buffers, &mut pending)?;
-    let blocks = buffers
-        .into_iter()
-        .filter(|(_, b)| !b.segments.is_empty())
-        .map(|(c, b)| (BlockKey::new(0, c[0], c[1], c[2]), b.segments))
-        .collect();
-    Ok(Bins { store, layout, blocks, skipped, triangles })
+    drain(&mut store, &mut index, &mut pending)?;
+    drop((buffers, lookup));
+    index.sort_unstable();
+    index.shrink_to_fit();
+    Ok(Bins { store, layout, index, skipped, triangles })
 }
 
-/// Pass 3: voxelizes every block's segments; blocks come back sorted by key.
-pub fn voxelize_bins(
+/// Pass 3 for one block: voxelizes its segments (in input order) into a
+/// level-0 block in pyramid form, faces not yet marked; `None` when empty.
+pub fn voxelize_bin(
     bins: &Bins,
+    key: BlockKey,
+    index: &[u64],
     frame: &GridFrame,
     topology: Topology,
-    opts: &BuildOptions,
-    progress: &ProgressSink,
-) -> Result<(Vec<SparseBlock>, VoxelizeStats), BuildError> {
-    let stats = VoxelizeStats { triangles: bins.triangles, skipped: bins.skipped };
-    if bins.triangles == 0 {
-        return Err(VoxelizeError::NoValidTriangle { skipped: bins.skipped }.into());
-    }
+) -> Result<Option<LodBlock>, BuildError> {
     let res = frame.resolution as i64;
     let rec = bins.layout.size();
-    let voxel_cap = opts.memory_budget / std::mem::size_of::<BuildVoxel>() as u64;
-    let voxels = AtomicU64::new(0);
-    let done = AtomicU64::new(0);
-    let total = bins.blocks.len().max(1) as f64;
-    let work: Vec<(&BlockKey, &Vec<usize>)> = bins.blocks.iter().collect();
-    let run = || {
-        work.par_iter()
-            .map(|&(&key, segments)| -> Result<Option<SparseBlock>, BuildError> {
-                opts.check_cancelled()?;
-                let block = with_block_voxelizer(|vox| -> Result<_, BuildError> {
-                    for &s in segments {
-                        let (_, raw) = bins.store.read(s).map_err(temp_err)?;
-                        for record in raw.chunks_exact(rec) {
-                            let (tri, color) = bins.layout.decode(record);
-                            // Valid: pass 2 binned only triangles that `to_grid` accepted,
-                            // and the same arithmetic gives the same grid triangle here.
-                            let g = to_grid_unchecked(tri, frame);
-                            vox.add(key, &g, bins.layout.color.then_some(color), res, topology);
-                        }
-                    }
-                    Ok(vox.finish(key))
-                })?;
-                let n = block.as_ref().map_or(0, |b| b.voxels.len() as u64);
-                if voxels.fetch_add(n, Ordering::Relaxed) + n > voxel_cap {
-                    return Err(BuildError::Ingest(IngestError::TooLarge(format!(
-                        "level 0 holds more than {voxel_cap} voxels ({} bytes each), more than the memory \
-                         budget of {} bytes: lower --resolution or raise --memory-budget",
-                        std::mem::size_of::<BuildVoxel>(),
-                        opts.memory_budget
-                    ))));
-                }
-                let d = done.fetch_add(1, Ordering::Relaxed) + 1;
-                progress.stage(Stage::Voxelize, 0.3 + 0.7 * d as f64 / total);
-                Ok(block)
-            })
-            .collect::<Result<Vec<Option<SparseBlock>>, BuildError>>()
-    };
-    // Each in-flight block holds one brick: cap the workers so bricks fit a quarter of the budget.
-    let max_workers = ((opts.memory_budget / 4) as usize / BLOCK_VOXELIZER_BYTES).max(1);
-    let blocks = if rayon::current_num_threads() > max_workers {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(max_workers)
-            .build()
-            .map_err(|e| BuildError::Temp(format!("thread pool: {e}")))?
-            .install(run)?
-    } else {
-        run()?
-    };
-    Ok((blocks.into_iter().flatten().collect(), stats))
+    with_block_voxelizer(|vox| -> Result<_, BuildError> {
+        for &entry in index {
+            let (_, raw) = bins.store.read((entry & ((1 << SEGMENT_BITS) - 1)) as usize).map_err(temp_err)?;
+            for record in raw.chunks_exact(rec) {
+                let (tri, color) = bins.layout.decode(record);
+                // Valid: pass 2 binned only triangles that `to_grid` accepted,
+                // and the same arithmetic gives the same grid triangle here.
+                let g = to_grid_unchecked(tri, frame);
+                vox.add(key, &g, bins.layout.color.then_some(color), res, topology);
+            }
+        }
+        let voxels = vox.finish_map(|voxel| LodVoxel { voxel, solid: 1, error: 0.0 });
+        Ok((!voxels.is_empty()).then_some(LodBlock { key, voxels }))
+    })
 }

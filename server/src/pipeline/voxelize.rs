@@ -52,14 +52,15 @@ pub struct VoxelizeStats {
 
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum VoxelizeError {
-    #[error("grid resolution {0} must be a power of two between 1 and 16384")]
+    #[error("grid resolution {0} must be a power of two between 1 and {MAX_RESOLUTION}")]
     BadResolution(u32),
     #[error("the mesh has no valid triangle ({skipped} degenerate or non-finite)")]
     NoValidTriangle { skipped: u64 },
 }
 
-/// Largest grid we accept: Morton keys and u32 block coordinates stay far from overflow.
-pub const MAX_RESOLUTION: u32 = 16384;
+/// Largest grid we accept: 1024 blocks an edge, so block Morton codes take
+/// 30 bits (the bin index packs them with segment ids into a u64).
+pub const MAX_RESOLUTION: u32 = 65536;
 
 pub fn check_resolution(resolution: u32) -> Result<(), VoxelizeError> {
     if resolution.is_power_of_two() && resolution <= MAX_RESOLUTION {
@@ -309,7 +310,15 @@ impl BlockVoxelizer {
 
     /// The block's voxels in Morton order (`None` when empty); leaves the brick clear.
     pub(crate) fn finish(&mut self, key: BlockKey) -> Option<SparseBlock> {
-        let mut out = Vec::new();
+        let voxels = self.finish_map(|v| v);
+        (!voxels.is_empty()).then_some(SparseBlock { key, voxels })
+    }
+
+    /// The block's voxels in Morton order, each passed through `f`, in a vector
+    /// of exact capacity (the build counts its bytes); leaves the brick clear.
+    pub(crate) fn finish_map<T>(&mut self, f: impl Fn(BuildVoxel) -> T) -> Vec<T> {
+        let count = self.bits.iter().map(|w| w.count_ones() as usize).sum();
+        let mut out = Vec::with_capacity(count);
         for w in 0..self.bits.len() {
             let mut bits = std::mem::take(&mut self.bits[w]);
             while bits != 0 {
@@ -318,16 +327,16 @@ impl BlockVoxelizer {
                 let normal_sum = std::mem::take(&mut self.normals[m as usize]);
                 let [r, g, b, weight] =
                     self.colors.get_mut(m as usize).map(std::mem::take).unwrap_or_default();
-                out.push(BuildVoxel {
+                out.push(f(BuildVoxel {
                     morton: m,
                     normal_sum,
                     color_sum: [r, g, b],
                     color_weight: weight,
                     faces: 0,
-                });
+                }));
             }
         }
-        (!out.is_empty()).then_some(SparseBlock { key, voxels: out })
+        out
     }
 }
 

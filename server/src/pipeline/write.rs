@@ -8,7 +8,7 @@
 
 use std::fs;
 use std::io::Write;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
 use voxstream_format::{
@@ -17,7 +17,7 @@ use voxstream_format::{
 };
 
 use crate::pipeline::progress::{ProgressSink, Stage, StageCounter};
-use crate::pipeline::pyramid::{LodBlock, local_position};
+use crate::pipeline::pyramid::{LodBlock, level_count, local_position};
 use crate::store::{StoreError, io, validate_id};
 
 /// Linear [0, 1] → sRGB8 (the viewer shows colours as stored, like its grey).
@@ -78,7 +78,7 @@ fn tight_bounds(b: &LodBlock) -> VoxelBounds {
     VoxelBounds { min, max }
 }
 
-/// What a scene is made of before it is written.
+/// What a scene is made of before it is written (the in-memory reference path).
 pub struct SceneContent<'a> {
     pub name: String,
     pub source: SourceInfo,
@@ -93,8 +93,10 @@ fn write_synced(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
     f.sync_all().map_err(io("sync", path))
 }
 
-/// Encodes and writes a scene, then publishes it as `<store>/<id>`, replacing
-/// any previous scene of that id. Returns the manifest written.
+/// Encodes and writes a scene held in memory (level by level, finest first),
+/// then publishes it as `<store>/<id>`, replacing any previous scene of that
+/// id. The build streams blocks into a [`BlockWriter`] instead; both give the
+/// same files. Returns the manifest written.
 pub fn write_scene(store: &Path, id: &str, content: &SceneContent) -> Result<Manifest, StoreError> {
     write_scene_reporting(store, id, content, &ProgressSink::new(&|_| {}))
 }
@@ -106,45 +108,103 @@ pub fn write_scene_reporting(
     content: &SceneContent,
     progress: &ProgressSink,
 ) -> Result<Manifest, StoreError> {
-    validate_id(id)?;
-    fs::create_dir_all(store).map_err(io("create directory", store))?;
-    let tmp = store.join(format!(
-        ".tmp-{id}-{}-{}",
-        std::process::id(),
-        std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos())
-    ));
-    let result = write_scene_dir(&tmp, content, progress).and_then(|manifest| {
-        publish(store, id, &tmp)?;
-        Ok(manifest)
-    });
-    if result.is_err() {
-        let _ = fs::remove_dir_all(&tmp);
+    let counter = StageCounter::new(progress, Stage::Write, content.levels.iter().map(Vec::len).sum());
+    let mut writer = BlockWriter::create(store, id, content.grid.resolution, REFERENCE_PENDING_BYTES)?;
+    for block in content.levels.iter().flatten() {
+        writer.add(block.clone())?;
+        counter.tick();
     }
-    result
+    writer.finish(content.name.clone(), content.source.clone(), content.grid.clone())
 }
 
-fn write_scene_dir(
-    dir: &Path,
-    content: &SceneContent,
-    progress: &ProgressSink,
-) -> Result<Manifest, StoreError> {
-    let counter = StageCounter::new(progress, Stage::Write, content.levels.iter().map(Vec::len).sum());
-    let blocks_dir = dir.join("blocks");
-    fs::create_dir_all(&blocks_dir).map_err(io("create directory", &blocks_dir))?;
-    let mut levels = Vec::new();
-    let mut blocks = Vec::new();
-    for (l, level) in content.levels.iter().enumerate() {
-        let entries: Vec<BlockEntry> = level
-            .par_iter()
+/// Blocks the in-memory path encodes at once.
+const REFERENCE_PENDING_BYTES: usize = 256 << 20;
+
+/// Heap bytes of a block while it waits in a [`BlockWriter`].
+pub fn block_bytes(b: &LodBlock) -> usize {
+    b.voxels.capacity() * std::mem::size_of::<crate::pipeline::pyramid::LodVoxel>()
+}
+
+/// Packing and encoding need at most this many bytes per voxel of the
+/// blocks being encoded (packed voxel, columns, payload, lz4 output).
+pub const ENCODE_BYTES_PER_VOXEL: usize = 48;
+
+/// Takes finished blocks one at a time, in any order with children before
+/// parents, packs and encodes them on all cores in batches of at most
+/// `pending_limit` bytes, writes each into a temporary scene directory and
+/// drops it. [`BlockWriter::finish`] writes the manifest and publishes the
+/// scene atomically; dropped before that, the writer removes what it wrote.
+pub struct BlockWriter {
+    store: PathBuf,
+    id: String,
+    tmp: PathBuf,
+    blocks_dir: PathBuf,
+    pending: Vec<LodBlock>,
+    pending_bytes: usize,
+    pending_limit: usize,
+    entries: Vec<BlockEntry>,
+    levels: Vec<LevelInfo>,
+    published: bool,
+}
+
+impl BlockWriter {
+    pub fn create(store: &Path, id: &str, resolution: u32, pending_limit: usize) -> Result<Self, StoreError> {
+        validate_id(id)?;
+        fs::create_dir_all(store).map_err(io("create directory", store))?;
+        let tmp = store.join(format!(
+            ".tmp-{id}-{}-{}",
+            std::process::id(),
+            std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos())
+        ));
+        let blocks_dir = tmp.join("blocks");
+        let writer = Self {
+            store: store.to_path_buf(),
+            id: id.to_string(),
+            tmp,
+            blocks_dir,
+            pending: Vec::new(),
+            pending_bytes: 0,
+            pending_limit,
+            entries: Vec::new(),
+            levels: (0..level_count(resolution))
+                .map(|l| LevelInfo { level: l, resolution: resolution >> l, blocks: 0, voxels: 0, bytes: 0 })
+                .collect(),
+            published: false,
+        };
+        fs::create_dir_all(&writer.blocks_dir).map_err(io("create directory", &writer.blocks_dir))?;
+        Ok(writer)
+    }
+
+    /// Queues a finished block (buried voxels already dropped, not empty).
+    pub fn add(&mut self, block: LodBlock) -> Result<(), StoreError> {
+        debug_assert!(!block.voxels.is_empty() && block.voxels.iter().all(|v| v.voxel.faces != 0));
+        let bytes = block_bytes(&block);
+        if self.pending_bytes + bytes > self.pending_limit {
+            self.flush()?;
+        }
+        self.pending_bytes += bytes;
+        self.pending.push(block);
+        Ok(())
+    }
+
+    /// Bytes of the blocks waiting to be encoded.
+    pub fn pending_bytes(&self) -> usize {
+        self.pending_bytes
+    }
+
+    /// Encodes and writes every queued block, on all cores.
+    pub fn flush(&mut self) -> Result<(), StoreError> {
+        let blocks_dir = &self.blocks_dir;
+        let entries: Vec<BlockEntry> = std::mem::take(&mut self.pending)
+            .into_par_iter()
             .map(|b| {
-                let packed = packed_block(b);
+                let packed = packed_block(&b);
                 let bytes = encode_block(&packed);
                 let path = blocks_dir.join(format!("{}.vxb", b.key));
                 write_synced(&path, &bytes)?;
-                counter.tick();
                 Ok(BlockEntry {
                     key: b.key,
-                    bounds: tight_bounds(b),
+                    bounds: tight_bounds(&b),
                     voxels: packed.voxels.len() as u32,
                     faces: packed.face_count(),
                     bytes: bytes.len() as u32,
@@ -153,28 +213,60 @@ fn write_scene_dir(
                 })
             })
             .collect::<Result<_, StoreError>>()?;
-        levels.push(LevelInfo {
-            level: l as u8,
-            resolution: content.grid.resolution >> l,
-            blocks: entries.len() as u32,
-            voxels: entries.iter().map(|e| e.voxels as u64).sum(),
-            bytes: entries.iter().map(|e| e.bytes as u64).sum(),
-        });
-        blocks.extend(entries);
+        self.pending_bytes = 0;
+        for e in &entries {
+            let level = self.levels.get_mut(e.key.level as usize).ok_or_else(|| StoreError::Damaged {
+                id: self.id.clone(),
+                message: format!("block {} lies beyond the grid's levels", e.key),
+            })?;
+            level.blocks += 1;
+            level.voxels += e.voxels as u64;
+            level.bytes += e.bytes as u64;
+        }
+        self.entries.extend(entries);
+        Ok(())
     }
-    blocks.sort_by_key(|b| b.key);
-    let manifest = Manifest {
-        format_version: FORMAT_VERSION,
-        name: content.name.clone(),
-        source: content.source.clone(),
-        grid: content.grid.clone(),
-        block_size: BLOCK_SIZE,
-        levels,
-        blocks,
-    };
-    write_synced(&dir.join("manifest.json"), &manifest.to_json())?;
-    fs::File::open(&blocks_dir).and_then(|d| d.sync_all()).map_err(io("sync", &blocks_dir))?;
-    Ok(manifest)
+
+    /// Blocks written so far.
+    pub fn blocks_written(&self) -> usize {
+        self.entries.len()
+    }
+
+    /// Writes the last blocks and the manifest, then publishes the scene as
+    /// `<store>/<id>`, replacing any previous scene of that id.
+    pub fn finish(
+        mut self,
+        name: String,
+        source: SourceInfo,
+        grid: GridFrame,
+    ) -> Result<Manifest, StoreError> {
+        self.flush()?;
+        let mut blocks = std::mem::take(&mut self.entries);
+        blocks.sort_by_key(|b| b.key);
+        let manifest = Manifest {
+            format_version: FORMAT_VERSION,
+            name,
+            source,
+            grid,
+            block_size: BLOCK_SIZE,
+            levels: std::mem::take(&mut self.levels),
+            blocks,
+        };
+        write_synced(&self.tmp.join("manifest.json"), &manifest.to_json())?;
+        fs::File::open(&self.blocks_dir).and_then(|d| d.sync_all()).map_err(io("sync", &self.blocks_dir))?;
+        publish(&self.store, &self.id, &self.tmp)?;
+        self.published = true;
+        Ok(manifest)
+    }
+}
+
+impl Drop for BlockWriter {
+    fn drop(&mut self) {
+        if !self.published {
+            // A failed or cancelled build leaves nothing behind.
+            let _ = fs::remove_dir_all(&self.tmp);
+        }
+    }
 }
 
 fn publish(store: &Path, id: &str, tmp: &Path) -> Result<(), StoreError> {
