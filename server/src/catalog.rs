@@ -16,6 +16,7 @@ use axum::body::Bytes;
 use serde::{Deserialize, Serialize};
 use voxstream_format::Manifest;
 
+use crate::pipeline::ResolutionChoice;
 use crate::store::{self, StoreError, StoredScene};
 
 pub const BUILD_INFO_FILE: &str = "scene.json";
@@ -31,6 +32,9 @@ pub struct BuildInfo {
     /// Shown instead of the manifest's name when set.
     #[serde(default)]
     pub display_name: Option<String>,
+    /// What resolution the build chose and why.
+    #[serde(default)]
+    pub resolution_choice: Option<ResolutionChoice>,
 }
 
 /// A catalog row: what a scene is, where it came from and what it costs.
@@ -51,6 +55,9 @@ pub struct SceneMeta {
     pub resolution: u32,
     /// Edge of a level-0 voxel in source units.
     pub voxel_size: f64,
+    /// How the resolution was chosen (auto, voxel size, explicit) and why;
+    /// null when the build did not record it.
+    pub resolution_choice: Option<ResolutionChoice>,
     /// Tight bounds of the voxels in source coordinates.
     pub bounds_min: [f64; 3],
     pub bounds_max: [f64; 3],
@@ -106,6 +113,7 @@ fn scene_meta(id: &str, m: &Manifest, info: &BuildInfo, manifest_bytes: u64) -> 
         levels: m.levels.len() as u32,
         resolution: m.grid.resolution,
         voxel_size: m.grid.voxel_size,
+        resolution_choice: info.resolution_choice.clone(),
         bounds_min: to_source(lo),
         bounds_max: to_source(hi),
         units: m.grid.units.clone(),

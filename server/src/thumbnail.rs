@@ -386,7 +386,10 @@ mod tests {
         let input = dir.path().join("shape.obj");
         std::fs::write(&input, obj).unwrap();
         let store = dir.path().join("store");
-        let opts = BuildOptions { resolution, ..Default::default() };
+        let opts = BuildOptions {
+            resolution: crate::pipeline::Resolution::Explicit(resolution),
+            ..Default::default()
+        };
         let report = build_scene(&input, &store, &opts).unwrap();
         let scene = open_scene(&store, &report.id).unwrap();
         (dir, scene)

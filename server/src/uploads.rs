@@ -28,7 +28,9 @@ pub struct UploadRecord {
     pub file_name: Option<String>,
     pub content_type: Option<String>,
     pub scene_id: String,
-    pub resolution: u32,
+    /// `None`: auto.
+    #[serde(default)]
+    pub resolution: Option<u32>,
     pub topology: String,
     /// Replace an existing scene of the same id.
     pub replace: bool,

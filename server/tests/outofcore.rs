@@ -15,7 +15,7 @@ use voxstream::pipeline::pyramid::build_levels;
 use voxstream::pipeline::read::{TriangleMesh, read_mesh};
 use voxstream::pipeline::voxelize::{Topology, choose_frame, voxelize, voxelize_reporting};
 use voxstream::pipeline::write::{SceneContent, write_scene};
-use voxstream::pipeline::{BuildError, BuildOptions, MemoryPlan, build_scene, parse_byte_size};
+use voxstream::pipeline::{BuildError, BuildOptions, MemoryPlan, Resolution, build_scene, parse_byte_size};
 use voxstream_format::SourceInfo;
 
 fn koala() -> PathBuf {
@@ -85,7 +85,7 @@ fn build_with(input: &Path, threads: usize, budget: u64, tmp: Option<&Path>) -> 
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("store");
     let opts = BuildOptions {
-        resolution: 128,
+        resolution: Resolution::Explicit(128),
         memory_budget: budget,
         temp_dir: tmp.map(Path::to_path_buf),
         ..Default::default()
@@ -200,7 +200,7 @@ fn streaming_build_matches_the_in_memory_reference() {
         let reference = reference_scene(&input, resolution, topology, &dir.path().join("reference"), &id);
         // The smallest budget: every store spills, the writer flushes often, small batches.
         let opts = BuildOptions {
-            resolution,
+            resolution: Resolution::Explicit(resolution),
             topology,
             name: Some(id.clone()),
             memory_budget: MemoryPlan::minimum_budget(resolution),
@@ -233,7 +233,11 @@ fn too_small_a_budget_is_refused_before_reading() {
     assert!(MemoryPlan::minimum_budget(128) < MemoryPlan::minimum_budget(4096));
     // The input does not exist: the budget is checked before anything is read.
     let missing = dir.path().join("missing.ply");
-    let opts = BuildOptions { resolution: 65536, memory_budget: 16 << 20, ..Default::default() };
+    let opts = BuildOptions {
+        resolution: Resolution::Explicit(65536),
+        memory_budget: 16 << 20,
+        ..Default::default()
+    };
     let err = build_scene(&missing, dir.path(), &opts).unwrap_err();
     let text = err.to_string();
     assert!(matches!(err, BuildError::BudgetTooSmall { .. }), "{text}");
@@ -249,7 +253,7 @@ fn temp_files_are_removed_after_errors_and_cancellation() {
     let tmp = dir.path().join("tmp");
     std::fs::create_dir_all(&tmp).unwrap();
     let opts = |cancel: Option<Arc<AtomicBool>>| BuildOptions {
-        resolution: 64,
+        resolution: Resolution::Explicit(64),
         cancel,
         temp_dir: Some(tmp.clone()),
         ..Default::default()

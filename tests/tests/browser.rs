@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 
 use serde_json::Value;
 use voxstream::http::{AppState, router};
-use voxstream::pipeline::{BuildOptions, build_scene};
+use voxstream::pipeline::{BuildOptions, Resolution, build_scene};
 use voxstream_e2e::coverage;
 use voxstream_format::{BlockKey, decode_block};
 use voxstream_viewer::BACKGROUND_RGBA8;
@@ -128,8 +128,12 @@ fn browser_renders_koala_matching_cpu_coverage() {
     // 1. Scene: data/koala.obj -> temp store.
     let store = tempfile::tempdir().expect("temp store");
     let t = Instant::now();
-    let report = build_scene(&root.join("data/koala.obj"), store.path(), &BuildOptions::default())
-        .expect("build_scene(data/koala.obj)");
+    let report = build_scene(
+        &root.join("data/koala.obj"),
+        store.path(),
+        &BuildOptions { resolution: Resolution::Explicit(512), ..Default::default() },
+    )
+    .expect("build_scene(data/koala.obj)");
     println!(
         "built scene {:?}: {} triangles, {} voxels, {} blocks, {} bytes in {:.1?}",
         report.id,
@@ -251,7 +255,7 @@ fn upload_page_builds_and_opens_scene() {
     let store = tempfile::tempdir().expect("temp store");
     let mut config = voxstream::config::ServerConfig::new(store.path());
     config.web = Some(web.clone());
-    config.resolution = 64;
+    config.resolution = Some(64);
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
     let shutdown = tokio_util::sync::CancellationToken::new();
     let state = rt.block_on(async { AppState::start(config, shutdown) }).expect("AppState::start");

@@ -14,7 +14,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use voxstream::pipeline::{BuildOptions, build_scene};
+use voxstream::pipeline::{BuildOptions, Resolution, build_scene};
 use voxstream_e2e::coverage::{self, compare_masks, coverage_mask, silhouette_from_rgba};
 use voxstream_format::{BlockKey, Face, Manifest};
 use voxstream_viewer::BACKGROUND_RGBA8;
@@ -37,9 +37,12 @@ fn artifacts_dir() -> PathBuf {
 fn koala_scene() -> (tempfile::TempDir, PathBuf) {
     let store = tempfile::tempdir().expect("temporary store");
     let t = Instant::now();
-    let report =
-        build_scene(&workspace_root().join("data/koala.obj"), store.path(), &BuildOptions::default())
-            .expect("build_scene(data/koala.obj)");
+    let report = build_scene(
+        &workspace_root().join("data/koala.obj"),
+        store.path(),
+        &BuildOptions { resolution: Resolution::Explicit(512), ..Default::default() },
+    )
+    .expect("build_scene(data/koala.obj)");
     println!(
         "built {:?}: {} voxels, {} blocks, {} levels, {} bytes in {:.1?}",
         report.id,

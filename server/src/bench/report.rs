@@ -91,6 +91,7 @@ pub fn summarize_runs(
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct VoxstreamReport {
     pub threads: BTreeMap<String, ThreadSummary>,
+    /// The resolution the build used (with `auto`, what it chose).
     pub resolution: u32,
     /// Σ sizes of every file under the published scene directory (all levels + manifest).
     pub scene_bytes: Option<u64>,
@@ -255,7 +256,8 @@ pub struct Config {
     pub voxstream_version: &'static str,
     pub runs: usize,
     pub threads: Vec<usize>,
-    pub resolution: u32,
+    /// `auto` or a power of two, as passed to every build.
+    pub resolution: String,
     pub synth_triangles: u64,
     pub memory_budget: Option<String>,
     pub meshopt_cluster_triangles: usize,
@@ -418,7 +420,7 @@ mod tests {
                 voxstream_version: "0",
                 runs: 1,
                 threads: vec![1, 2],
-                resolution: 512,
+                resolution: "512".into(),
                 synth_triangles: 0,
                 memory_budget: None,
                 meshopt_cluster_triangles: 128,

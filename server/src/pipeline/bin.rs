@@ -39,7 +39,7 @@ use crate::pipeline::pyramid::{LodBlock, LodVoxel, block_coord, block_morton};
 use crate::pipeline::read::{IngestError, TriangleSink};
 use crate::pipeline::stream::{Bounds, ChunkStore, MAX_CHUNK_TRIANGLES, RecordLayout};
 use crate::pipeline::voxelize::{
-    Topology, block_range, to_grid, to_grid_unchecked, valid_triangle, with_block_voxelizer,
+    EdgeHistogram, Topology, block_range, to_grid, to_grid_unchecked, valid_triangle, with_block_voxelizer,
 };
 use crate::pipeline::{BuildError, BuildOptions};
 
@@ -54,6 +54,8 @@ pub struct StreamSink<'a> {
     pub bounds: Bounds,
     pub triangles: u64,
     pub skipped: u64,
+    /// Edge lengths of the valid triangles, for `--resolution auto`.
+    pub edges: EdgeHistogram,
     raw: Vec<u8>,
     chunk_bounds: Bounds,
     /// Full chunks waiting to be encoded together.
@@ -70,6 +72,7 @@ impl<'a> StreamSink<'a> {
             bounds: Bounds::EMPTY,
             triangles: 0,
             skipped: 0,
+            edges: EdgeHistogram::default(),
             raw: Vec::new(),
             chunk_bounds: Bounds::EMPTY,
             pending: Vec::new(),
@@ -119,6 +122,7 @@ impl TriangleSink for StreamSink<'_> {
             return Ok(());
         }
         self.layout.encode(&mut self.raw, &tri, color);
+        self.edges.add_triangle(&tri);
         self.chunk_bounds.add_triangle(&tri);
         self.bounds.add_triangle(&tri);
         self.triangles += 1;

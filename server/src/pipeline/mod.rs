@@ -12,6 +12,8 @@ pub mod stream;
 pub mod voxelize;
 pub mod write;
 
+pub use voxelize::{Resolution, ResolutionChoice};
+
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -34,8 +36,11 @@ use crate::store::{self, StoreError};
 
 #[derive(Debug, Clone)]
 pub struct BuildOptions {
-    /// Level-0 voxels per edge of the mesh's bounding cube; a power of two.
-    pub resolution: u32,
+    /// How many level-0 voxels an edge of the grid has: matched to the scan
+    /// (auto), from a voxel size, or a given power of two.
+    pub resolution: Resolution,
+    /// The most `auto` picks (the server's `--max-resolution`).
+    pub max_resolution: u32,
     /// Scene id; derived from the input's file name when `None`.
     pub name: Option<String>,
     /// Which voxels a triangle sets.
@@ -87,7 +92,8 @@ pub fn parse_byte_size(text: &str) -> Result<u64, String> {
 impl Default for BuildOptions {
     fn default() -> Self {
         Self {
-            resolution: 512,
+            resolution: Resolution::Auto,
+            max_resolution: voxelize::MAX_RESOLUTION,
             name: None,
             topology: Topology::Conservative,
             cancel: None,
@@ -107,6 +113,8 @@ pub struct BuildReport {
     pub voxels: u64,
     pub blocks: u32,
     pub levels: u8,
+    /// The grid's resolution and why it was chosen.
+    pub resolution_choice: ResolutionChoice,
     /// Encoded bytes of all blocks on all levels.
     pub bytes: u64,
     pub seconds: f64,
@@ -365,8 +373,15 @@ pub fn build_scene_reporting(
         }
         None => store::id_from_file_stem(input),
     };
-    // Before reading a large file: the resolution and whether the budget holds it.
-    let plan = MemoryPlan::new(opts.memory_budget, opts.resolution)?;
+    // Before reading a large file: the resolution and whether the budget holds
+    // it (for auto and a voxel size, at least the smallest grid).
+    let first_plan = MemoryPlan::new(
+        opts.memory_budget,
+        match opts.resolution {
+            Resolution::Explicit(r) => r,
+            _ => voxelize::MIN_AUTO_RESOLUTION,
+        },
+    )?;
     let temp_parent = opts.temp_dir.as_deref().unwrap_or(store_dir);
     std::fs::create_dir_all(temp_parent)
         .map_err(|e| BuildError::Temp(format!("create {}: {e}", temp_parent.display())))?;
@@ -390,7 +405,7 @@ pub fn build_scene_reporting(
         progress.stage(Stage::Read, bytes_read.load(Ordering::Relaxed) as f64 / input_len as f64);
         Ok(())
     };
-    let stream_store = ChunkStore::new(&temp.path().join("stream.vxt"), plan.stream_resident());
+    let stream_store = ChunkStore::new(&temp.path().join("stream.vxt"), first_plan.stream_resident());
     let mut sink = StreamSink::new(stream_store, &mut on_tick);
     let format = read::stream_mesh(input, &mut sink, &read_opts).and_then(|f| sink.finish().map(|()| f));
     let format = match format {
@@ -403,6 +418,7 @@ pub fn build_scene_reporting(
         bounds,
         triangles: read_triangles,
         skipped: read_skipped,
+        edges,
         ..
     } = sink;
     if read_triangles + read_skipped == 0 {
@@ -413,8 +429,21 @@ pub fn build_scene_reporting(
     progress.stage(Stage::Read, 1.0);
     opts.check_cancelled()?;
 
+    // The grid, now that the bounds and the edge lengths are known.
+    let max_auto = (voxelize::MIN_AUTO_RESOLUTION.trailing_zeros()
+        ..=voxelize::MAX_RESOLUTION.trailing_zeros())
+        .map(|k| 1u32 << k)
+        .filter(|&r| MemoryPlan::minimum_budget(r) <= opts.memory_budget)
+        .max()
+        .unwrap_or(voxelize::MIN_AUTO_RESOLUTION)
+        .min(opts.max_resolution);
+    let (frame, resolution_choice) =
+        voxelize::choose_resolution(&bounds, opts.resolution, edges.median(), max_auto, read_skipped)?;
+    drop(edges);
+    let plan = MemoryPlan::new(opts.memory_budget, frame.resolution)?;
+    tracing::debug!(reason = %resolution_choice.reason, "build: resolution");
+
     // Pass 2: bin by block.
-    let frame = voxelize::frame_from_bounds(&bounds, opts.resolution, read_skipped)?;
     progress.stage(Stage::Voxelize, 0.0);
     let bins = bin::bin_triangles(
         &stream_store,
@@ -465,6 +494,7 @@ pub fn build_scene_reporting(
         voxels: manifest.levels[0].voxels,
         blocks: manifest.blocks.len() as u32,
         levels: manifest.levels.len() as u8,
+        resolution_choice,
         bytes: manifest.levels.iter().map(|l| l.bytes).sum(),
         seconds: start.elapsed().as_secs_f64(),
     })
