@@ -46,20 +46,30 @@ use crate::pipeline::{BuildError, BuildOptions};
 /// Chunks encoded (lz4 when spilled) together on all cores.
 const PENDING_CHUNKS: usize = 8;
 
-/// Pass 1: packs valid triangles into chunks.
+/// Triangles checked, encoded and measured together on all cores.
+const SINK_BATCH: usize = 1 << 14;
+
+/// One triangle as readers hand it over: source positions and linear colour.
+pub type SourceTriangle = ([[f64; 3]; 3], [f32; 3]);
+
+/// Pass 1: packs valid triangles into chunks. Triangles come in batches
+/// (readers' own, or gathered here from single ones); each batch is checked,
+/// encoded and measured on all cores, then appended in file order, so the
+/// chunks are the same as one triangle at a time would give.
 pub struct StreamSink<'a> {
     pub store: ChunkStore,
     pub layout: RecordLayout,
-    /// Bounds of every valid triangle.
+    /// Bounds of every valid triangle (the union of the chunks' bounds).
     pub bounds: Bounds,
     pub triangles: u64,
     pub skipped: u64,
     /// Edge lengths of the valid triangles, for `--resolution auto`.
     pub edges: EdgeHistogram,
     raw: Vec<u8>,
-    chunk_bounds: Bounds,
+    /// Single triangles gathered into a batch.
+    gathered: Vec<SourceTriangle>,
     /// Full chunks waiting to be encoded together.
-    pending: Vec<(Vec<u8>, Bounds)>,
+    pending: Vec<Vec<u8>>,
     begun: bool,
     on_tick: &'a mut dyn FnMut() -> Result<(), IngestError>,
 }
@@ -74,33 +84,87 @@ impl<'a> StreamSink<'a> {
             skipped: 0,
             edges: EdgeHistogram::default(),
             raw: Vec::new(),
-            chunk_bounds: Bounds::EMPTY,
+            gathered: Vec::new(),
             pending: Vec::new(),
             begun: false,
             on_tick,
         }
     }
 
-    /// Queues the current chunk; every [`PENDING_CHUNKS`] (and at the end) they are encoded together.
+    /// Queues the current chunk; every [`PENDING_CHUNKS`] (and at the end) they
+    /// get their bounds and are encoded together, on all cores.
     fn flush(&mut self, last: bool) -> Result<(), IngestError> {
         if !self.raw.is_empty() {
             let raw = std::mem::replace(
                 &mut self.raw,
                 Vec::with_capacity(MAX_CHUNK_TRIANGLES * self.layout.size()),
             );
-            self.pending.push((raw, std::mem::take(&mut self.chunk_bounds)));
+            self.pending.push(raw);
         }
         if self.pending.len() >= PENDING_CHUNKS || (last && !self.pending.is_empty()) {
+            let layout = self.layout;
+            // From the records: they hold the source values exactly (f32 only for f32 sources).
+            let items: Vec<(Vec<u8>, Bounds)> = std::mem::take(&mut self.pending)
+                .into_par_iter()
+                .map(|raw| {
+                    let mut b = Bounds::EMPTY;
+                    for r in raw.chunks_exact(layout.size()) {
+                        b.add_triangle(&layout.decode(r).0);
+                    }
+                    (raw, b)
+                })
+                .collect();
+            for (_, b) in &items {
+                self.bounds.union(b);
+            }
             self.store
-                .push_many(self.layout, &self.pending)
+                .push_many(layout, &items)
                 .map_err(|e| IngestError::Invalid(format!("temporary triangle stream: {e}")))?;
-            self.pending.clear();
         }
         (self.on_tick)()
     }
 
+    /// Checks, encodes and measures a batch on all cores and appends it in order.
+    fn push_batch(&mut self, tris: &[SourceTriangle]) -> Result<(), IngestError> {
+        let layout = self.layout;
+        let pieces: Vec<(Vec<u8>, Vec<u16>, u64, u64)> = tris
+            .par_chunks(1024)
+            .map(|piece| {
+                let mut bytes = Vec::with_capacity(piece.len() * layout.size());
+                let mut bins = Vec::with_capacity(piece.len() * 3);
+                let mut valid = 0;
+                for (tri, color) in piece {
+                    if valid_triangle(tri) {
+                        layout.encode(&mut bytes, tri, *color);
+                        EdgeHistogram::bins(tri, &mut bins);
+                        valid += 1;
+                    }
+                }
+                (bytes, bins, valid, piece.len() as u64 - valid)
+            })
+            .collect();
+        let chunk_bytes = MAX_CHUNK_TRIANGLES * layout.size();
+        for (bytes, bins, valid, invalid) in pieces {
+            self.edges.count(&bins);
+            self.triangles += valid;
+            self.skipped += invalid;
+            let mut at = 0;
+            while at < bytes.len() {
+                let take = (chunk_bytes - self.raw.len()).min(bytes.len() - at);
+                self.raw.extend_from_slice(&bytes[at..at + take]);
+                at += take;
+                if self.raw.len() == chunk_bytes {
+                    self.flush(false)?;
+                }
+            }
+        }
+        Ok(())
+    }
+
     /// Writes the last partial chunk.
     pub fn finish(&mut self) -> Result<(), IngestError> {
+        let gathered = std::mem::take(&mut self.gathered);
+        self.push_batch(&gathered)?;
         self.flush(true)
     }
 }
@@ -117,19 +181,23 @@ impl TriangleSink for StreamSink<'_> {
     }
 
     fn triangle(&mut self, tri: [[f64; 3]; 3], color: [f32; 3]) -> Result<(), IngestError> {
-        if !valid_triangle(&tri) {
-            self.skipped += 1;
-            return Ok(());
-        }
-        self.layout.encode(&mut self.raw, &tri, color);
-        self.edges.add_triangle(&tri);
-        self.chunk_bounds.add_triangle(&tri);
-        self.bounds.add_triangle(&tri);
-        self.triangles += 1;
-        if self.raw.len() >= MAX_CHUNK_TRIANGLES * self.layout.size() {
-            self.flush(false)?;
+        self.gathered.push((tri, color));
+        if self.gathered.len() >= SINK_BATCH {
+            let gathered = std::mem::take(&mut self.gathered);
+            self.push_batch(&gathered)?;
+            self.gathered = gathered;
+            self.gathered.clear();
         }
         Ok(())
+    }
+
+    fn triangles(&mut self, tris: &[SourceTriangle]) -> Result<(), IngestError> {
+        // Earlier single triangles first: file order.
+        if !self.gathered.is_empty() {
+            let gathered = std::mem::take(&mut self.gathered);
+            self.push_batch(&gathered)?;
+        }
+        self.push_batch(tris)
     }
 
     fn tick(&mut self) -> Result<(), IngestError> {

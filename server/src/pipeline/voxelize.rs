@@ -187,6 +187,7 @@ const EDGE_EXP_MAX: i64 = 255;
 /// square, 64 per octave of the length.
 const EDGE_MANTISSA_BITS: u32 = 5;
 const EDGE_BINS: usize = ((EDGE_EXP_MAX - EDGE_EXP_MIN + 1) as usize) << EDGE_MANTISSA_BITS;
+const _: () = assert!(EDGE_BINS <= 1 << 16, "bins are u16");
 
 /// A histogram of triangle edge lengths (bins of 1/32 to 1/64 octave, from
 /// the bits of the squared length: no logarithm per edge), for the median
@@ -216,11 +217,25 @@ impl EdgeHistogram {
 
     /// Counts the three edges of a triangle.
     pub fn add_triangle(&mut self, t: &[[f64; 3]; 3]) {
+        let mut bins = Vec::with_capacity(3);
+        Self::bins(t, &mut bins);
+        self.count(&bins);
+    }
+
+    /// Appends the bins of a triangle's three edges (to count later, maybe on another thread).
+    pub fn bins(t: &[[f64; 3]; 3], out: &mut Vec<u16>) {
         for (a, b) in [(0, 1), (1, 2), (2, 0)] {
             let d = sub(t[a], t[b]);
             if let Some(i) = Self::bin(dot(d, d)) {
-                self.counts[i] += 1;
+                out.push(i as u16);
             }
+        }
+    }
+
+    /// Counts bins from [`Self::bins`].
+    pub fn count(&mut self, bins: &[u16]) {
+        for &i in bins {
+            self.counts[i as usize] += 1;
         }
     }
 
