@@ -127,8 +127,13 @@ fn main() {
     let dir = Path::new(&dir);
     let manifest = Manifest::from_json(&std::fs::read(dir.join("manifest.json")).expect("manifest"))
         .expect("valid manifest");
-    let files: Vec<Vec<u8>> = manifest
-        .blocks
+    let index = voxstream_format::load_scene_index(&manifest, |r| {
+        std::fs::read(dir.join(voxstream_format::hierarchy::page_path(&r.root)))
+    })
+    .expect("hierarchy pages");
+    let mut entries: Vec<_> = index.blocks().collect();
+    entries.sort_by_key(|b| b.key);
+    let files: Vec<Vec<u8>> = entries
         .iter()
         .map(|b| std::fs::read(dir.join("blocks").join(format!("{}.vxb", b.key))).expect("block file"))
         .collect();

@@ -8,6 +8,7 @@
 //! Keeping the GPU in grid units keeps f32 precise even for georeferenced scans.
 
 mod codec;
+pub mod hierarchy;
 mod key;
 mod manifest;
 mod voxel;
@@ -15,10 +16,13 @@ mod voxel;
 pub use codec::{
     BLOCK_MAGIC, CodecError, ColumnSizes, FLAG_COLOR, HEADER_LEN, VoxelColumns, decode_block, encode_block,
 };
+pub use hierarchy::{
+    BlockLocation, HierarchyPage, PAGE_LEVELS, PageBuilder, PageError, PageRef, SceneIndex, load_scene_index,
+};
 pub use key::{BlockKey, KeyError};
 pub use manifest::{
-    BlockEntry, FORMAT_VERSION, GridFrame, LevelInfo, Manifest, ManifestError, SceneSummary, SourceInfo,
-    VoxelBounds,
+    BlockEntry, FORMAT_VERSION, GridFrame, LevelInfo, Manifest, ManifestError, ResolutionChoice,
+    SceneSummary, SourceInfo, VoxelBounds,
 };
 pub use voxel::{
     Block, FULL_COVERAGE, Face, PackedVoxel, coverage_from_count, demorton3, morton3, oct_decode, oct_encode,

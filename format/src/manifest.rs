@@ -1,9 +1,11 @@
 use serde::{Deserialize, Serialize};
 
+use crate::hierarchy::{BlockLocation, PageRef};
 use crate::{BLOCK_SIZE, BlockKey};
 
 /// Bumped whenever a reader of an older manifest would misread a newer one.
-pub const FORMAT_VERSION: u32 = 2;
+/// 3: the block list moved into hierarchy pages (`hierarchy.rs`).
+pub const FORMAT_VERSION: u32 = 3;
 
 /// Where the voxel grid sits in the source mesh's coordinates.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -72,6 +74,27 @@ pub struct BlockEntry {
     pub geometric_error: f32,
     /// blake3 of the encoded bytes, hex; the block's ETag.
     pub hash: String,
+    /// Bit `i` set when `key.children()[i]` is stored (x | y<<1 | z<<2); 0 on level 0.
+    #[serde(default)]
+    pub child_mask: u8,
+    /// Where the bytes are: the block's own file, or a range of a pack.
+    #[serde(default)]
+    pub location: BlockLocation,
+}
+
+/// How the grid resolution was chosen, for the build report and the catalog.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ResolutionChoice {
+    /// `auto`, `voxel-size` or `explicit`.
+    pub mode: String,
+    pub resolution: u32,
+    /// Source units; equals `grid.voxel_size`.
+    pub voxel_size: f64,
+    /// The scan's median triangle edge in source units, when measured.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub median_edge: Option<f64>,
+    /// One sentence saying why.
+    pub reason: String,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -83,15 +106,22 @@ pub struct Manifest {
     pub block_size: u32,
     /// Finest first; the last level holds a single block covering the grid.
     pub levels: Vec<LevelInfo>,
-    /// Sorted by key: coarsest level first is *not* implied; use [`Manifest::block`].
-    pub blocks: Vec<BlockEntry>,
+    pub resolution_choice: ResolutionChoice,
+    /// Levels each hierarchy page spans (`hierarchy::PAGE_LEVELS` when written).
+    pub page_levels: u8,
+    /// The coarsest level's one block.
+    pub root: BlockEntry,
+    /// The page listing the blocks below the root; `None` when the root is on level 0.
+    pub root_page: Option<PageRef>,
 }
 
 #[derive(Debug, thiserror::Error)]
 pub enum ManifestError {
     #[error("manifest is not valid JSON for this format: {0}")]
     Json(#[from] serde_json::Error),
-    #[error("manifest format version {0} is not supported (expected {FORMAT_VERSION})")]
+    #[error(
+        "manifest format version {0} is not supported (expected {FORMAT_VERSION}): rebuild the scene from its mesh with `voxstream build`"
+    )]
     Version(u32),
     #[error("manifest is inconsistent: {0}")]
     Inconsistent(String),
@@ -99,6 +129,15 @@ pub enum ManifestError {
 
 impl Manifest {
     pub fn from_json(bytes: &[u8]) -> Result<Self, ManifestError> {
+        // The version first: an older manifest lacks fields and would otherwise fail as "missing field".
+        #[derive(Deserialize)]
+        struct Version {
+            format_version: u32,
+        }
+        let v: Version = serde_json::from_slice(bytes)?;
+        if v.format_version != FORMAT_VERSION {
+            return Err(ManifestError::Version(v.format_version));
+        }
         let m: Manifest = serde_json::from_slice(bytes)?;
         m.validate()?;
         Ok(m)
@@ -129,30 +168,37 @@ impl Manifest {
         if self.levels.is_empty() || self.levels.iter().enumerate().any(|(i, l)| l.level as usize != i) {
             return bad("levels are not numbered 0, 1, 2, …".into());
         }
-        if !self.blocks.windows(2).all(|w| w[0].key < w[1].key) {
-            return bad("block keys are not sorted and unique".into());
+        if self.levels.last().is_some_and(|l| l.resolution > BLOCK_SIZE) {
+            return bad("the coarsest level is larger than one block".into());
         }
-        for b in &self.blocks {
-            let Some(level) = self.levels.get(b.key.level as usize) else {
-                return bad(format!("block {} names a missing level", b.key));
-            };
-            let blocks_per_edge = level.resolution.div_ceil(BLOCK_SIZE);
-            if b.key.coord().iter().any(|&c| c >= blocks_per_edge) {
-                return bad(format!("block {} lies outside its level", b.key));
-            }
-            if !(b.geometric_error.is_finite() && b.geometric_error >= 0.0) {
-                return bad(format!("block {} has geometric error {}", b.key, b.geometric_error));
-            }
+        if !(1..=4).contains(&self.page_levels) {
+            return bad(format!("page levels {} is not 1 to 4", self.page_levels));
+        }
+        let root = &self.root;
+        if root.key != BlockKey::new(self.coarsest_level(), 0, 0, 0) {
+            return bad(format!("root block {} is not the coarsest level's block", root.key));
+        }
+        if !(root.geometric_error.is_finite() && root.geometric_error >= 0.0) {
+            return bad(format!("root block has geometric error {}", root.geometric_error));
+        }
+        match (&self.root_page, root.key.level) {
+            (None, 0) => {}
+            (Some(p), l) if l > 0 && p.root == root.key && root.child_mask != 0 => {}
+            _ => return bad("the root page does not match the root block".into()),
+        }
+        if self.resolution_choice.resolution != self.grid.resolution {
+            return bad("resolution choice disagrees with the grid".into());
         }
         Ok(())
     }
 
-    pub fn coarsest_level(&self) -> u8 {
-        (self.levels.len() - 1) as u8
+    /// Blocks in the scene, all levels.
+    pub fn block_count(&self) -> u64 {
+        self.levels.iter().map(|l| l.blocks as u64).sum()
     }
 
-    pub fn block(&self, key: &BlockKey) -> Option<&BlockEntry> {
-        self.blocks.binary_search_by(|b| b.key.cmp(key)).ok().map(|i| &self.blocks[i])
+    pub fn coarsest_level(&self) -> u8 {
+        (self.levels.len() - 1) as u8
     }
 
     pub fn summary(&self, id: &str) -> SceneSummary {
@@ -161,8 +207,8 @@ impl Manifest {
             name: self.name.clone(),
             triangles: self.source.triangles,
             voxels: self.levels.first().map_or(0, |l| l.voxels),
-            blocks: self.blocks.len() as u32,
-            bytes: self.blocks.iter().map(|b| b.bytes as u64).sum(),
+            blocks: self.block_count() as u32,
+            bytes: self.levels.iter().map(|l| l.bytes).sum(),
         }
     }
 }
@@ -182,8 +228,26 @@ pub struct SceneSummary {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::hierarchy::PageRef;
+
+    pub(crate) fn entry(key: BlockKey, error: f32) -> BlockEntry {
+        let base = key.coord().map(|c| c * BLOCK_SIZE);
+        BlockEntry {
+            key,
+            bounds: VoxelBounds { min: base, max: base.map(|b| b + 1) },
+            voxels: 1,
+            faces: 6,
+            bytes: 30,
+            hash: "ab".repeat(32),
+            geometric_error: error,
+            child_mask: 0,
+            location: Default::default(),
+        }
+    }
 
     fn sample() -> Manifest {
+        let mut root = entry(BlockKey::new(1, 0, 0, 0), 1.5);
+        root.child_mask = 0b10;
         Manifest {
             format_version: FORMAT_VERSION,
             name: "t".into(),
@@ -199,26 +263,16 @@ mod tests {
                 LevelInfo { level: 0, resolution: 128, blocks: 1, voxels: 1, bytes: 30 },
                 LevelInfo { level: 1, resolution: 64, blocks: 1, voxels: 1, bytes: 30 },
             ],
-            blocks: vec![
-                BlockEntry {
-                    key: BlockKey::new(0, 1, 0, 0),
-                    bounds: VoxelBounds { min: [64, 0, 0], max: [65, 1, 1] },
-                    voxels: 1,
-                    faces: 6,
-                    bytes: 30,
-                    hash: "x".into(),
-                    geometric_error: 0.0,
-                },
-                BlockEntry {
-                    key: BlockKey::new(1, 0, 0, 0),
-                    bounds: VoxelBounds { min: [32, 0, 0], max: [33, 1, 1] },
-                    voxels: 1,
-                    faces: 6,
-                    bytes: 30,
-                    hash: "y".into(),
-                    geometric_error: 1.5,
-                },
-            ],
+            resolution_choice: ResolutionChoice {
+                mode: "explicit".into(),
+                resolution: 128,
+                voxel_size: 0.01,
+                median_edge: None,
+                reason: "asked for".into(),
+            },
+            page_levels: 3,
+            root,
+            root_page: Some(PageRef { root: BlockKey::new(1, 0, 0, 0), hash: "cd".repeat(32), bytes: 99 }),
         }
     }
 
@@ -227,24 +281,36 @@ mod tests {
         let m = sample();
         let back = Manifest::from_json(&m.to_json()).unwrap();
         assert_eq!(back, m);
-        assert_eq!(back.block(&BlockKey::new(1, 0, 0, 0)).unwrap().hash, "y");
-        assert!(back.block(&BlockKey::new(1, 0, 0, 1)).is_none());
+        assert_eq!(back.grid.origin[0], 1e7);
+        assert_eq!(back.block_count(), 2);
     }
 
     #[test]
     fn inconsistent_manifests_are_rejected() {
         let mut m = sample();
-        m.blocks.swap(0, 1);
+        m.root.key = BlockKey::new(0, 0, 0, 0);
         assert!(Manifest::from_json(&m.to_json()).is_err());
         let mut m = sample();
-        m.blocks[0].key = BlockKey::new(0, 2, 0, 0);
+        m.root.geometric_error = -1.0;
         assert!(Manifest::from_json(&m.to_json()).is_err());
         let mut m = sample();
-        m.blocks[1].geometric_error = -1.0;
+        m.root_page = None;
+        assert!(Manifest::from_json(&m.to_json()).is_err(), "a level-1 root needs its page");
+        let mut m = sample();
+        m.grid.resolution = 96;
         assert!(Manifest::from_json(&m.to_json()).is_err());
         let mut m = sample();
         m.format_version = 99;
         assert!(matches!(Manifest::from_json(&m.to_json()), Err(ManifestError::Version(99))));
         assert!(Manifest::from_json(b"{").is_err());
+    }
+
+    #[test]
+    fn an_old_manifest_is_told_to_rebuild() {
+        // A format-2 manifest has `blocks` and no `root`: the version is checked first.
+        let old = br#"{"format_version": 2, "name": "k", "blocks": []}"#;
+        let err = Manifest::from_json(old).unwrap_err();
+        assert!(matches!(err, ManifestError::Version(2)), "{err}");
+        assert!(err.to_string().contains("rebuild"), "{err}");
     }
 }

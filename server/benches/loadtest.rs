@@ -122,12 +122,16 @@ async fn run(base: &str, args: &Args) -> serde_json::Value {
     };
     let manifest_bytes = http.get(format!("{base}/api/scenes/{scene}/manifest")).send().await.unwrap();
     let manifest = Manifest::from_json(&manifest_bytes.bytes().await.unwrap()).expect("manifest");
+    let mut index = voxstream_format::SceneIndex::new(&manifest);
+    loop {
+        let next = index.missing_pages().next().cloned();
+        let Some(r) = next else { break };
+        let url = format!("{base}/api/scenes/{scene}/pages/{}.{}", r.root, r.hash);
+        let bytes = http.get(url).send().await.unwrap().bytes().await.unwrap();
+        index.insert_page(voxstream_format::HierarchyPage::decode(&bytes, &r).expect("page")).unwrap();
+    }
     let urls: Arc<Vec<String>> = Arc::new(
-        manifest
-            .blocks
-            .iter()
-            .map(|e| format!("{base}/api/scenes/{scene}/blocks/{}.{}", e.key, e.hash))
-            .collect(),
+        index.blocks().map(|e| format!("{base}/api/scenes/{scene}/blocks/{}.{}", e.key, e.hash)).collect(),
     );
     let errors = Arc::new(AtomicU64::new(0));
     let bytes = Arc::new(AtomicU64::new(0));

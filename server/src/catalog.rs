@@ -14,9 +14,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 
 use axum::body::Bytes;
 use serde::{Deserialize, Serialize};
-use voxstream_format::Manifest;
 
-use crate::pipeline::ResolutionChoice;
 use crate::store::{self, StoreError, StoredScene};
 
 pub const BUILD_INFO_FILE: &str = "scene.json";
@@ -32,9 +30,6 @@ pub struct BuildInfo {
     /// Shown instead of the manifest's name when set.
     #[serde(default)]
     pub display_name: Option<String>,
-    /// What resolution the build chose and why.
-    #[serde(default)]
-    pub resolution_choice: Option<ResolutionChoice>,
 }
 
 /// A catalog row: what a scene is, where it came from and what it costs.
@@ -55,9 +50,6 @@ pub struct SceneMeta {
     pub resolution: u32,
     /// Edge of a level-0 voxel in source units.
     pub voxel_size: f64,
-    /// How the resolution was chosen (auto, voxel size, explicit) and why;
-    /// null when the build did not record it.
-    pub resolution_choice: Option<ResolutionChoice>,
     /// Tight bounds of the voxels in source coordinates.
     pub bounds_min: [f64; 3],
     pub bounds_max: [f64; 3],
@@ -68,8 +60,13 @@ pub struct SceneMeta {
     pub build_seconds: Option<f64>,
     /// Encoded block bytes (all levels).
     pub bytes: u64,
-    /// Manifest plus block files, in bytes.
+    /// Manifest, hierarchy pages and block files, in bytes.
     pub bytes_on_disk: u64,
+    /// Manifest and hierarchy pages, bytes.
+    pub hierarchy_bytes: u64,
+    /// How the resolution was chosen.
+    #[schema(value_type = Object)]
+    pub resolution_choice: voxstream_format::ResolutionChoice,
 }
 
 pub struct LoadedScene {
@@ -82,15 +79,20 @@ impl LoadedScene {
     fn load(stored: StoredScene) -> LoadedScene {
         let info = read_build_info(&stored.dir);
         let manifest_json = Bytes::from(stored.manifest.to_json());
-        let meta = scene_meta(&stored.id, &stored.manifest, &info, manifest_json.len() as u64);
+        let meta = scene_meta(&stored, &info, manifest_json.len() as u64);
         LoadedScene { stored, manifest_json, meta }
     }
 }
 
-fn scene_meta(id: &str, m: &Manifest, info: &BuildInfo, manifest_bytes: u64) -> SceneMeta {
+fn scene_meta(stored: &StoredScene, info: &BuildInfo, manifest_bytes: u64) -> SceneMeta {
+    let (id, m) = (&stored.id, &stored.manifest);
     let mut lo = [f64::INFINITY; 3];
     let mut hi = [f64::NEG_INFINITY; 3];
-    for b in m.blocks.iter().filter(|b| b.key.level == 0) {
+    let page_bytes = stored.index.page_bytes_loaded();
+    for b in stored.index.blocks() {
+        if b.key.level != 0 {
+            continue;
+        }
         let (bmin, bmax) = b.bounds.grid_units(0);
         for a in 0..3 {
             lo[a] = lo[a].min(bmin[a]);
@@ -109,18 +111,19 @@ fn scene_meta(id: &str, m: &Manifest, info: &BuildInfo, manifest_bytes: u64) -> 
         triangles: m.source.triangles,
         skipped_triangles: m.source.skipped_triangles,
         voxels: m.levels.first().map_or(0, |l| l.voxels),
-        blocks: m.blocks.len() as u32,
+        blocks: m.block_count() as u32,
         levels: m.levels.len() as u32,
+        resolution_choice: m.resolution_choice.clone(),
         resolution: m.grid.resolution,
         voxel_size: m.grid.voxel_size,
-        resolution_choice: info.resolution_choice.clone(),
         bounds_min: to_source(lo),
         bounds_max: to_source(hi),
         units: m.grid.units.clone(),
         built_at: info.built_at,
         build_seconds: info.build_seconds,
-        bytes: m.blocks.iter().map(|b| b.bytes as u64).sum::<u64>(),
-        bytes_on_disk: m.blocks.iter().map(|b| b.bytes as u64).sum::<u64>() + manifest_bytes,
+        bytes: m.levels.iter().map(|l| l.bytes).sum::<u64>(),
+        hierarchy_bytes: manifest_bytes + page_bytes,
+        bytes_on_disk: m.levels.iter().map(|l| l.bytes).sum::<u64>() + manifest_bytes + page_bytes,
     }
 }
 

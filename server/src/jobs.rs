@@ -395,7 +395,6 @@ impl JobManager {
                     built_at: Some(now_unix()),
                     build_seconds: Some(report.seconds),
                     display_name: None,
-                    resolution_choice: Some(report.resolution_choice.clone()),
                 };
                 if let Err(e) = write_build_info(&report.scene_dir, &info) {
                     tracing::warn!(scene = %report.id, error = %e, "cannot write scene.json");

@@ -1,13 +1,15 @@
 //! The read side of the store: published scenes as the server lists and
 //! serves them. Scenes are written by [`crate::pipeline::write`].
 //!
-//! Layout: `<store>/<id>/manifest.json` and `<store>/<id>/blocks/<key>.vxb`;
+//! Layout: `<store>/<id>/manifest.json`, `<store>/<id>/pages/<key>.vxh` and
+//! `<store>/<id>/blocks/<key>.vxb`;
 //! directories starting with `.` (temp, trash, builds) are never listed.
 
 use std::fs;
 use std::path::{Path, PathBuf};
 
-use voxstream_format::{BlockKey, Manifest};
+use voxstream_format::hierarchy::page_path;
+use voxstream_format::{BlockEntry, BlockKey, Manifest, SceneIndex, load_scene_index};
 
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
@@ -45,18 +47,36 @@ pub fn id_from_file_stem(path: &Path) -> String {
     if id.is_empty() { "scene".to_string() } else { id }
 }
 
-/// A published scene, as the server reads it.
+/// A published scene, as the server reads it: the manifest and every page,
+/// checked when opened, so a listed scene's hierarchy is complete.
 #[derive(Debug, Clone)]
 pub struct StoredScene {
     pub id: String,
     pub dir: PathBuf,
     pub manifest: Manifest,
+    pub index: std::sync::Arc<SceneIndex>,
 }
 
 impl StoredScene {
     pub fn block_path(&self, key: &BlockKey) -> PathBuf {
         self.dir.join("blocks").join(format!("{key}.vxb"))
     }
+
+    pub fn page_path(&self, root: &BlockKey) -> PathBuf {
+        self.dir.join(page_path(root))
+    }
+
+    /// Every block entry, sorted by key.
+    pub fn blocks(&self) -> Vec<&BlockEntry> {
+        let mut all: Vec<&BlockEntry> = self.index.blocks().collect();
+        all.sort_by_key(|b| b.key);
+        all
+    }
+}
+
+/// Reads every hierarchy page of the scene in `dir`.
+pub fn read_scene_index(dir: &Path, manifest: &Manifest) -> Result<SceneIndex, String> {
+    load_scene_index(manifest, |r| fs::read(dir.join(page_path(&r.root)))).map_err(|e| e.to_string())
 }
 
 /// Lists the published scenes of a store, sorted by id. A missing store is empty.
@@ -84,9 +104,10 @@ pub fn open_scene(store: &Path, id: &str) -> Result<StoredScene, StoreError> {
     let dir = store.join(id);
     let path = dir.join("manifest.json");
     let bytes = fs::read(&path).map_err(io("read", &path))?;
-    let manifest = Manifest::from_json(&bytes)
-        .map_err(|e| StoreError::Damaged { id: id.to_string(), message: e.to_string() })?;
-    Ok(StoredScene { id: id.to_string(), dir, manifest })
+    let damaged = |message: String| StoreError::Damaged { id: id.to_string(), message };
+    let manifest = Manifest::from_json(&bytes).map_err(|e| damaged(e.to_string()))?;
+    let index = read_scene_index(&dir, &manifest).map_err(damaged)?;
+    Ok(StoredScene { id: id.to_string(), dir, manifest, index: std::sync::Arc::new(index) })
 }
 
 #[cfg(test)]

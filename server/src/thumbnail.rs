@@ -73,9 +73,8 @@ pub fn thumbnail_level(manifest: &Manifest, budget: u64) -> u8 {
 pub fn read_level(scene: &StoredScene, level: u8) -> Result<Vec<Block>, ThumbnailError> {
     let fail = |key: String, message: String| ThumbnailError::Block { id: scene.id.clone(), key, message };
     scene
-        .manifest
-        .blocks
-        .iter()
+        .blocks()
+        .into_iter()
         .filter(|b| b.key.level == level)
         .map(|entry| {
             let key = entry.key.to_string();
@@ -517,7 +516,7 @@ mod tests {
     fn damaged_block_is_an_error_naming_it() {
         let (_dir, scene) = build(&ellipsoid_obj([1.0; 3]), 64);
         let level = thumbnail_level(&scene.manifest, MAX_VOXELS);
-        let entry = scene.manifest.blocks.iter().find(|b| b.key.level == level).unwrap();
+        let entry = scene.blocks().into_iter().find(|b| b.key.level == level).unwrap().clone();
         std::fs::write(scene.block_path(&entry.key), b"VXB2 not really").unwrap();
         let err = render_scene(&scene).unwrap_err().to_string();
         assert!(err.contains(&entry.key.to_string()), "{err}");

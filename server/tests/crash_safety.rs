@@ -118,7 +118,19 @@ async fn check_scene(base: &str, store: &Path, id: &str, http: &reqwest::Client)
     let dir = store.join(id);
     let bytes = std::fs::read(dir.join("manifest.json")).map_err(|e| format!("scene {id}: {e}"))?;
     let manifest = Manifest::from_json(&bytes).map_err(|e| format!("scene {id}: {e}"))?;
-    for e in &manifest.blocks {
+    // Every page present and intact: a half-published scene would miss some.
+    let index =
+        voxstream::store::read_scene_index(&dir, &manifest).map_err(|e| format!("scene {id}: {e}"))?;
+    let mut blocks: Vec<_> = index.blocks().collect();
+    blocks.sort_by_key(|b| b.key);
+    if blocks.len() as u64 != manifest.block_count() {
+        return Err(format!(
+            "scene {id}: pages list {} blocks, levels {}",
+            blocks.len(),
+            manifest.block_count()
+        ));
+    }
+    for e in &blocks {
         let bytes = std::fs::read(dir.join("blocks").join(format!("{}.vxb", e.key)))
             .map_err(|err| format!("scene {id} block {}: {err}", e.key))?;
         if blake3::hash(&bytes).to_hex().as_str() != e.hash {
@@ -135,7 +147,7 @@ async fn check_scene(base: &str, store: &Path, id: &str, http: &reqwest::Client)
     if served != manifest {
         return Err(format!("scene {id}: the served manifest differs from the one on disk"));
     }
-    if let Some(e) = manifest.blocks.first() {
+    if let Some(e) = blocks.first() {
         let r = http.get(format!("{base}/api/scenes/{id}/blocks/{}.{}", e.key, e.hash)).send().await.unwrap();
         if r.status() != 200 {
             return Err(format!("scene {id} block {}: HTTP {}", e.key, r.status()));

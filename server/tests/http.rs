@@ -148,15 +148,31 @@ async fn wait_job(base: &str, job: &str) -> serde_json::Value {
     panic!("job {job} did not end");
 }
 
-/// Every block of a stored scene decodes and matches its manifest hash.
-fn assert_scene_complete(store: &Path, id: &str) -> Manifest {
-    let m = Manifest::from_json(&std::fs::read(store.join(id).join("manifest.json")).unwrap()).unwrap();
-    for e in &m.blocks {
+/// A stored scene: its manifest and every block entry of its pages, sorted by key.
+struct OnDisk {
+    manifest: Manifest,
+    blocks: Vec<voxstream_format::BlockEntry>,
+    page_bytes: u64,
+}
+
+impl std::ops::Deref for OnDisk {
+    type Target = Manifest;
+    fn deref(&self) -> &Manifest {
+        &self.manifest
+    }
+}
+
+/// Every page of a stored scene decodes, and every block it lists decodes and matches its hash.
+fn assert_scene_complete(store: &Path, id: &str) -> OnDisk {
+    let scene = voxstream::store::open_scene(store, id).unwrap();
+    let blocks: Vec<_> = scene.blocks().into_iter().cloned().collect();
+    assert_eq!(blocks.len() as u64, scene.manifest.block_count());
+    for e in &blocks {
         let bytes = std::fs::read(store.join(id).join("blocks").join(format!("{}.vxb", e.key))).unwrap();
         assert_eq!(blake3::hash(&bytes).to_hex().as_str(), e.hash);
         assert_eq!(decode_block(&bytes).unwrap().key, e.key);
     }
-    m
+    OnDisk { page_bytes: scene.index.page_bytes_loaded(), manifest: scene.manifest, blocks }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -190,9 +206,31 @@ async fn serves_what_the_store_holds() {
     assert_eq!(served.headers()["cache-control"], "no-cache");
     let served = Manifest::from_json(&served.bytes().await.unwrap()).unwrap();
     assert_eq!(served, on_disk);
-    assert!(served.blocks.len() > 8, "expected several blocks, got {}", served.blocks.len());
+    // The hierarchy as the viewer reads it: pages over HTTP, immutable, checked against their hashes.
+    let mut index = voxstream_format::SceneIndex::new(&served);
+    loop {
+        let next = index.missing_pages().next().cloned();
+        let Some(r) = next else { break };
+        let url = format!("{base}/api/scenes/box-scan/pages/{}.{}", r.root, r.hash);
+        let resp = http.get(&url).send().await.unwrap();
+        assert_eq!(resp.status(), 200, "{url}");
+        assert_eq!(resp.headers()["cache-control"], BLOCK_CACHE_CONTROL);
+        let etag = resp.headers()["etag"].to_str().unwrap().to_string();
+        let bytes = resp.bytes().await.unwrap();
+        let again = http.get(&url).header("if-none-match", &etag).send().await.unwrap();
+        assert_eq!(again.status(), 304);
+        index.insert_page(voxstream_format::HierarchyPage::decode(&bytes, &r).unwrap()).unwrap();
+    }
+    let wrong_page = format!("{base}/api/scenes/box-scan/pages/{}.{}", served.root.key, "0".repeat(64));
+    json_error(http.get(&wrong_page).send().await.unwrap(), 404).await;
+    json_error(http.get(format!("{base}/api/scenes/box-scan/pages/nonsense")).send().await.unwrap(), 400)
+        .await;
+    let mut served_blocks: Vec<_> = index.blocks().cloned().collect();
+    served_blocks.sort_by_key(|b| b.key);
+    assert_eq!(served_blocks, assert_scene_complete(&store, "box-scan").blocks);
+    assert!(served_blocks.len() > 8, "expected several blocks, got {}", served_blocks.len());
 
-    for entry in &served.blocks {
+    for entry in &served_blocks {
         let url = format!("{base}/api/scenes/box-scan/blocks/{}.{}", entry.key, entry.hash);
         let resp = http.get(&url).send().await.unwrap();
         assert_eq!(resp.status(), 200, "{url}");
@@ -223,7 +261,7 @@ async fn serves_what_the_store_holds() {
         assert_eq!(plain.headers()["etag"].to_str().unwrap(), etag);
         assert_eq!(&plain.bytes().await.unwrap()[..], &file[..]);
     }
-    let first = &served.blocks[0];
+    let first = &served_blocks[0];
     let wrong = "0".repeat(64);
     let e = json_error(
         http.get(format!("{base}/api/scenes/box-scan/blocks/{}.{wrong}", first.key)).send().await.unwrap(),
@@ -328,7 +366,8 @@ async fn upload_builds_a_scene_and_streams_progress() {
     assert!(meta["build_seconds"].as_f64().unwrap() > 0.0);
     let m = assert_scene_complete(&store, "koala-scan");
     let on_disk: u64 = m.blocks.iter().map(|b| b.bytes as u64).sum::<u64>()
-        + std::fs::metadata(store.join("koala-scan/manifest.json")).unwrap().len();
+        + std::fs::metadata(store.join("koala-scan/manifest.json")).unwrap().len()
+        + m.page_bytes;
     assert_eq!(meta["bytes_on_disk"], on_disk);
     for a in 0..3 {
         let (lo, hi) = (meta["bounds_min"][a].as_f64().unwrap(), meta["bounds_max"][a].as_f64().unwrap());
@@ -708,8 +747,8 @@ async fn rename_and_delete_scenes() {
         &c.get(format!("{base}/api/scenes/renamed/manifest")).send().await.unwrap().bytes().await.unwrap(),
     )
     .unwrap();
-    assert_eq!(m.blocks, before.blocks);
-    let e = &m.blocks[0];
+    assert_eq!(m, before.manifest);
+    let e = &before.blocks[0];
     let block = c.get(format!("{base}/api/scenes/renamed/blocks/{}.{}", e.key, e.hash)).send().await.unwrap();
     assert_eq!(block.status(), 200);
     assert!(!store.join("box").exists() && store.join("renamed/manifest.json").exists());

@@ -16,7 +16,7 @@ use std::time::Instant;
 
 use voxstream::pipeline::{BuildOptions, Resolution, build_scene};
 use voxstream_e2e::coverage::{self, compare_masks, coverage_mask, silhouette_from_rgba};
-use voxstream_format::{BlockKey, Face, Manifest};
+use voxstream_format::{BlockKey, Face};
 use voxstream_viewer::BACKGROUND_RGBA8;
 use voxstream_viewer::offscreen::{Offscreen, OffscreenError, OffscreenFrame, RenderOptions};
 
@@ -163,16 +163,16 @@ fn gpu_expansion_writes_exactly_the_cpu_faces() {
     offscreen.load_wanted();
     let wanted = offscreen.scene.wanted().to_vec();
     // The coarsest block and the block with the most faces of the selection.
-    let manifest: Manifest = offscreen.scene.manifest.clone();
-    let busiest = wanted.iter().max_by_key(|k| manifest.block(k).map_or(0, |e| e.faces)).copied().unwrap();
-    let root = manifest.blocks.iter().map(|b| b.key).find(|k| k.level == manifest.coarsest_level()).unwrap();
+    let index = offscreen.scene.index.clone();
+    let busiest = wanted.iter().max_by_key(|k| index.block(k).map_or(0, |e| e.faces)).copied().unwrap();
+    let root = offscreen.scene.manifest.root.key;
     offscreen.load(&[root]);
     for key in [busiest, root] {
         let block = offscreen.scene.block(&key).cloned().unwrap_or_else(|| panic!("block {key} not loaded"));
         let args = offscreen.draw_args(&key).unwrap().expect("block is on the GPU");
         let records = offscreen.face_records(&key).unwrap();
         let faces = block.face_count();
-        assert_eq!(faces, manifest.block(&key).unwrap().faces, "manifest face count of {key}");
+        assert_eq!(faces, index.block(&key).unwrap().faces, "manifest face count of {key}");
         assert_eq!(args, [faces * 6, 1, 0, 0], "indirect args of {key}");
         let mut gpu: Vec<[u32; 3]> = records;
         gpu.sort();
@@ -198,6 +198,7 @@ fn corrupt_and_missing_blocks_fall_back_to_their_ancestor() {
     // One wanted fine block gets corrupted and another deleted.
     let (_store, scene) = koala_scene();
     let mut offscreen = open(&scene, &RenderOptions::new(WIDTH, HEIGHT));
+    offscreen.load_pages();
     let wanted = offscreen.scene.wanted().to_vec();
     let finest = wanted.iter().map(|k| k.level).min().unwrap();
     let fine: Vec<BlockKey> = wanted.iter().filter(|k| k.level == finest).copied().collect();
@@ -263,6 +264,13 @@ fn voxel_colour_is_shaded_in() {
         name: "red".into(),
         source: SourceInfo { file: "red".into(), format: "test".into(), triangles: 2, skipped_triangles: 0 },
         grid: GridFrame { origin: [0.0; 3], voxel_size: 1.0, resolution: 64, units: None },
+        resolution_choice: voxstream_format::ResolutionChoice {
+            mode: "explicit".into(),
+            resolution: 64,
+            voxel_size: 1.0,
+            median_edge: None,
+            reason: "test".into(),
+        },
         levels: &levels,
     };
     write_scene(store.path(), "red", &content).unwrap();

@@ -46,6 +46,8 @@ mod tests {
             bytes: 0,
             hash: String::new(),
             geometric_error: 1.0,
+            child_mask: 0,
+            location: Default::default(),
         };
         (block, entry)
     }

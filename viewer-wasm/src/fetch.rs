@@ -2,7 +2,7 @@
 //! browser, a store's scene directory natively (tests). Only this module knows
 //! the difference; everything downstream sees bytes or a [`FetchError`].
 
-use voxstream_format::BlockKey;
+use voxstream_format::{BlockKey, PageRef};
 
 #[derive(Debug, Clone, thiserror::Error, PartialEq, Eq)]
 pub enum FetchError {
@@ -34,6 +34,21 @@ impl BlockSource {
             #[cfg(target_arch = "wasm32")]
             BlockSource::Http { scene_url } => {
                 http::get_bytes(&format!("{scene_url}/manifest"), "manifest").await
+            }
+        }
+    }
+
+    /// A hierarchy page's bytes (content-addressed like blocks).
+    pub async fn page_bytes(&self, page: &PageRef) -> Result<Vec<u8>, FetchError> {
+        let what = format!("hierarchy page {}", page.root);
+        match self {
+            #[cfg(not(target_arch = "wasm32"))]
+            BlockSource::SceneDir(dir) => {
+                read_file(&dir.join(voxstream_format::hierarchy::page_path(&page.root)), &what)
+            }
+            #[cfg(target_arch = "wasm32")]
+            BlockSource::Http { scene_url } => {
+                http::get_bytes(&format!("{scene_url}/pages/{}.{}", page.root, page.hash), &what).await
             }
         }
     }

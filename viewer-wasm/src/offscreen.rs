@@ -144,11 +144,29 @@ impl Offscreen {
     /// their ancestors, as the browser does).
     pub fn load_wanted(&mut self) {
         loop {
+            let pages = self.load_pages();
             let keys = self.scene.next_fetches(64);
-            if keys.is_empty() {
+            if keys.is_empty() && pages == 0 {
                 break;
             }
             self.load(&keys);
+        }
+    }
+
+    /// Loads the hierarchy pages the current view wants (and those they lead
+    /// to), no blocks; returns how many were fetched.
+    pub fn load_pages(&mut self) -> usize {
+        let mut n = 0;
+        loop {
+            let pages = self.scene.next_page_fetches(64);
+            if pages.is_empty() {
+                return n;
+            }
+            for page in &pages {
+                let result = pollster::block_on(self.source.page_bytes(page));
+                self.scene.insert_page(page, result);
+            }
+            n += pages.len();
         }
     }
 

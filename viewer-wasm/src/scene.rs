@@ -7,7 +7,7 @@
 use std::collections::{HashMap, HashSet};
 
 use glam::{Mat4, Vec3};
-use voxstream_format::{Block, BlockKey, Manifest};
+use voxstream_format::{Block, BlockKey, HierarchyPage, Manifest, PageRef, SceneIndex};
 
 use crate::ao::OccupancyVolume;
 use crate::camera::OrbitCamera;
@@ -15,7 +15,7 @@ use crate::decode::decode_fetched;
 use crate::expand::GpuBlock;
 use crate::fetch::FetchError;
 use crate::render::{FrameParams, Renderer};
-use crate::select::{SelectParams, ViewParams, resolve_draw_set, scene_bounds, select_blocks};
+use crate::select::{SelectParams, ViewParams, block_bounds, resolve_draw_set, scene_bounds, select_blocks};
 use crate::stats::Stats;
 
 /// GPU bytes of cached blocks beyond which blocks that are neither wanted nor
@@ -42,14 +42,21 @@ pub struct DrawnFrame {
 
 pub struct Scene {
     pub manifest: Manifest,
+    /// The hierarchy as far as its pages have loaded.
+    pub index: SceneIndex,
     pub camera: OrbitCamera,
     pub select_params: SelectParams,
     /// 0 disables ambient occlusion; 1 is full strength.
     pub ao_strength: f32,
     pub stats: Stats,
     viewport: (u32, u32),
-    selected_for: Option<(OrbitCamera, (u32, u32))>,
+    /// Camera, viewport and pages loaded when `wanted` was computed.
+    selected_for: Option<(OrbitCamera, (u32, u32), usize)>,
     wanted: Vec<BlockKey>,
+    /// Pages the current view needs, largest projected error first.
+    wanted_pages: Vec<PageRef>,
+    pending_pages: HashSet<BlockKey>,
+    failed_pages: HashMap<BlockKey, String>,
     cache: HashMap<BlockKey, CachedBlock>,
     pending: HashSet<BlockKey>,
     failed: HashMap<BlockKey, String>,
@@ -64,6 +71,7 @@ impl Scene {
     pub fn new(manifest: Manifest, viewport: (u32, u32)) -> Self {
         let camera = default_camera(&manifest, viewport.0.max(1) as f32 / viewport.1.max(1) as f32);
         Self {
+            index: SceneIndex::new(&manifest),
             manifest,
             camera,
             select_params: SelectParams::default(),
@@ -72,6 +80,9 @@ impl Scene {
             viewport: (viewport.0.max(1), viewport.1.max(1)),
             selected_for: None,
             wanted: Vec::new(),
+            wanted_pages: Vec::new(),
+            pending_pages: HashSet::new(),
+            failed_pages: HashMap::new(),
             cache: HashMap::new(),
             pending: HashSet::new(),
             failed: HashMap::new(),
@@ -98,19 +109,56 @@ impl Scene {
         self.camera.view_proj(self.aspect())
     }
 
-    /// The blocks this view wants, recomputed when the camera or viewport changed.
+    /// The blocks this view wants, recomputed when the camera, the viewport or
+    /// the loaded part of the hierarchy changed.
     pub fn wanted(&mut self) -> &[BlockKey] {
-        let now = (self.camera, self.viewport);
+        let now = (self.camera, self.viewport, self.index.pages_loaded());
         if self.selected_for != Some(now) {
             let view = ViewParams {
                 view_proj: self.view_proj(),
                 eye: self.camera.eye(),
                 focal_pixels: self.camera.focal_pixels(self.viewport.1 as f32),
             };
-            self.wanted = select_blocks(&self.manifest, &view, &self.select_params);
+            let selection = select_blocks(&self.index, &self.manifest.root.key, &view, &self.select_params);
+            self.wanted = selection.blocks;
+            self.wanted_pages = selection.pages;
             self.selected_for = Some(now);
         }
         &self.wanted
+    }
+
+    /// Hierarchy pages the view needs that are neither loaded, in flight nor
+    /// failed, most needed first, at most `max`; they are marked in flight.
+    /// Fetch them before blocks: they decide which blocks are wanted.
+    pub fn next_page_fetches(&mut self, max: usize) -> Vec<PageRef> {
+        self.wanted();
+        let todo: Vec<PageRef> = self
+            .wanted_pages
+            .iter()
+            .filter(|p| !self.pending_pages.contains(&p.root) && !self.failed_pages.contains_key(&p.root))
+            .take(max)
+            .cloned()
+            .collect();
+        self.pending_pages.extend(todo.iter().map(|p| p.root));
+        todo
+    }
+
+    /// Takes a fetched page. A page that fails is not asked for again; the
+    /// blocks above it stay drawn as they are.
+    pub fn insert_page(&mut self, page: &PageRef, result: Result<Vec<u8>, FetchError>) {
+        self.pending_pages.remove(&page.root);
+        let outcome = result.map_err(|e| e.to_string()).and_then(|bytes| {
+            self.stats.bytes_fetched += bytes.len() as u64;
+            let decoded = HierarchyPage::decode(&bytes, page).map_err(|e| e.to_string())?;
+            self.index.insert_page(decoded).map_err(|e| e.to_string())
+        });
+        match outcome {
+            Ok(()) => self.stats.pages_loaded += 1,
+            Err(e) => {
+                self.stats.record_error(format!("hierarchy page {}: {e}", page.root));
+                self.failed_pages.insert(page.root, e);
+            }
+        }
     }
 
     /// The wanted blocks and all their ancestors present in the manifest: the
@@ -125,7 +173,7 @@ impl Scene {
                 k = k.parent();
             }
         }
-        needed.retain(|k| self.manifest.block(k).is_some());
+        needed.retain(|k| self.index.block(k).is_some());
         needed
     }
 
@@ -141,9 +189,7 @@ impl Scene {
             })
             .collect();
         let eye = self.camera.eye();
-        let dist = |k: &BlockKey| {
-            crate::select::block_bounds(&self.manifest, k).map_or(f32::INFINITY, |b| b.distance_to(eye))
-        };
+        let dist = |k: &BlockKey| block_bounds(&self.index, k).map_or(f32::INFINITY, |b| b.distance_to(eye));
         todo.sort_by(|a, b| b.level.cmp(&a.level).then(dist(a).total_cmp(&dist(b))).then(a.cmp(b)));
         todo.truncate(max);
         self.pending.extend(todo.iter().copied());
@@ -151,7 +197,7 @@ impl Scene {
     }
 
     pub fn in_flight(&self) -> usize {
-        self.pending.len()
+        self.pending.len() + self.pending_pages.len()
     }
 
     pub fn record_bytes_fetched(&mut self, bytes: u64) {
@@ -180,7 +226,7 @@ impl Scene {
                 }
             };
             self.stats.bytes_fetched += bytes.len() as u64;
-            let block = match decode_fetched(key, self.manifest.block(&key), &bytes) {
+            let block = match decode_fetched(key, self.index.block(&key), &bytes) {
                 Ok(block) => block,
                 Err(e) => {
                     self.fail(key, e.to_string());
@@ -207,11 +253,13 @@ impl Scene {
         self.failed.iter()
     }
 
-    /// Every wanted block is settled (cached or failed) and nothing is in flight.
+    /// Every wanted block and page is settled (loaded or failed) and nothing is in flight.
     pub fn is_settled(&mut self) -> bool {
         self.wanted();
         self.pending.is_empty()
+            && self.pending_pages.is_empty()
             && self.wanted.iter().all(|k| self.cache.contains_key(k) || self.failed.contains_key(k))
+            && self.wanted_pages.iter().all(|p| self.failed_pages.contains_key(&p.root))
     }
 
     pub fn is_cached(&self, key: &BlockKey) -> bool {

@@ -10,7 +10,7 @@ use std::cmp::Ordering;
 use std::collections::{BTreeSet, BinaryHeap};
 
 use glam::{Mat4, Vec3, Vec4};
-use voxstream_format::{BlockKey, Manifest};
+use voxstream_format::{BlockEntry, BlockKey, Manifest, PageRef, SceneIndex};
 
 /// What the selection needs to know about the view.
 #[derive(Debug, Clone, Copy)]
@@ -55,23 +55,21 @@ impl Aabb {
     }
 }
 
-/// Tight grid-unit bounds of a block's voxels, from the manifest.
-pub fn block_bounds(manifest: &Manifest, key: &BlockKey) -> Option<Aabb> {
-    let entry = manifest.block(key)?;
-    let (min, max) = entry.bounds.grid_units(key.level);
+/// Tight grid-unit bounds of a block's voxels.
+pub fn entry_bounds(entry: &BlockEntry) -> Aabb {
+    let (min, max) = entry.bounds.grid_units(entry.key.level);
     let v = |a: [f64; 3]| Vec3::new(a[0] as f32, a[1] as f32, a[2] as f32);
-    Some(Aabb { min: v(min), max: v(max) })
+    Aabb { min: v(min), max: v(max) }
 }
 
-/// Bounds of everything in the scene: the union of the coarsest level's blocks.
+/// Tight grid-unit bounds of a block's voxels, if the index knows the block.
+pub fn block_bounds(index: &SceneIndex, key: &BlockKey) -> Option<Aabb> {
+    index.block(key).map(entry_bounds)
+}
+
+/// Bounds of everything in the scene: the root block's.
 pub fn scene_bounds(manifest: &Manifest) -> Option<Aabb> {
-    let coarsest = manifest.coarsest_level();
-    manifest
-        .blocks
-        .iter()
-        .filter(|b| b.key.level == coarsest)
-        .filter_map(|b| block_bounds(manifest, &b.key))
-        .reduce(|a, b| a.union(&b))
+    Some(entry_bounds(&manifest.root))
 }
 
 /// The six planes of a wgpu (depth 0..1) frustum, as `n·p + d >= 0` inside.
@@ -130,37 +128,54 @@ impl Ord for Candidate {
     }
 }
 
+/// What a view wants: blocks to draw, and the hierarchy pages that must load
+/// before some of them can be refined.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Selection {
+    /// Sorted by key (coarser levels last).
+    pub blocks: Vec<BlockKey>,
+    /// Pages below blocks that want refining, largest projected error first.
+    pub pages: Vec<PageRef>,
+}
+
 /// The blocks to show for this view, coarse to fine refinement by largest
 /// projected error first, so a block budget spends itself where it shows most.
-/// The result is sorted by key (coarser levels last).
-pub fn select_blocks(manifest: &Manifest, view: &ViewParams, params: &SelectParams) -> Vec<BlockKey> {
+/// A block whose children sit in a page not loaded yet stays selected, and
+/// that page is asked for.
+pub fn select_blocks(
+    index: &SceneIndex,
+    root: &BlockKey,
+    view: &ViewParams,
+    params: &SelectParams,
+) -> Selection {
     let frustum = Frustum::from_view_proj(view.view_proj);
-    let visible = |key: &BlockKey| -> Option<Candidate> {
-        let entry = manifest.block(key)?;
-        let bounds = block_bounds(manifest, key)?;
+    let visible = |entry: &BlockEntry| -> Option<Candidate> {
+        let bounds = entry_bounds(entry);
         frustum
             .intersects(&bounds)
-            .then(|| Candidate { key: *key, pixels: error_pixels(entry.geometric_error, &bounds, view) })
+            .then(|| Candidate { key: entry.key, pixels: error_pixels(entry.geometric_error, &bounds, view) })
     };
-    let coarsest = manifest.coarsest_level();
-    let mut open: BinaryHeap<Candidate> =
-        manifest.blocks.iter().filter(|b| b.key.level == coarsest).filter_map(|b| visible(&b.key)).collect();
+    let mut open: BinaryHeap<Candidate> = index.block(root).and_then(visible).into_iter().collect();
     let mut done = Vec::new();
+    let mut pages = Vec::new();
     while let Some(c) = open.pop() {
         if c.pixels > params.max_error_pixels {
-            let existing: Vec<BlockKey> =
-                c.key.children().into_iter().flatten().filter(|k| manifest.block(k).is_some()).collect();
-            // Existing children all outside the frustum: nothing visible here at finer levels.
-            let children: Vec<Candidate> = existing.iter().filter_map(visible).collect();
-            if !existing.is_empty() && done.len() + open.len() + children.len() <= params.max_blocks {
-                open.extend(children);
-                continue;
+            if let Some(page) = index.pending_page_for(&c.key) {
+                pages.push(page.clone());
+            } else {
+                let has_children = index.block(&c.key).is_some_and(|e| e.child_mask != 0);
+                // Existing children all outside the frustum: nothing visible here at finer levels.
+                let children: Vec<Candidate> = index.children(&c.key).filter_map(visible).collect();
+                if has_children && done.len() + open.len() + children.len() <= params.max_blocks {
+                    open.extend(children);
+                    continue;
+                }
             }
         }
         done.push(c.key);
     }
     done.sort();
-    done
+    Selection { blocks: done, pages }
 }
 
 /// What to draw now for the `wanted` selection: each wanted block if it is
@@ -205,13 +220,15 @@ mod tests {
     use super::*;
     use crate::camera::OrbitCamera;
     use voxstream_format::{
-        BLOCK_SIZE, BlockEntry, FORMAT_VERSION, GridFrame, LevelInfo, SourceInfo, VoxelBounds,
+        BLOCK_SIZE, FORMAT_VERSION, GridFrame, LevelInfo, PAGE_LEVELS, PageBuilder, ResolutionChoice,
+        SourceInfo, VoxelBounds, load_scene_index,
     };
 
-    /// A full pyramid over a `res`³ grid where every block is filled edge to edge.
-    fn pyramid(res: u32) -> Manifest {
+    /// A full pyramid over a `res`³ grid where every block is filled edge to
+    /// edge, as a fully loaded index (pages built and read back as a viewer would).
+    fn pyramid_with(res: u32, error: impl Fn(&BlockKey) -> f32) -> (Manifest, SceneIndex) {
         let mut levels = Vec::new();
-        let mut blocks = Vec::new();
+        let mut all = Vec::new();
         let mut level = 0u8;
         loop {
             let level_res = res >> level;
@@ -229,15 +246,16 @@ mod tests {
                         let key = BlockKey::new(level, x, y, z);
                         let min = key.coord().map(|c| c * BLOCK_SIZE);
                         let max = key.coord().map(|c| ((c + 1) * BLOCK_SIZE).min(level_res));
-                        blocks.push(BlockEntry {
+                        all.push(BlockEntry {
                             key,
                             bounds: VoxelBounds { min, max },
                             voxels: 1,
                             faces: 1,
                             bytes: 1,
-                            hash: String::new(),
-                            // The bound for a diagonal surface (lod.rs): √3 per halving.
-                            geometric_error: ((1u32 << level) - 1) as f32 * 3f32.sqrt(),
+                            hash: "0".repeat(64),
+                            geometric_error: error(&key),
+                            child_mask: 0,
+                            location: Default::default(),
                         });
                     }
                 }
@@ -247,7 +265,14 @@ mod tests {
             }
             level += 1;
         }
-        blocks.sort_by_key(|b| b.key);
+        let mut builder = PageBuilder::new(level, PAGE_LEVELS);
+        let mut pages = std::collections::HashMap::new();
+        for e in all {
+            if let Some((r, bytes)) = builder.add(e).unwrap() {
+                pages.insert(r.hash.clone(), bytes);
+            }
+        }
+        let (root, root_page) = builder.finish().unwrap();
         let m = Manifest {
             format_version: FORMAT_VERSION,
             name: "pyramid".into(),
@@ -255,10 +280,34 @@ mod tests {
             grid: GridFrame { origin: [0.0; 3], voxel_size: 1.0, resolution: res, units: None },
             block_size: BLOCK_SIZE,
             levels,
-            blocks,
+            resolution_choice: ResolutionChoice {
+                mode: "explicit".into(),
+                resolution: res,
+                voxel_size: 1.0,
+                median_edge: None,
+                reason: "test".into(),
+            },
+            page_levels: PAGE_LEVELS,
+            root,
+            root_page,
         };
         m.validate().unwrap();
-        m
+        let index = load_scene_index(&m, |r| {
+            pages.get(&r.hash).cloned().ok_or_else(|| std::io::Error::other("missing page"))
+        })
+        .unwrap();
+        (m, index)
+    }
+
+    /// The bound for a diagonal surface (lod.rs): √3 per halving.
+    fn pyramid(res: u32) -> (Manifest, SceneIndex) {
+        pyramid_with(res, |k| ((1u32 << k.level) - 1) as f32 * 3f32.sqrt())
+    }
+
+    fn select(m: &(Manifest, SceneIndex), view: &ViewParams, params: &SelectParams) -> Vec<BlockKey> {
+        let sel = select_blocks(&m.1, &m.0.root.key, view, params);
+        assert!(sel.pages.is_empty(), "a loaded index needs no page");
+        sel.blocks
     }
 
     fn view_of(cam: &OrbitCamera, height: f32) -> ViewParams {
@@ -281,11 +330,11 @@ mod tests {
         let mut cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(512.0));
         cam.distance *= 20.0;
         cam.scene_radius *= 20.0;
-        let far = select_blocks(&m, &view_of(&cam, 400.0), &SelectParams::default());
+        let far = select(&m, &view_of(&cam, 400.0), &SelectParams::default());
         assert_eq!(far, vec![BlockKey::new(3, 0, 0, 0)]);
 
         let cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(512.0));
-        let near = select_blocks(&m, &view_of(&cam, 2000.0), &SelectParams::default());
+        let near = select(&m, &view_of(&cam, 2000.0), &SelectParams::default());
         assert!(near.iter().any(|k| k.level == 0), "a 2000 px view of a 512 grid needs level 0: {near:?}");
         // The selection tiles space: no block together with its ancestor.
         for k in &near {
@@ -303,13 +352,13 @@ mod tests {
         let cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(512.0));
         let view = view_of(&cam, 700.0);
         let params = SelectParams::default();
-        let sel = select_blocks(&m, &view, &params);
+        let sel = select(&m, &view, &params);
         for k in &sel {
-            let error = m.block(k).unwrap().geometric_error;
-            let px = error_pixels(error, &block_bounds(&m, k).unwrap(), &view);
+            let error = m.1.block(k).unwrap().geometric_error;
+            let px = error_pixels(error, &block_bounds(&m.1, k).unwrap(), &view);
             assert!(k.level == 0 || px <= params.max_error_pixels, "{k} left at {px} px");
         }
-        let tight = select_blocks(&m, &view, &SelectParams { max_blocks: 10, ..params });
+        let tight = select(&m, &view, &SelectParams { max_blocks: 10, ..params });
         assert!(tight.len() <= 10 && !tight.is_empty());
     }
 
@@ -317,15 +366,14 @@ mod tests {
     fn blocks_with_small_error_are_not_refined() {
         // Same view, same level: the block whose measured error is small stays
         // coarse, the one with a large error is refined.
-        let mut m = pyramid(512);
+        let m = pyramid_with(512, |k| match k.level {
+            0 => 0.0,
+            3 => 1e3,
+            _ => 1e-3,
+        });
         let cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(512.0));
         let view = view_of(&cam, 700.0);
-        for b in &mut m.blocks {
-            if b.key.level > 0 {
-                b.geometric_error = if b.key.level == 3 { 1e3 } else { 1e-3 };
-            }
-        }
-        let sel = select_blocks(&m, &view, &SelectParams::default());
+        let sel = select(&m, &view, &SelectParams::default());
         assert!(sel.iter().all(|k| k.level == 2), "{sel:?}");
         assert_eq!(sel.len(), 8);
         let px = error_pixels(2.0, &Aabb { min: Vec3::ZERO, max: Vec3::ONE }, &view);
@@ -341,10 +389,47 @@ mod tests {
         cam.target = Vec3::splat(32.0);
         cam.distance = 60.0;
         let view = view_of(&cam, 600.0);
-        let sel = select_blocks(&m, &view, &SelectParams::default());
+        let sel = select(&m, &view, &SelectParams::default());
         let f = Frustum::from_view_proj(view.view_proj);
-        assert!(sel.iter().all(|k| f.intersects(&block_bounds(&m, k).unwrap())));
+        assert!(sel.iter().all(|k| f.intersects(&block_bounds(&m.1, k).unwrap())));
         assert!(sel.len() < 100, "{} blocks for a corner view", sel.len());
+    }
+
+    #[test]
+    fn refinement_waits_for_the_page_below() {
+        // A 4096 grid has 7 levels: the root page spans levels 5..3, pages below root at level 3.
+        let m = pyramid_with(4096, |k| ((1u32 << k.level) - 1) as f32 * 3f32.sqrt());
+        let cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(4096.0));
+        let view = view_of(&cam, 2000.0);
+        let mut index = SceneIndex::new(&m.0);
+        let first = select_blocks(&index, &m.0.root.key, &view, &SelectParams::default());
+        assert_eq!(first.blocks, vec![m.0.root.key], "only the root is known");
+        assert_eq!(first.pages, m.0.root_page.iter().cloned().collect::<Vec<_>>());
+        // Load just the root page: selection descends to level 3 and asks for pages there.
+        let full = &m.1;
+        let root_page = m.0.root_page.clone().unwrap();
+        let entries: Vec<BlockEntry> =
+            full.blocks().filter(|e| e.key.level >= 3 && e.key.level < 6).cloned().collect();
+        let mut page = voxstream_format::HierarchyPage {
+            root: root_page.root,
+            page_levels: PAGE_LEVELS,
+            packs: vec![],
+            child_pages: vec![],
+            entries,
+        };
+        page.entries.sort_by_key(|e| e.key);
+        page.child_pages = page
+            .entries
+            .iter()
+            .filter(|e| e.key.level == 3)
+            .map(|e| PageRef { root: e.key, hash: "1".repeat(64), bytes: 64 })
+            .collect();
+        index.insert_page(page).unwrap();
+        let second = select_blocks(&index, &m.0.root.key, &view, &SelectParams::default());
+        assert!(second.blocks.iter().all(|k| k.level >= 3), "{:?}", second.blocks);
+        assert!(!second.pages.is_empty() && second.pages.iter().all(|p| p.root.level == 3));
+        // Control: the fully loaded index refines below level 3.
+        assert!(select(&m, &view, &SelectParams::default()).iter().any(|k| k.level < 3));
     }
 
     #[test]

@@ -8,11 +8,13 @@ pub struct Stats {
     /// Time of the last frame from the start of its encoding until the GPU finished it.
     pub frame_ms: f64,
     pub blocks_drawn: u32,
-    /// Bytes of block and manifest responses received so far.
+    /// Bytes of block, page and manifest responses received so far.
     pub bytes_fetched: u64,
     /// Blocks decoded and expanded on the GPU so far (cache hits are not counted again).
     pub blocks_loaded: u32,
     pub faces_drawn: u64,
+    /// Hierarchy pages loaded so far.
+    pub pages_loaded: u32,
     #[serde(skip)]
     pub errors: u32,
     #[serde(skip)]
@@ -54,12 +56,13 @@ mod tests {
             bytes_fetched: 3,
             blocks_loaded: 4,
             faces_drawn: 5,
+            pages_loaded: 6,
             ..Default::default()
         };
         let v: serde_json::Value = serde_json::to_value(&s).unwrap();
         let keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
-        assert_eq!(keys.len(), 5);
-        for k in ["frameMs", "blocksDrawn", "bytesFetched", "blocksLoaded", "facesDrawn"] {
+        assert_eq!(keys.len(), 6);
+        for k in ["frameMs", "blocksDrawn", "bytesFetched", "blocksLoaded", "facesDrawn", "pagesLoaded"] {
             assert!(keys.contains(&k), "missing {k}");
         }
     }

@@ -312,10 +312,23 @@ impl App {
     }
 
     fn start_fetches(&mut self) {
+        // Pages first: they decide which blocks the view wants.
+        let free = MAX_IN_FLIGHT.saturating_sub(self.scene.in_flight());
+        for page in self.scene.next_page_fetches(free) {
+            let source = self.source.clone();
+            wasm_bindgen_futures::spawn_local(async move {
+                let result = source.page_bytes(&page).await;
+                with_app(|app| {
+                    app.scene.insert_page(&page, result);
+                    app.start_fetches();
+                });
+                request_frame();
+            });
+        }
         let free = MAX_IN_FLIGHT.saturating_sub(self.scene.in_flight());
         for key in self.scene.next_fetches(free) {
             let source = self.source.clone();
-            let hash = self.scene.manifest.block(&key).map(|e| e.hash.clone());
+            let hash = self.scene.index.block(&key).map(|e| e.hash.clone());
             wasm_bindgen_futures::spawn_local(async move {
                 let result: Result<Vec<u8>, FetchError> = source.block_bytes(key, hash.as_deref()).await;
                 with_app(|app| {

@@ -185,7 +185,7 @@ impl Bench<'_> {
                 report.scene_bytes = Some(bytes);
                 report.bytes_per_triangle = Some(bytes as f64 / manifest.source.triangles.max(1) as f64);
                 report.voxels_level0 = manifest.levels.first().map(|l| l.voxels);
-                report.blocks = Some(manifest.blocks.len() as u64);
+                report.blocks = Some(manifest.block_count());
                 report.blocks_per_level = manifest.levels.iter().map(|l| l.blocks).collect();
                 eprintln!(
                     "bench: {name} voxstream threads={n} run {}: {:.2} s, {:.2} Mtri/s, peak {:.0} MiB",

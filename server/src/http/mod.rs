@@ -177,6 +177,7 @@ pub fn router(state: AppState) -> Router {
         .route("/scenes/{id}/thumbnail.png", get(crate::thumbnail::get_thumbnail))
         .route("/scenes/{id}/blocks/batch", post(scenes::post_batch))
         .route("/scenes/{id}/blocks/{block}", get(scenes::get_block))
+        .route("/scenes/{id}/pages/{page}", get(scenes::get_page))
         .route("/uploads", post(uploads::tus_create).options(uploads::tus_options))
         .route(
             "/uploads/{id}",

@@ -30,6 +30,7 @@ impl utoipa::Modify for BearerAuth {
         scenes::delete_scene,
         scenes::get_manifest,
         scenes::get_block,
+        scenes::get_page,
         scenes::post_batch,
         crate::thumbnail::get_thumbnail,
         uploads::post_scene,

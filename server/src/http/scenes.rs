@@ -150,6 +150,16 @@ pub async fn get_manifest(
         .into_response())
 }
 
+/// Whether `If-None-Match` names `etag` (or `*`).
+fn etag_matches(headers: &HeaderMap, etag: &HeaderValue) -> bool {
+    headers
+        .get_all(header::IF_NONE_MATCH)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(','))
+        .any(|t| t.trim() == etag || t.trim() == "*")
+}
+
 /// `key` or `key.hash` → the manifest entry; a hash the scene lacks is a 404.
 fn find_block<'a>(scene: &'a LoadedScene, name: &str) -> Result<(&'a BlockEntry, bool), ApiError> {
     let (key_text, hash) = match name.split_once('.') {
@@ -162,7 +172,7 @@ fn find_block<'a>(scene: &'a LoadedScene, name: &str) -> Result<(&'a BlockEntry,
     let id = &scene.stored.id;
     let entry = scene
         .stored
-        .manifest
+        .index
         .block(&key)
         .ok_or_else(|| ApiError::not_found(format!("scene {id:?} has no block {key}")))?;
     if let Some(h) = hash
@@ -213,13 +223,7 @@ pub async fn get_block(
         .map_err(|_| ApiError::internal(format!("scene {id:?} has a malformed block hash")))?;
     let cache =
         HeaderValue::from_static(if addressed { BLOCK_CACHE_CONTROL } else { MANIFEST_CACHE_CONTROL });
-    let matches = headers
-        .get_all(header::IF_NONE_MATCH)
-        .iter()
-        .filter_map(|v| v.to_str().ok())
-        .flat_map(|v| v.split(','))
-        .any(|t| t.trim() == etag || t.trim() == "*");
-    if matches {
+    if etag_matches(&headers, &etag) {
         return Ok((StatusCode::NOT_MODIFIED, [(header::ETAG, etag), (header::CACHE_CONTROL, cache)])
             .into_response());
     }
@@ -230,6 +234,55 @@ pub async fn get_block(
         .map_err(|e| ApiError::internal(e.to_string()))??;
     state.metrics.blocks_served.inc();
     state.metrics.block_bytes_served.inc_by(bytes.len() as u64);
+    Ok((
+        [
+            (header::CONTENT_TYPE, HeaderValue::from_static("application/octet-stream")),
+            (header::ETAG, etag),
+            (header::CACHE_CONTROL, cache),
+        ],
+        bytes,
+    )
+        .into_response())
+}
+
+#[utoipa::path(get, path = "/api/scenes/{id}/pages/{page}", tag = "scenes",
+    params(("id" = String, Path), ("page" = String, Path,
+        description = "<root level-x-y-z>.<blake3 hex> as the manifest or a parent page names it (immutable)")),
+    responses(
+        (status = 200, description = "Encoded hierarchy page (voxstream_format::HierarchyPage); strong ETag", content_type = "application/octet-stream"),
+        (status = 304, description = "If-None-Match matched"),
+        (status = 400, description = "Malformed id or page name"),
+        (status = 404, description = "No such scene, page or hash")))]
+pub async fn get_page(
+    _read: ReadAccess,
+    State(state): State<AppState>,
+    UrlPath((id, page)): UrlPath<(String, String)>,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    let scene = state.scene(&id)?;
+    let malformed = || ApiError::bad_request("page URLs are <level-x-y-z>.<blake3 hex>".to_string());
+    let (key_text, hash) = page.split_once('.').ok_or_else(malformed)?;
+    let root: BlockKey = key_text.parse().map_err(|_| malformed())?;
+    if hash.len() != 64 || !hash.bytes().all(|b| b.is_ascii_hexdigit()) {
+        return Err(malformed());
+    }
+    let etag = HeaderValue::from_str(&format!("\"{hash}\"")).map_err(|_| malformed())?;
+    let cache = HeaderValue::from_static(BLOCK_CACHE_CONTROL);
+    let path = scene.stored.page_path(&root);
+    let bytes = tokio::task::spawn_blocking(move || std::fs::read(path))
+        .await
+        .map_err(|e| ApiError::internal(e.to_string()))?
+        .map_err(|_| ApiError::not_found(format!("scene {id:?} has no hierarchy page {root}")))?;
+    // Checked on every read, as blocks are: a replaced scene must not answer an old URL with new bytes.
+    if voxstream_format::hierarchy::content_hash(&bytes) != hash {
+        return Err(ApiError::not_found(format!(
+            "scene {id:?} has no page {root} with hash {hash:?} (rebuilt? fetch the manifest again)"
+        )));
+    }
+    if etag_matches(&headers, &etag) {
+        return Ok((StatusCode::NOT_MODIFIED, [(header::ETAG, etag), (header::CACHE_CONTROL, cache)])
+            .into_response());
+    }
     Ok((
         [
             (header::CONTENT_TYPE, HeaderValue::from_static("application/octet-stream")),

@@ -483,7 +483,7 @@ pub fn build_scene_reporting(
         triangles,
         skipped_triangles: skipped,
     };
-    let manifest = writer.finish(id.clone(), source, frame)?;
+    let manifest = writer.finish(id.clone(), source, frame, resolution_choice.clone())?;
     progress.stage(Stage::Write, 1.0);
     drop(temp);
     Ok(BuildReport {
@@ -492,7 +492,7 @@ pub fn build_scene_reporting(
         triangles: manifest.source.triangles,
         skipped_triangles: skipped,
         voxels: manifest.levels[0].voxels,
-        blocks: manifest.blocks.len() as u32,
+        blocks: manifest.block_count() as u32,
         levels: manifest.levels.len() as u8,
         resolution_choice,
         bytes: manifest.levels.iter().map(|l| l.bytes).sum(),

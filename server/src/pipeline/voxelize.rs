@@ -83,7 +83,7 @@ pub(crate) fn to_grid_unchecked(tri: [[f64; 3]; 3], frame: &GridFrame) -> [[f64;
     tri.map(|p| std::array::from_fn(|a| (p[a] - frame.origin[a]) / frame.voxel_size))
 }
 
-pub(crate) fn valid_triangle(tri: &[[f64; 3]; 3]) -> bool {
+pub fn valid_triangle(tri: &[[f64; 3]; 3]) -> bool {
     tri.iter().flatten().all(|c| c.is_finite()) && {
         let n = cross(sub(tri[1], tri[0]), sub(tri[2], tri[0]));
         dot(n, n) > 0.0
@@ -163,20 +163,9 @@ impl std::fmt::Display for Resolution {
     }
 }
 
-/// What resolution a build used and why: in the report, the catalog and
-/// (format v3) the manifest.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize, utoipa::ToSchema)]
-pub struct ResolutionChoice {
-    /// "auto", "voxel-size" or "explicit".
-    pub mode: String,
-    pub resolution: u32,
-    /// Source units, = the grid's voxel size.
-    pub voxel_size: f64,
-    /// The scan's median triangle edge in source units, when known.
-    pub median_edge: Option<f64>,
-    /// One sentence for people.
-    pub reason: String,
-}
+/// What resolution a build used and why (the manifest's, the report's and
+/// the catalog's).
+pub use voxstream_format::ResolutionChoice;
 
 /// The smallest grid `auto` picks.
 pub const MIN_AUTO_RESOLUTION: u32 = 64;

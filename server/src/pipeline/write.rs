@@ -1,7 +1,8 @@
-//! Write: packs finished blocks, encodes them, writes a scene directory and
-//! publishes it atomically.
+//! Write: packs finished blocks, encodes them, writes them and the hierarchy
+//! pages into a scene directory and publishes it atomically.
 //!
-//! Layout: `<store>/<id>/manifest.json` and `<store>/<id>/blocks/<key>.vxb`.
+//! Layout: `<store>/<id>/manifest.json`, `<store>/<id>/pages/<key>.vxh` and
+//! `<store>/<id>/blocks/<key>.vxb`.
 //! A scene is written under `<store>/.tmp-<id>-<pid>-<n>` and renamed into
 //! place only once every file is written and synced, so readers never see a
 //! half-written scene. Directories starting with `.` are never listed.
@@ -11,9 +12,11 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
+use voxstream_format::hierarchy::page_path;
 use voxstream_format::{
-    BLOCK_SIZE, Block, BlockEntry, FORMAT_VERSION, GridFrame, LevelInfo, Manifest, PackedVoxel, SourceInfo,
-    VoxelBounds, coverage_from_count, encode_block, oct_encode,
+    BLOCK_SIZE, Block, BlockEntry, BlockLocation, FORMAT_VERSION, GridFrame, LevelInfo, Manifest,
+    PAGE_LEVELS, PackedVoxel, PageBuilder, PageError, ResolutionChoice, SourceInfo, VoxelBounds,
+    coverage_from_count, encode_block, oct_encode,
 };
 
 use crate::pipeline::progress::{ProgressSink, Stage, StageCounter};
@@ -83,6 +86,7 @@ pub struct SceneContent<'a> {
     pub name: String,
     pub source: SourceInfo,
     pub grid: GridFrame,
+    pub resolution_choice: ResolutionChoice,
     /// Blocks per level, finest first, each level sorted by key.
     pub levels: &'a [Vec<LodBlock>],
 }
@@ -114,7 +118,12 @@ pub fn write_scene_reporting(
         writer.add(block.clone())?;
         counter.tick();
     }
-    writer.finish(content.name.clone(), content.source.clone(), content.grid.clone())
+    writer.finish(
+        content.name.clone(),
+        content.source.clone(),
+        content.grid.clone(),
+        content.resolution_choice.clone(),
+    )
 }
 
 /// Blocks the in-memory path encodes at once.
@@ -131,9 +140,10 @@ pub const ENCODE_BYTES_PER_VOXEL: usize = 48;
 
 /// Takes finished blocks one at a time, in any order with children before
 /// parents, packs and encodes them on all cores in batches of at most
-/// `pending_limit` bytes, writes each into a temporary scene directory and
-/// drops it. [`BlockWriter::finish`] writes the manifest and publishes the
-/// scene atomically; dropped before that, the writer removes what it wrote.
+/// `pending_limit` bytes, writes each into a temporary scene directory, feeds
+/// its entry to the [`PageBuilder`] (writing each page it finishes) and
+/// drops it. [`BlockWriter::finish`] writes the manifest last and publishes
+/// the scene atomically; dropped before that, the writer removes what it wrote.
 pub struct BlockWriter {
     store: PathBuf,
     id: String,
@@ -142,7 +152,8 @@ pub struct BlockWriter {
     pending: Vec<LodBlock>,
     pending_bytes: usize,
     pending_limit: usize,
-    entries: Vec<BlockEntry>,
+    pages: PageBuilder,
+    written: usize,
     levels: Vec<LevelInfo>,
     published: bool,
 }
@@ -157,6 +168,7 @@ impl BlockWriter {
             std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos())
         ));
         let blocks_dir = tmp.join("blocks");
+        let levels = level_count(resolution);
         let writer = Self {
             store: store.to_path_buf(),
             id: id.to_string(),
@@ -165,13 +177,16 @@ impl BlockWriter {
             pending: Vec::new(),
             pending_bytes: 0,
             pending_limit,
-            entries: Vec::new(),
-            levels: (0..level_count(resolution))
+            pages: PageBuilder::new(levels - 1, PAGE_LEVELS),
+            written: 0,
+            levels: (0..levels)
                 .map(|l| LevelInfo { level: l, resolution: resolution >> l, blocks: 0, voxels: 0, bytes: 0 })
                 .collect(),
             published: false,
         };
-        fs::create_dir_all(&writer.blocks_dir).map_err(io("create directory", &writer.blocks_dir))?;
+        for d in [&writer.blocks_dir, &writer.tmp.join("pages")] {
+            fs::create_dir_all(d).map_err(io("create directory", d))?;
+        }
         Ok(writer)
     }
 
@@ -192,29 +207,16 @@ impl BlockWriter {
         self.pending_bytes
     }
 
-    /// Encodes and writes every queued block, on all cores.
+    /// Encodes and writes every queued block, on all cores, then records
+    /// their entries in queue order (children before parents).
     pub fn flush(&mut self) -> Result<(), StoreError> {
         let blocks_dir = &self.blocks_dir;
         let entries: Vec<BlockEntry> = std::mem::take(&mut self.pending)
             .into_par_iter()
-            .map(|b| {
-                let packed = packed_block(&b);
-                let bytes = encode_block(&packed);
-                let path = blocks_dir.join(format!("{}.vxb", b.key));
-                write_synced(&path, &bytes)?;
-                Ok(BlockEntry {
-                    key: b.key,
-                    bounds: tight_bounds(&b),
-                    voxels: packed.voxels.len() as u32,
-                    faces: packed.face_count(),
-                    bytes: bytes.len() as u32,
-                    hash: blake3::hash(&bytes).to_hex().to_string(),
-                    geometric_error: b.geometric_error(),
-                })
-            })
+            .map(|b| write_block(blocks_dir, &b))
             .collect::<Result<_, StoreError>>()?;
         self.pending_bytes = 0;
-        for e in &entries {
+        for e in entries {
             let level = self.levels.get_mut(e.key.level as usize).ok_or_else(|| StoreError::Damaged {
                 id: self.id.clone(),
                 message: format!("block {} lies beyond the grid's levels", e.key),
@@ -222,27 +224,31 @@ impl BlockWriter {
             level.blocks += 1;
             level.voxels += e.voxels as u64;
             level.bytes += e.bytes as u64;
+            self.written += 1;
+            if let Some((page_ref, bytes)) = self.pages.add(e).map_err(page_err)? {
+                write_synced(&self.tmp.join(page_path(&page_ref.root)), &bytes)?;
+            }
         }
-        self.entries.extend(entries);
         Ok(())
     }
 
     /// Blocks written so far.
     pub fn blocks_written(&self) -> usize {
-        self.entries.len()
+        self.written
     }
 
-    /// Writes the last blocks and the manifest, then publishes the scene as
-    /// `<store>/<id>`, replacing any previous scene of that id.
+    /// Writes the last blocks and pages and the manifest, then publishes the
+    /// scene as `<store>/<id>`, replacing any previous scene of that id.
     pub fn finish(
         mut self,
         name: String,
         source: SourceInfo,
         grid: GridFrame,
+        resolution_choice: ResolutionChoice,
     ) -> Result<Manifest, StoreError> {
         self.flush()?;
-        let mut blocks = std::mem::take(&mut self.entries);
-        blocks.sort_by_key(|b| b.key);
+        let pages = std::mem::replace(&mut self.pages, PageBuilder::new(0, PAGE_LEVELS));
+        let (root, root_page) = pages.finish().map_err(page_err)?;
         let manifest = Manifest {
             format_version: FORMAT_VERSION,
             name,
@@ -250,14 +256,42 @@ impl BlockWriter {
             grid,
             block_size: BLOCK_SIZE,
             levels: std::mem::take(&mut self.levels),
-            blocks,
+            resolution_choice,
+            page_levels: PAGE_LEVELS,
+            root,
+            root_page,
         };
         write_synced(&self.tmp.join("manifest.json"), &manifest.to_json())?;
-        fs::File::open(&self.blocks_dir).and_then(|d| d.sync_all()).map_err(io("sync", &self.blocks_dir))?;
+        for d in [self.blocks_dir.clone(), self.tmp.join("pages")] {
+            fs::File::open(&d).and_then(|f| f.sync_all()).map_err(io("sync", &d))?;
+        }
         publish(&self.store, &self.id, &self.tmp)?;
         self.published = true;
         Ok(manifest)
     }
+}
+
+fn page_err(e: PageError) -> StoreError {
+    StoreError::Damaged { id: "(being written)".into(), message: format!("hierarchy: {e}") }
+}
+
+/// Packs, encodes and writes one block as `blocks/<key>.vxb`; returns its entry
+/// (child mask still 0: the page builder fills it in).
+pub fn write_block(blocks_dir: &Path, b: &LodBlock) -> Result<BlockEntry, StoreError> {
+    let packed = packed_block(b);
+    let bytes = encode_block(&packed);
+    write_synced(&blocks_dir.join(format!("{}.vxb", b.key)), &bytes)?;
+    Ok(BlockEntry {
+        key: b.key,
+        bounds: tight_bounds(b),
+        voxels: packed.voxels.len() as u32,
+        faces: packed.face_count(),
+        bytes: bytes.len() as u32,
+        hash: blake3::hash(&bytes).to_hex().to_string(),
+        geometric_error: b.geometric_error(),
+        child_mask: 0,
+        location: BlockLocation::FILE,
+    })
 }
 
 impl Drop for BlockWriter {
