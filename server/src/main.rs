@@ -2,9 +2,9 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
-use voxstream::build::{BuildOptions, build_scene_reporting, parse_byte_size};
-use voxstream::progress::Progress;
-use voxstream::voxelize::Topology;
+use voxstream::pipeline::progress::Progress;
+use voxstream::pipeline::voxelize::Topology;
+use voxstream::pipeline::{BuildOptions, Resolution, build_scene_reporting, parse_byte_size};
 
 /// voxstream: huge 3D scans as streamed voxel blocks.
 #[derive(Parser)]
@@ -23,9 +23,14 @@ enum Command {
         /// The store directory; the scene is published as <out>/<name>.
         #[arg(long)]
         out: PathBuf,
-        /// Level-0 voxels per edge of the mesh's bounding cube (a power of two).
-        #[arg(long, default_value_t = 512)]
-        resolution: u32,
+        /// Level-0 voxels per edge of the mesh's bounding cube: `auto` (the power of
+        /// two whose voxel is closest to the scan's median triangle edge) or a power of two.
+        #[arg(long, default_value = "auto", conflicts_with = "voxel_size")]
+        resolution: Resolution,
+        /// Voxel edge in source units, instead of --resolution: the grid is the next
+        /// power of two that covers the mesh.
+        #[arg(long)]
+        voxel_size: Option<f64>,
         /// Scene id (a-z, 0-9, '-', '_'); defaults to the file name.
         #[arg(long)]
         name: Option<String>,
@@ -193,7 +198,8 @@ fn main() -> ExitCode {
 
 fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
-        Command::Build { mesh, out, resolution, name, topology, memory_budget, tmp } => {
+        Command::Build { mesh, out, resolution, voxel_size, name, topology, memory_budget, tmp } => {
+            let resolution = voxel_size.map_or(resolution, Resolution::VoxelSize);
             let topology = match topology {
                 TopologyArg::Conservative => Topology::Conservative,
                 TopologyArg::Separating26 => Topology::Separating26,
@@ -214,7 +220,15 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             let result = build_scene_reporting(
                 &mesh,
                 &out,
-                &BuildOptions { resolution, name, topology, cancel: None, memory_budget, temp_dir: tmp },
+                &BuildOptions {
+                    resolution,
+                    name,
+                    topology,
+                    cancel: None,
+                    memory_budget,
+                    temp_dir: tmp,
+                    ..Default::default()
+                },
                 &report,
             );
             bar.finish_and_clear();
@@ -231,6 +245,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 r.bytes,
                 r.scene_dir.display()
             );
+            println!("resolution {}: {}", r.resolution_choice.resolution, r.resolution_choice.reason);
             Ok(())
         }
         Command::Synth { triangles, out } => {

@@ -14,7 +14,7 @@
 
 use std::path::{Path, PathBuf};
 
-use voxstream::build::{BuildOptions, build_scene};
+use voxstream::pipeline::{BuildOptions, build_scene};
 use voxstream::reference::metrics::{Comparison, compare};
 use voxstream::reference::{AoParams, EPSILON_VOXELS, MeshBvh, reference_at};
 use voxstream::render::{CameraSpec, RenderOutput, RenderRequest, render_view};
@@ -73,11 +73,14 @@ fn check(bvh: &MeshBvh, out: &RenderOutput, max_distance: f64) -> Comparison {
 fn cornell_box_matches_the_ray_traced_reference() {
     let Some(mesh_path) = cornell() else { return };
     let store = tempfile::tempdir().unwrap();
-    let scene =
-        build_scene(&mesh_path, store.path(), &BuildOptions { resolution: 256, ..Default::default() })
-            .expect("build the Cornell box")
-            .scene_dir;
-    let (mesh, _) = voxstream::ingest::read_mesh(&mesh_path).unwrap();
+    let scene = build_scene(
+        &mesh_path,
+        store.path(),
+        &BuildOptions { resolution: voxstream::pipeline::Resolution::Explicit(256), ..Default::default() },
+    )
+    .expect("build the Cornell box")
+    .scene_dir;
+    let (mesh, _) = voxstream::pipeline::read::read_mesh(&mesh_path).unwrap();
     let camera = CameraSpec {
         eye: [0.0, 1.0, 3.0],
         target: [0.0, 1.0, 0.0],

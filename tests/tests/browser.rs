@@ -16,8 +16,8 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use serde_json::Value;
-use voxstream::build::{BuildOptions, build_scene};
 use voxstream::http::{AppState, router};
+use voxstream::pipeline::{BuildOptions, Resolution, build_scene};
 use voxstream_e2e::coverage;
 use voxstream_format::{BlockKey, decode_block};
 use voxstream_viewer::BACKGROUND_RGBA8;
@@ -128,8 +128,12 @@ fn browser_renders_koala_matching_cpu_coverage() {
     // 1. Scene: data/koala.obj -> temp store.
     let store = tempfile::tempdir().expect("temp store");
     let t = Instant::now();
-    let report = build_scene(&root.join("data/koala.obj"), store.path(), &BuildOptions::default())
-        .expect("build_scene(data/koala.obj)");
+    let report = build_scene(
+        &root.join("data/koala.obj"),
+        store.path(),
+        &BuildOptions { resolution: Resolution::Explicit(512), ..Default::default() },
+    )
+    .expect("build_scene(data/koala.obj)");
     println!(
         "built scene {:?}: {} triangles, {} voxels, {} blocks, {} bytes in {:.1?}",
         report.id,
@@ -251,7 +255,7 @@ fn upload_page_builds_and_opens_scene() {
     let store = tempfile::tempdir().expect("temp store");
     let mut config = voxstream::config::ServerConfig::new(store.path());
     config.web = Some(web.clone());
-    config.resolution = 64;
+    config.resolution = Some(64);
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
     let shutdown = tokio_util::sync::CancellationToken::new();
     let state = rt.block_on(async { AppState::start(config, shutdown) }).expect("AppState::start");
@@ -323,7 +327,7 @@ fn upload_page_builds_and_opens_scene() {
     let scenes = scenes.as_array().expect("a JSON array");
     assert_eq!(scenes.len(), 1, "one upload, one scene: {scenes:?}");
     let scene = &scenes[0];
-    let (mesh_data, _) = voxstream::ingest::read_mesh(&mesh).expect("read koala.obj");
+    let (mesh_data, _) = voxstream::pipeline::read::read_mesh(&mesh).expect("read koala.obj");
     assert_eq!(scene["id"], "koala");
     assert_eq!(scene["triangles"].as_u64(), Some(mesh_data.triangles.len() as u64), "{scene}");
     assert_eq!(scene["resolution"], 64, "the server default applies: {scene}");

@@ -14,7 +14,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use voxstream::build::{BuildOptions, build_scene};
+use voxstream::pipeline::{BuildOptions, Resolution, build_scene};
 use voxstream_e2e::coverage::{self, compare_masks, coverage_mask, silhouette_from_rgba};
 use voxstream_format::{BlockKey, Face};
 use voxstream_viewer::BACKGROUND_RGBA8;
@@ -37,9 +37,12 @@ fn artifacts_dir() -> PathBuf {
 fn koala_scene() -> (tempfile::TempDir, PathBuf) {
     let store = tempfile::tempdir().expect("temporary store");
     let t = Instant::now();
-    let report =
-        build_scene(&workspace_root().join("data/koala.obj"), store.path(), &BuildOptions::default())
-            .expect("build_scene(data/koala.obj)");
+    let report = build_scene(
+        &workspace_root().join("data/koala.obj"),
+        store.path(),
+        &BuildOptions { resolution: Resolution::Explicit(512), ..Default::default() },
+    )
+    .expect("build_scene(data/koala.obj)");
     println!(
         "built {:?}: {} voxels, {} blocks, {} levels, {} bytes in {:.1?}",
         report.id,
@@ -256,9 +259,9 @@ fn corrupt_and_missing_blocks_fall_back_to_their_ancestor() {
 #[test]
 fn voxel_colour_is_shaded_in() {
     // A 40×40 sheet of pure-red voxels (linear 1, 0, 0) in a one-block scene.
-    use voxstream::lod::build_levels;
-    use voxstream::store::{SceneContent, write_scene};
-    use voxstream::voxelize::{BuildVoxel, SparseBlock};
+    use voxstream::pipeline::pyramid::build_levels;
+    use voxstream::pipeline::voxelize::{BuildVoxel, SparseBlock};
+    use voxstream::pipeline::write::{SceneContent, write_scene};
     use voxstream_format::{GridFrame, SourceInfo, morton3};
     let mut voxels: Vec<BuildVoxel> = (0..40u32)
         .flat_map(|y| (0..40u32).map(move |x| (x + 12, y + 12)))

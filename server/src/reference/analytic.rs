@@ -10,7 +10,7 @@ use std::path::Path;
 
 use glam::DVec3;
 
-use crate::ingest::TriangleMesh;
+use crate::pipeline::read::TriangleMesh;
 use crate::reference::{basis, falloff_weight};
 use crate::render::CameraSpec;
 
@@ -247,12 +247,12 @@ pub fn build(scene: &AnalyticScene, store: &Path, resolution: u32) -> anyhow::Re
     std::fs::create_dir_all(store)?;
     let mesh = store.join(format!("{}.obj", scene.name));
     scene.write_obj(&mesh)?;
-    let options = crate::build::BuildOptions {
-        resolution,
+    let options = crate::pipeline::BuildOptions {
+        resolution: crate::pipeline::Resolution::Explicit(resolution),
         name: Some(scene.name.replace('_', "-")),
-        ..crate::build::BuildOptions::default()
+        ..crate::pipeline::BuildOptions::default()
     };
-    Ok(crate::build::build_scene(&mesh, store, &options)?.scene_dir)
+    Ok(crate::pipeline::build_scene(&mesh, store, &options)?.scene_dir)
 }
 
 /// The exact V at every surface pixel of a render (its positions and normals,

@@ -113,7 +113,7 @@ struct View {
     shapes: Option<Vec<analytic::Shape>>,
 }
 
-fn camera_around(mesh: &crate::ingest::TriangleMesh, inside: bool) -> CameraSpec {
+fn camera_around(mesh: &crate::pipeline::read::TriangleMesh, inside: bool) -> CameraSpec {
     let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
     for p in &mesh.positions {
         for a in 0..3 {
@@ -171,7 +171,7 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
                 near: 0.05,
                 far: 20.0,
             },
-            Some(inside) => camera_around(&crate::ingest::read_mesh(&mesh)?.0, inside),
+            Some(inside) => camera_around(&crate::pipeline::read::read_mesh(&mesh)?.0, inside),
         };
         views.push(View { name: name.to_string(), mesh, camera, shapes: None });
     }
@@ -179,15 +179,15 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
     let mut rows = Vec::new();
     for view in &views {
         eprintln!("ao-bench: {} ...", view.name);
-        let options = crate::build::BuildOptions {
-            resolution: args.resolution,
+        let options = crate::pipeline::BuildOptions {
+            resolution: crate::pipeline::Resolution::Explicit(args.resolution),
             name: Some(view.name.replace('_', "-")),
             ..Default::default()
         };
-        let scene_dir = crate::build::build_scene(&view.mesh, &store, &options)
+        let scene_dir = crate::pipeline::build_scene(&view.mesh, &store, &options)
             .with_context(|| format!("building {}", view.mesh.display()))?
             .scene_dir;
-        let (mesh, _) = crate::ingest::read_mesh(&view.mesh)?;
+        let (mesh, _) = crate::pipeline::read::read_mesh(&view.mesh)?;
         let mut bvh: Option<MeshBvh> = None;
         // Reference per image scale, at the default render's points.
         let mut references: Vec<ScaleReference> = Vec::new();

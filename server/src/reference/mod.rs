@@ -29,7 +29,7 @@ use obvhs::triangle::Triangle;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::ingest::TriangleMesh;
+use crate::pipeline::read::TriangleMesh;
 use crate::render::{RenderInfo, grey_rgba, read_outputs, write_file, write_png_rgba};
 use metrics::{Comparison, compare};
 
@@ -266,8 +266,8 @@ pub fn reference_command(
     ensure!((1..=1 << 20).contains(&rays), "--rays must be 1..=1048576, got {rays}");
     let start = std::time::Instant::now();
     let (info, ao, positions, normals) = read_outputs(render_dir)?;
-    let (mesh, _) =
-        crate::ingest::read_mesh(mesh_path).with_context(|| format!("reading {}", mesh_path.display()))?;
+    let (mesh, _) = crate::pipeline::read::read_mesh(mesh_path)
+        .with_context(|| format!("reading {}", mesh_path.display()))?;
     ensure!(!mesh.triangles.is_empty(), "{} has no triangles", mesh_path.display());
     let bvh = MeshBvh::new(&mesh, info.grid_origin);
     let params = AoParams {
