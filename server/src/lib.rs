@@ -2,6 +2,8 @@
 //!
 //! Data flows one way: [`pipeline`] (read → stream → bin → voxelize →
 //! pyramid → write, `voxstream build`) → [`store`] → [`http`];
+//! [`render`] draws one view offscreen with the viewer's code and writes what
+//! its AO saw; [`reference`] ray-traces the AO reference and compares.
 //! [`synth`] writes synthetic scans for benchmarks; [`bench`] measures builds
 //! against a peer (`voxstream bench`). The server side of
 //! [`http`] keeps its state in [`catalog`] (published scenes), [`uploads`]
@@ -15,6 +17,8 @@ pub mod http;
 pub mod jobs;
 pub mod metrics;
 pub mod pipeline;
+pub mod reference;
+pub mod render;
 pub mod store;
 pub mod synth;
 pub mod thumbnail;

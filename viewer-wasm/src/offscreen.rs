@@ -55,6 +55,17 @@ pub struct OffscreenFrame {
     pub adapter: String,
 }
 
+/// A frame drawn with the G-buffer pass (`fs_gbuffer`): the shaded image plus,
+/// per pixel (rows top to bottom), what the AO was computed for.
+#[derive(Debug, Clone)]
+pub struct GBufferFrame {
+    pub frame: OffscreenFrame,
+    /// xyz: grid-unit position on the drawn voxel face, w: the visibility V.
+    pub position_ao: Vec<[f32; 4]>,
+    /// xyz: the AO hemisphere's unit normal (f16 precision), w: 1 on a surface, 0 on the background.
+    pub normal: Vec<[f32; 4]>,
+}
+
 /// A native device and queue.
 pub struct Gpu {
     pub device: wgpu::Device,
@@ -212,6 +223,62 @@ impl Offscreen {
         })
     }
 
+    /// Loads what the view wants and draws it with the G-buffer pass, reading
+    /// back the image, positions, normals and visibilities.
+    pub fn render_gbuffer(&mut self) -> Result<GBufferFrame, OffscreenError> {
+        let (width, height) = (self.target.width(), self.target.height());
+        let make = |label, format| {
+            self.renderer.device.create_texture(&wgpu::TextureDescriptor {
+                label: Some(label),
+                size: wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format,
+                usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+                view_formats: &[],
+            })
+        };
+        let position = make("g-buffer position + visibility", crate::render::GBUFFER_POSITION_FORMAT);
+        let normal = make("g-buffer normal", crate::render::GBUFFER_NORMAL_FORMAT);
+        self.renderer
+            .set_gbuffer(position.create_view(&Default::default()), normal.create_view(&Default::default()));
+        let frame = self.render();
+        self.renderer.clear_gbuffer();
+        let frame = frame?;
+        let position_ao = read_texture_bytes(&self.renderer, &position, 16)?
+            .chunks_exact(16)
+            .map(bytemuck::pod_read_unaligned)
+            .collect();
+        let normal = read_texture_bytes(&self.renderer, &normal, 8)?
+            .chunks_exact(8)
+            .map(|t| std::array::from_fn(|i| f16_to_f32(u16::from_le_bytes([t[2 * i], t[2 * i + 1]]))))
+            .collect();
+        Ok(GBufferFrame { position_ao, normal, frame })
+    }
+
+    /// Median milliseconds of `runs` frames of the loaded view at `ao_strength`
+    /// (0: no AO), each from encoding until the GPU is idle.
+    pub fn time_frames(&mut self, ao_strength: f32, runs: usize) -> Result<f64, OffscreenError> {
+        self.load_wanted();
+        let saved = self.scene.ao_strength;
+        self.scene.ao_strength = ao_strength;
+        let view = self.target.create_view(&Default::default());
+        let mut times = Vec::new();
+        // One untimed frame first: it rebuilds the occupancy volume when AO was off.
+        for i in 0..=runs.max(1) {
+            let start = Instant::now();
+            self.scene.draw(&mut self.renderer, &view, 0.0);
+            wait_idle(&self.renderer.device)?;
+            if i > 0 {
+                times.push(start.elapsed().as_secs_f64() * 1e3);
+            }
+        }
+        self.scene.ao_strength = saved;
+        times.sort_by(f64::total_cmp);
+        Ok(times[times.len() / 2])
+    }
+
     /// The indirect draw args the compute pass wrote for a cached block:
     /// (vertex_count, instance_count, first_vertex, first_instance).
     pub fn draw_args(&self, key: &BlockKey) -> Result<Option<[u32; 4]>, OffscreenError> {
@@ -237,6 +304,19 @@ impl Offscreen {
 /// selected block is loaded.
 pub fn render_scene(scene_dir: &Path, width: u32, height: u32) -> Result<OffscreenFrame, OffscreenError> {
     Offscreen::open(scene_dir, &RenderOptions::new(width, height))?.render()
+}
+
+/// IEEE half → f32 (the G-buffer's normal target).
+fn f16_to_f32(h: u16) -> f32 {
+    let sign = if h & 0x8000 != 0 { -1.0 } else { 1.0 };
+    let exp = ((h >> 10) & 0x1f) as i32;
+    let frac = (h & 0x3ff) as f32;
+    match exp {
+        0 => sign * frac * 2f32.powi(-24),
+        31 if frac == 0.0 => sign * f32::INFINITY,
+        31 => f32::NAN,
+        _ => sign * (1.0 + frac / 1024.0) * 2f32.powi(exp - 15),
+    }
 }
 
 fn wait_idle(device: &wgpu::Device) -> Result<(), OffscreenError> {
@@ -277,8 +357,17 @@ pub fn read_buffer(renderer: &Renderer, buffer: &wgpu::Buffer) -> Result<Vec<u8>
 
 /// Copies an Rgba8 texture back, dropping the row padding wgpu requires.
 fn read_texture(renderer: &Renderer, texture: &wgpu::Texture) -> Result<Vec<u8>, OffscreenError> {
+    read_texture_bytes(renderer, texture, 4)
+}
+
+/// Copies a texture of `texel_bytes` per texel back, rows top to bottom, unpadded.
+fn read_texture_bytes(
+    renderer: &Renderer,
+    texture: &wgpu::Texture,
+    texel_bytes: u32,
+) -> Result<Vec<u8>, OffscreenError> {
     let (width, height) = (texture.width(), texture.height());
-    let row = width * 4;
+    let row = width * texel_bytes;
     let padded = row.div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
     let staging = renderer.device.create_buffer(&wgpu::BufferDescriptor {
         label: Some("frame readback"),
@@ -307,4 +396,18 @@ fn read_texture(renderer: &Renderer, texture: &wgpu::Texture) -> Result<Vec<u8>,
     renderer.queue.submit([encoder.finish()]);
     let bytes = map_and_read(renderer, &staging)?;
     Ok(bytes.chunks_exact(padded as usize).flat_map(|r| &r[..row as usize]).copied().collect())
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn half_floats_decode() {
+        use super::f16_to_f32;
+        assert_eq!(f16_to_f32(0x3c00), 1.0);
+        assert_eq!(f16_to_f32(0xbc00), -1.0);
+        assert_eq!(f16_to_f32(0x3800), 0.5);
+        assert_eq!(f16_to_f32(0x0000), 0.0);
+        assert_eq!(f16_to_f32(0x3555), 0.333_251_95);
+        assert!(f16_to_f32(0x7e00).is_nan());
+    }
 }

@@ -31,6 +31,21 @@ struct CachedBlock {
     last_drawn: u64,
 }
 
+/// A view given by matrices instead of the orbit camera (native `voxstream
+/// render` with a camera.json); when set it replaces `Scene::camera`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FixedView {
+    /// Grid units → clip space (wgpu depth 0..1).
+    pub view_proj: Mat4,
+    /// Eye in grid units.
+    pub eye: Vec3,
+    /// Pixels per grid unit at distance 1 for this viewport.
+    pub focal_pixels: f32,
+}
+
+/// What `Scene::wanted` was last computed for.
+type SelectedFor = (OrbitCamera, (u32, u32), usize, Option<FixedView>);
+
 /// What a call to [`Scene::draw`] drew.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DrawnFrame {
@@ -45,13 +60,15 @@ pub struct Scene {
     /// The hierarchy as far as its pages have loaded.
     pub index: SceneIndex,
     pub camera: OrbitCamera,
+    /// Overrides `camera` when set.
+    pub fixed_view: Option<FixedView>,
     pub select_params: SelectParams,
     /// 0 disables ambient occlusion; 1 is full strength.
     pub ao_strength: f32,
     pub stats: Stats,
     viewport: (u32, u32),
-    /// Camera, viewport and pages loaded when `wanted` was computed.
-    selected_for: Option<(OrbitCamera, (u32, u32), usize)>,
+    /// Camera, viewport, pages loaded and fixed view when `wanted` was computed.
+    selected_for: Option<SelectedFor>,
     wanted: Vec<BlockKey>,
     /// Pages the current view needs, largest projected error first.
     wanted_pages: Vec<PageRef>,
@@ -74,6 +91,7 @@ impl Scene {
             index: SceneIndex::new(&manifest),
             manifest,
             camera,
+            fixed_view: None,
             select_params: SelectParams::default(),
             ao_strength: 1.0,
             stats: Stats::default(),
@@ -106,18 +124,28 @@ impl Scene {
     }
 
     pub fn view_proj(&self) -> Mat4 {
-        self.camera.view_proj(self.aspect())
+        match &self.fixed_view {
+            Some(v) => v.view_proj,
+            None => self.camera.view_proj(self.aspect()),
+        }
+    }
+
+    /// The eye in grid units (of the fixed view when set).
+    pub fn eye(&self) -> Vec3 {
+        self.fixed_view.map_or_else(|| self.camera.eye(), |v| v.eye)
     }
 
     /// The blocks this view wants, recomputed when the camera, the viewport or
     /// the loaded part of the hierarchy changed.
     pub fn wanted(&mut self) -> &[BlockKey] {
-        let now = (self.camera, self.viewport, self.index.pages_loaded());
+        let now = (self.camera, self.viewport, self.index.pages_loaded(), self.fixed_view);
         if self.selected_for != Some(now) {
             let view = ViewParams {
                 view_proj: self.view_proj(),
-                eye: self.camera.eye(),
-                focal_pixels: self.camera.focal_pixels(self.viewport.1 as f32),
+                eye: self.eye(),
+                focal_pixels: self
+                    .fixed_view
+                    .map_or_else(|| self.camera.focal_pixels(self.viewport.1 as f32), |v| v.focal_pixels),
             };
             let selection = select_blocks(&self.index, &self.manifest.root.key, &view, &self.select_params);
             self.wanted = selection.blocks;
@@ -188,7 +216,7 @@ impl Scene {
                 !self.cache.contains_key(k) && !self.pending.contains(k) && !self.failed.contains_key(k)
             })
             .collect();
-        let eye = self.camera.eye();
+        let eye = self.eye();
         let dist = |k: &BlockKey| block_bounds(&self.index, k).map_or(f32::INFINITY, |b| b.distance_to(eye));
         todo.sort_by(|a, b| b.level.cmp(&a.level).then(dist(a).total_cmp(&dist(b))).then(a.cmp(b)));
         todo.truncate(max);
@@ -309,7 +337,7 @@ impl Scene {
         }
         let params = FrameParams {
             view_proj: self.view_proj(),
-            eye: self.camera.eye(),
+            eye: self.eye(),
             grid_resolution: self.manifest.grid.resolution as f32,
             ao_strength: self.ao_strength,
         };
