@@ -216,6 +216,12 @@ fn corrupt_and_missing_blocks_fall_back_to_their_ancestor() {
         f
     });
     assert_eq!(frame.stats.errors, 2);
+    assert_eq!(frame.stats.blocks_failed, 2);
+    // Failed for good still counts as settled: the frame is complete, so the
+    // browser's ready marker appears. Control: the frame is not the wanted
+    // set drawn as itself (the rule before issue 10, which never completed).
+    assert!(frame.complete, "a frame with blocks failed for good must count as complete");
+    assert_ne!(frame.drawn_blocks, offscreen.scene.wanted().to_vec());
     assert!(frame.stats.line().contains("error"), "the stats line shows errors: {}", frame.stats.line());
     // Their parents stand in for them, so nothing pops to empty.
     for broken in [corrupt, missing] {
@@ -278,5 +284,52 @@ fn voxel_colour_is_shaded_in() {
     assert!(covered.len() > 2000, "only {} pixels covered", covered.len());
     for p in covered {
         assert!(p[0] >= 70 && p[0] > p[1] + 15 && p[0] > p[2] + 15, "pixel {p:?} is not red");
+    }
+}
+
+/// A camera path that orbits the koala and then closes in on it.
+fn camera_path(start: voxstream_viewer::OrbitCamera) -> Vec<voxstream_viewer::OrbitCamera> {
+    (0..8)
+        .map(|i| {
+            let mut c = start;
+            c.orbit(60.0 * i as f32, 10.0 * i as f32);
+            c.zoom(1.0 - 0.1 * i as f32);
+            c
+        })
+        .collect()
+}
+
+/// Renders every view of `path` under `budget` bytes; returns, per frame,
+/// (resident bytes, peak so far, blocks drawn).
+fn walk(scene: &Path, budget: u64) -> (Vec<(u64, u64, u32)>, u64) {
+    let mut offscreen = open(scene, &RenderOptions::new(256, 256));
+    offscreen.scene.set_budget_bytes(budget);
+    let fixed_probe = offscreen.render().expect("render");
+    let _ = fixed_probe;
+    let fixed = offscreen.scene.residency().fixed_bytes();
+    let mut frames = Vec::new();
+    for camera in camera_path(offscreen.scene.camera) {
+        offscreen.scene.camera = camera;
+        let f = offscreen.render().expect("render on the path");
+        frames.push((f.stats.resident_bytes, f.stats.peak_resident_bytes, f.stats.blocks_drawn));
+    }
+    (frames, fixed)
+}
+
+#[test]
+fn a_camera_path_never_exceeds_the_gpu_budget() {
+    let (_store, scene) = koala_scene();
+    // Control: without a budget the path holds more than the budget below.
+    let (free, fixed) = walk(&scene, u64::MAX);
+    let free_peak = free.iter().map(|f| f.1).max().unwrap();
+    let budget = fixed + (free_peak - fixed) / 3;
+    println!("fixed {fixed} B, unbounded peak {free_peak} B, budget {budget} B");
+    assert!(free_peak > budget, "the control never needed more than the budget");
+
+    let (held, _) = walk(&scene, budget);
+    for (i, (resident, peak, drawn)) in held.iter().enumerate() {
+        println!("frame {i}: resident {resident} B, peak {peak} B, {drawn} blocks drawn");
+        assert!(*peak <= budget, "frame {i}: peak {peak} B over the budget {budget} B");
+        assert!(*drawn > 0, "frame {i} drew nothing: the budget must settle for coarser blocks, not none");
     }
 }

@@ -7,6 +7,7 @@ use glam::{Mat4, Vec3};
 
 use crate::ao::{OccupancyTexture, OccupancyVolume};
 use crate::expand::{Expander, GpuBlock, block_bind_group_layout};
+use crate::occlusion::Occlusion;
 use crate::shaders;
 
 pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
@@ -215,6 +216,7 @@ impl Renderer {
         size: (u32, u32),
         params: &FrameParams,
         blocks: &[&GpuBlock],
+        occlusion: Option<&Occlusion>,
     ) {
         // A key light from above and to the side of the viewer; the headlight is implicit.
         let key_light = (Vec3::new(0.4, 1.0, 0.3)).normalize();
@@ -252,14 +254,18 @@ impl Renderer {
                 stencil_ops: None,
             }),
             timestamp_writes: None,
-            occlusion_query_set: None,
+            occlusion_query_set: occlusion.and_then(Occlusion::query_set),
             multiview_mask: None,
         });
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, &self.frame_group, &[]);
         for block in blocks {
             pass.set_bind_group(1, &block.bind_group, &[]);
-            pass.draw_indirect(&block.draw_args, 0);
+            pass.draw_indirect(&block.buffers.draw_args, 0);
+        }
+        // Proxies last: they test against the depth of everything drawn.
+        if let Some(o) = occlusion {
+            o.draw_proxies(&mut pass);
         }
     }
 }

@@ -16,10 +16,9 @@ use web_sys::{HtmlCanvasElement, PointerEvent, WheelEvent};
 use crate::ao::cells_for_grid;
 use crate::fetch::{BlockSource, FetchError, http};
 use crate::render::Renderer;
+use crate::request::Request;
 use crate::scene::Scene;
 
-/// Block requests in flight at once (browsers allow ~6 HTTP/1.1 connections per origin).
-const MAX_IN_FLIGHT: usize = 6;
 const CANVAS_ID: &str = "voxstream-canvas";
 const STATS_ID: &str = "voxstream-stats";
 
@@ -50,9 +49,18 @@ struct App {
     canvas: HtmlCanvasElement,
     pointers: HashMap<i32, Pointer>,
     last_view_proj: [f32; 16],
+    /// Abort handles of requests in flight, by [`request_id`].
+    aborts: HashMap<String, web_sys::AbortController>,
     ready: bool,
     start_ms: f64,
     frames: u64,
+}
+
+fn request_id(r: &Request) -> String {
+    match r {
+        Request::Page(p) => format!("page {}", p.root),
+        Request::Block(k) => format!("block {k}"),
+    }
 }
 
 fn window() -> web_sys::Window {
@@ -193,6 +201,10 @@ async fn run() -> Result<(), String> {
     if let Some(px) = url_number("px", 0.25..=64.0) {
         scene.select_params.max_error_pixels = px;
     }
+    // ?budget=64 holds the viewer to 64 MiB of GPU memory (default 512).
+    if let Some(mib) = url_number("budget", 16.0..=65536.0) {
+        scene.set_budget_bytes((mib as f64 * (1 << 20) as f64) as u64);
+    }
     scene.record_bytes_fetched(manifest_bytes.len() as u64);
 
     APP.with(|app| {
@@ -205,6 +217,7 @@ async fn run() -> Result<(), String> {
             canvas: canvas.clone(),
             pointers: HashMap::new(),
             last_view_proj: [0.0; 16],
+            aborts: HashMap::new(),
             ready: false,
             start_ms,
             frames: 0,
@@ -259,6 +272,10 @@ impl App {
         let view = texture.texture.create_view(&Default::default());
         let frame = self.scene.draw(&mut self.renderer, &view, now);
         self.renderer.queue.present(texture);
+        if self.scene.has_pending_uploads() {
+            // The per-frame upload cap left blocks waiting: another frame takes them.
+            REDRAW_AFTER_FLIGHT.with(|r| r.set(true));
+        }
         self.last_view_proj = frame.view_proj.to_cols_array();
         self.frames += 1;
         let frame_number = self.frames;
@@ -312,37 +329,51 @@ impl App {
     }
 
     fn start_fetches(&mut self) {
-        // Pages first: they decide which blocks the view wants.
-        let free = MAX_IN_FLIGHT.saturating_sub(self.scene.in_flight());
-        for page in self.scene.next_page_fetches(free) {
-            let source = self.source.clone();
-            wasm_bindgen_futures::spawn_local(async move {
-                let result = source.page_bytes(&page).await;
-                with_app(|app| {
-                    app.scene.insert_page(&page, result);
-                    app.start_fetches();
-                });
-                request_frame();
-            });
+        // Requests the view no longer needs give their connection back.
+        for stale in self.scene.take_stale_requests() {
+            if let Some(abort) = self.aborts.remove(&request_id(&stale)) {
+                abort.abort();
+            }
         }
-        let free = MAX_IN_FLIGHT.saturating_sub(self.scene.in_flight());
-        for key in self.scene.next_fetches(free) {
+        for request in self.scene.start_requests() {
             let source = self.source.clone();
-            let hash = self.scene.index.block(&key).map(|e| e.hash.clone());
-            wasm_bindgen_futures::spawn_local(async move {
-                let result: Result<Vec<u8>, FetchError> = source.block_bytes(key, hash.as_deref()).await;
-                with_app(|app| {
-                    let errors = app.scene.stats.errors;
-                    app.scene.insert_fetched(&app.renderer, [(key, result)]);
-                    if app.scene.stats.errors > errors {
-                        let e = app.scene.stats.last_error.as_deref().unwrap_or("");
-                        web_sys::console::warn_1(&JsValue::from_str(&format!("voxstream: {e}")));
-                    }
-                    // Keep the connections busy; frames come at the GPU's pace.
-                    app.start_fetches();
-                });
-                request_frame();
-            });
+            let abort = web_sys::AbortController::new().ok();
+            let signal = abort.as_ref().map(|a| a.signal());
+            if let Some(a) = abort {
+                self.aborts.insert(request_id(&request), a);
+            }
+            match request {
+                Request::Page(page) => {
+                    wasm_bindgen_futures::spawn_local(async move {
+                        let result = source.page_bytes_with(&page, signal.as_ref()).await;
+                        with_app(|app| {
+                            app.aborts.remove(&request_id(&Request::Page(page.clone())));
+                            app.scene.insert_page(&page, result);
+                            app.start_fetches();
+                        });
+                        request_frame();
+                    });
+                }
+                Request::Block(key) => {
+                    let hash = self.scene.index.block(&key).map(|e| e.hash.clone());
+                    wasm_bindgen_futures::spawn_local(async move {
+                        let result: Result<Vec<u8>, FetchError> =
+                            source.block_bytes_with(key, hash.as_deref(), signal.as_ref()).await;
+                        with_app(|app| {
+                            app.aborts.remove(&request_id(&Request::Block(key)));
+                            let errors = app.scene.stats.errors;
+                            app.scene.insert_fetched([(key, result)]);
+                            if app.scene.stats.errors > errors {
+                                let e = app.scene.stats.last_error.as_deref().unwrap_or("");
+                                web_sys::console::warn_1(&JsValue::from_str(&format!("voxstream: {e}")));
+                            }
+                            // Keep the connections busy; frames come at the GPU's pace.
+                            app.start_fetches();
+                        });
+                        request_frame();
+                    });
+                }
+            }
         }
     }
 
