@@ -333,3 +333,121 @@ fn a_camera_path_never_exceeds_the_gpu_budget() {
         assert!(*drawn > 0, "frame {i} drew nothing: the budget must settle for coarser blocks, not none");
     }
 }
+
+/// A wall (a closed slab at z 80..82) in front of a detailed object (a
+/// sphere at z 15..45), as an OBJ; returns the wall's front z in mesh units.
+fn write_wall_scene(dir: &Path) -> PathBuf {
+    let mut obj = String::new();
+    let mut v = 0;
+    let mut quad = |obj: &mut String, c: [[f32; 3]; 4]| {
+        for p in c {
+            obj.push_str(&format!("v {} {} {}\n", p[0], p[1], p[2]));
+        }
+        obj.push_str(&format!("f {} {} {}\nf {} {} {}\n", v + 1, v + 2, v + 3, v + 1, v + 3, v + 4));
+        v += 4;
+    };
+    let (lo, hi) = ([0.0, 0.0, 80.0], [100.0, 100.0, 82.0]);
+    for axis in 0..3 {
+        let (u, w) = ((axis + 1) % 3, (axis + 2) % 3);
+        for side in [lo[axis], hi[axis]] {
+            let corner = |a: f32, b: f32| {
+                let mut p = [0.0; 3];
+                p[axis] = side;
+                p[u] = a;
+                p[w] = b;
+                p
+            };
+            quad(
+                &mut obj,
+                [corner(lo[u], lo[w]), corner(hi[u], lo[w]), corner(hi[u], hi[w]), corner(lo[u], hi[w])],
+            );
+        }
+    }
+    // The sphere: 48 × 24 quads, centre (50, 50, 30), radius 15.
+    let (rings, segments) = (24, 48);
+    let point = |i: usize, j: usize| {
+        let (t, p) = (
+            std::f32::consts::PI * i as f32 / rings as f32,
+            std::f32::consts::TAU * j as f32 / segments as f32,
+        );
+        [50.0 + 15.0 * t.sin() * p.cos(), 50.0 + 15.0 * t.sin() * p.sin(), 30.0 + 15.0 * t.cos()]
+    };
+    for i in 0..rings {
+        for j in 0..segments {
+            quad(&mut obj, [point(i, j), point(i + 1, j), point(i + 1, j + 1), point(i, j + 1)]);
+        }
+    }
+    let path = dir.join("wall.obj");
+    std::fs::write(&path, obj).unwrap();
+    path
+}
+
+/// Streams the head-on view of the wall frame by frame (at most 4 requests
+/// in flight, as a browser would) and returns the blocks requested from the
+/// third frame after the first one that drew anything, which lie entirely behind the wall.
+fn blocks_requested_behind_the_wall(scene: &Path, occlusion: bool) -> (Vec<BlockKey>, usize) {
+    use voxstream_viewer::request::Request;
+    let mut offscreen = open(scene, &RenderOptions::new(256, 256));
+    let manifest = offscreen.scene.manifest.clone();
+    let grid = &manifest.grid;
+    // The wall's back face (mesh z 80) in grid units: blocks below it are behind the wall.
+    let wall_z = ((80.0 - grid.origin[2]) / grid.voxel_size) as f32;
+    let (min, max) = {
+        let (a, b) = manifest.root.bounds.grid_units(manifest.root.key.level);
+        (a, b)
+    };
+    let mut camera = offscreen.scene.camera;
+    camera.yaw = 0.0;
+    camera.pitch = 0.0;
+    camera.target =
+        glam::Vec3::new(((min[0] + max[0]) / 2.0) as f32, ((min[1] + max[1]) / 2.0) as f32, max[2] as f32);
+    // Close enough that the wall fills the view.
+    camera.distance = (max[0] - min[0]) as f32 * 0.5;
+    offscreen.scene.camera = camera;
+    offscreen.scene.occlusion_culling = occlusion;
+    offscreen.scene.set_max_in_flight(4);
+    let mut first_drawn = None;
+    let mut behind = Vec::new();
+    let mut total = 0;
+    for frame in 0..60 {
+        let requests = offscreen.scene.start_requests();
+        for r in &requests {
+            if let Request::Block(key) = r {
+                total += 1;
+                let bounds = offscreen.scene.index.block(key).map(|e| e.bounds.grid_units(key.level));
+                let entirely_behind = bounds.is_some_and(|(_, b)| (b[2] as f32) < wall_z);
+                if entirely_behind && first_drawn.is_some_and(|f: usize| frame >= f + 2) {
+                    behind.push(*key);
+                }
+            }
+        }
+        offscreen.fetch(&requests);
+        let drawn = offscreen.draw_frame().expect("frame");
+        if first_drawn.is_none() && !drawn.drawn.is_empty() {
+            first_drawn = Some(frame);
+        }
+        if requests.is_empty() && drawn.complete && !offscreen.scene.has_pending_uploads() {
+            break;
+        }
+    }
+    (behind, total)
+}
+
+#[test]
+fn occlusion_feedback_stops_requests_behind_a_wall() {
+    let store = tempfile::tempdir().unwrap();
+    let mesh = write_wall_scene(store.path());
+    let options = BuildOptions { resolution: 256, ..BuildOptions::default() };
+    let report = build_scene(&mesh, store.path(), &options).expect("build the wall scene");
+    let (with, total_with) = blocks_requested_behind_the_wall(&report.scene_dir, true);
+    let (without, total_without) = blocks_requested_behind_the_wall(&report.scene_dir, false);
+    println!(
+        "behind the wall, requested once it was drawn: {} with occlusion culling ({total_with} requests in all), \
+         {} without ({total_without}): {without:?}",
+        with.len(),
+        without.len()
+    );
+    assert!(with.is_empty(), "blocks behind the drawn wall were requested: {with:?}");
+    // Control: frustum and error alone do request them.
+    assert!(!without.is_empty(), "without occlusion culling nothing behind the wall was requested either");
+}

@@ -30,6 +30,8 @@ pub mod traverse;
 pub mod offscreen;
 #[cfg(target_arch = "wasm32")]
 mod web;
+#[cfg(target_arch = "wasm32")]
+pub mod worker;
 
 /// Clear colour of every frame, exactly as it lands in an Rgba8Unorm target.
 /// Shaded voxels never take this value (see shaders/voxel.wgsl).

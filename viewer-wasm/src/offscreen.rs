@@ -157,7 +157,7 @@ impl Offscreen {
     }
 
     /// Fetches `requests` and hands the results to the scene.
-    fn fetch(&mut self, requests: &[Request]) {
+    pub fn fetch(&mut self, requests: &[Request]) {
         let mut blocks = Vec::new();
         for r in requests {
             match r {
@@ -193,6 +193,16 @@ impl Offscreen {
             keys.iter().map(|&k| (k, pollster::block_on(self.source.block_bytes(k, None)))).collect();
         self.scene.insert_fetched(results);
         self.scene.upload_all(&self.renderer);
+    }
+
+    /// One streaming frame as the browser runs it: whatever was fetched is
+    /// uploaded (within the per-frame cap), the view drawn, and the GPU
+    /// waited for (so occlusion feedback is ready for the next frame).
+    pub fn draw_frame(&mut self) -> Result<crate::scene::DrawnFrame, OffscreenError> {
+        let view = self.target.create_view(&Default::default());
+        let frame = self.scene.draw(&mut self.renderer, &view, 0.0);
+        wait_idle(&self.renderer.device)?;
+        Ok(frame)
     }
 
     /// Loads what the view wants, draws it, reads it back.

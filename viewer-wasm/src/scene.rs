@@ -79,6 +79,7 @@ pub struct Scene {
     occlusion: Option<Occlusion>,
     /// Bumped whenever `hidden` changes (the traversal depends on it).
     hidden_generation: u64,
+    feedback_changed_frame: u64,
     /// Blocks the newest feedback found hidden.
     hidden: HashSet<BlockKey>,
     drawn: Vec<BlockKey>,
@@ -113,6 +114,7 @@ impl Scene {
             upload: None,
             occlusion: None,
             hidden_generation: 0,
+            feedback_changed_frame: 0,
             hidden: HashSet::new(),
             drawn: Vec::new(),
             occupancy_for: None,
@@ -456,6 +458,13 @@ impl Scene {
         n
     }
 
+    /// Whether another frame would change something without new input:
+    /// blocks wait for the per-frame upload cap, or the feedback changed
+    /// lately (the next frames' queries settle it).
+    pub fn needs_another_frame(&mut self) -> bool {
+        self.has_pending_uploads() || self.frame_counter <= self.feedback_changed_frame + 2
+    }
+
     /// Uploads until nothing needed waits (native loops; the browser uploads once per frame).
     pub fn upload_all(&mut self, renderer: &Renderer) {
         while self.upload(renderer) > 0 {}
@@ -568,6 +577,7 @@ impl Scene {
         if v.hidden != self.hidden {
             self.hidden = v.hidden;
             self.hidden_generation += 1;
+            self.feedback_changed_frame = self.frame_counter;
         }
     }
 

@@ -272,8 +272,8 @@ impl App {
         let view = texture.texture.create_view(&Default::default());
         let frame = self.scene.draw(&mut self.renderer, &view, now);
         self.renderer.queue.present(texture);
-        if self.scene.has_pending_uploads() {
-            // The per-frame upload cap left blocks waiting: another frame takes them.
+        if self.scene.needs_another_frame() {
+            // Blocks wait for the per-frame upload cap, or occlusion feedback is settling.
             REDRAW_AFTER_FLIGHT.with(|r| r.set(true));
         }
         self.last_view_proj = frame.view_proj.to_cols_array();
