@@ -73,12 +73,17 @@ impl BlockSource {
         hash: Option<&str>,
         signal: Option<&web_sys::AbortSignal>,
     ) -> Result<Vec<u8>, FetchError> {
+        http::get_bytes_with(&self.block_url(key, hash), &format!("block {key}"), signal).await
+    }
+
+    /// The URL of a block (immutable when `hash` is given).
+    #[cfg(target_arch = "wasm32")]
+    pub fn block_url(&self, key: BlockKey, hash: Option<&str>) -> String {
         let BlockSource::Http { scene_url } = self;
-        let url = match hash {
+        match hash {
             Some(h) => format!("{scene_url}/blocks/{key}.{h}"),
             None => format!("{scene_url}/blocks/{key}"),
-        };
-        http::get_bytes_with(&url, &format!("block {key}"), signal).await
+        }
     }
 
     /// A block's bytes; `hash` is its blake3 from the manifest, which makes the

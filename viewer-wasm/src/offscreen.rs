@@ -195,6 +195,11 @@ impl Offscreen {
         self.scene.upload_all(&self.renderer);
     }
 
+    /// The adapter rendering this scene.
+    pub fn adapter_name(&self) -> &str {
+        &self.adapter
+    }
+
     /// One streaming frame as the browser runs it: whatever was fetched is
     /// uploaded (within the per-frame cap), the view drawn, and the GPU
     /// waited for (so occlusion feedback is ready for the next frame).

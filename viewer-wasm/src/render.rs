@@ -7,7 +7,6 @@ use glam::{Mat4, Vec3};
 
 use crate::ao::{OccupancyTexture, OccupancyVolume};
 use crate::expand::{Expander, GpuBlock, block_bind_group_layout};
-use crate::occlusion::Occlusion;
 use crate::shaders;
 
 pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
@@ -41,6 +40,7 @@ pub fn background_color() -> wgpu::Color {
 }
 
 struct DepthTarget {
+    texture: wgpu::Texture,
     view: wgpu::TextureView,
     size: (u32, u32),
 }
@@ -182,6 +182,11 @@ impl Renderer {
         }
     }
 
+    /// The depth target of the last frame (for occlusion feedback).
+    pub fn depth_texture(&self) -> Option<&wgpu::Texture> {
+        self.depth.as_ref().map(|d| &d.texture)
+    }
+
     pub fn occupancy_cells(&self) -> u32 {
         self.occupancy.cells
     }
@@ -199,11 +204,12 @@ impl Renderer {
                 sample_count: 1,
                 dimension: wgpu::TextureDimension::D2,
                 format: DEPTH_FORMAT,
-                usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+                // COPY_SRC: occlusion feedback reads the depth back (occlusion.rs).
+                usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
                 view_formats: &[],
             });
             let view = texture.create_view(&Default::default());
-            self.depth = Some(DepthTarget { view, size: (width, height) });
+            self.depth = Some(DepthTarget { texture, view, size: (width, height) });
         }
         &self.depth.as_ref().expect("just created").view
     }
@@ -216,7 +222,6 @@ impl Renderer {
         size: (u32, u32),
         params: &FrameParams,
         blocks: &[&GpuBlock],
-        occlusion: Option<&Occlusion>,
     ) {
         // A key light from above and to the side of the viewer; the headlight is implicit.
         let key_light = (Vec3::new(0.4, 1.0, 0.3)).normalize();
@@ -249,12 +254,13 @@ impl Renderer {
                 view: &depth,
                 depth_ops: Some(wgpu::Operations {
                     load: wgpu::LoadOp::Clear(1.0),
-                    store: wgpu::StoreOp::Discard,
+                    // Kept for the occlusion feedback's readback.
+                    store: wgpu::StoreOp::Store,
                 }),
                 stencil_ops: None,
             }),
             timestamp_writes: None,
-            occlusion_query_set: occlusion.and_then(Occlusion::query_set),
+            occlusion_query_set: None,
             multiview_mask: None,
         });
         pass.set_pipeline(&self.pipeline);
@@ -262,10 +268,6 @@ impl Renderer {
         for block in blocks {
             pass.set_bind_group(1, &block.bind_group, &[]);
             pass.draw_indirect(&block.buffers.draw_args, 0);
-        }
-        // Proxies last: they test against the depth of everything drawn.
-        if let Some(o) = occlusion {
-            o.draw_proxies(&mut pass);
         }
     }
 }

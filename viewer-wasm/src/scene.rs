@@ -171,7 +171,11 @@ impl Scene {
         let pixels = self.viewport.0 as u64 * self.viewport.1 as u64;
         let occupancy: u64 =
             (0..=occupancy_cells.max(1).ilog2()).map(|m| ((occupancy_cells >> m) as u64).pow(3)).sum();
-        pixels * 4 * 2 + occupancy + 256 + UPLOAD_BYTES_PER_FRAME + occlusion_gpu_bytes()
+        pixels * 4 * 2
+            + occupancy
+            + 256
+            + UPLOAD_BYTES_PER_FRAME
+            + occlusion_gpu_bytes(self.viewport.0, self.viewport.1)
     }
 
     fn traverse_params(&self) -> TraverseParams {
@@ -349,7 +353,21 @@ impl Scene {
         self.plan_requests();
     }
 
-    /// Takes a block decoded elsewhere (a worker).
+    /// Takes a worker's answer for block `key`: `fetched` response bytes and
+    /// the decoded block, or why it failed for good.
+    pub fn insert_worker_result(&mut self, key: BlockKey, fetched: u64, block: Result<Block, String>) {
+        self.requests.finished(&Request::Block(key));
+        self.stats.bytes_fetched += fetched;
+        match block {
+            Ok(block) if block.key == key => self.insert_decoded(block),
+            Ok(block) => self.fail(key, format!("asked for block {key}, got block {}", block.key)),
+            Err(e) => self.fail(key, e),
+        }
+        self.stats.requests_in_flight = self.requests.in_flight() as u32;
+        self.plan_requests();
+    }
+
+    /// Takes a decoded block.
     pub fn insert_decoded(&mut self, block: Block) {
         let key = block.key;
         self.stats.blocks_loaded += 1;
@@ -535,13 +553,14 @@ impl Scene {
             ao_strength: self.ao_strength,
         };
         let tests = if self.occlusion_culling { self.occlusion_tests() } else { Vec::new() };
-        let occlusion =
-            self.occlusion.get_or_insert_with(|| Occlusion::new(&renderer.device, renderer.color_format));
-        occlusion.prepare(&renderer.queue, params.view_proj, &tests, self.frame_counter);
         let mut encoder =
             renderer.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
-        renderer.encode_frame(&mut encoder, target, self.viewport, &params, &gpu_blocks, Some(occlusion));
-        occlusion.resolve(&mut encoder);
+        renderer.encode_frame(&mut encoder, target, self.viewport, &params, &gpu_blocks);
+        let occlusion = self.occlusion.get_or_insert_with(Occlusion::default);
+        occlusion.prepare(&renderer.device, self.viewport, params.view_proj, tests, self.frame_counter);
+        if let Some(depth) = renderer.depth_texture() {
+            occlusion.encode_copy(&mut encoder, depth);
+        }
         renderer.queue.submit([encoder.finish()]);
         occlusion.after_submit();
 

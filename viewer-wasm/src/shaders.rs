@@ -4,15 +4,10 @@
 pub const EXPAND_WGSL: &str = include_str!("../../shaders/expand.wgsl");
 pub const VOXEL_WGSL: &str = include_str!("../../shaders/voxel.wgsl");
 pub const AO_WGSL: &str = include_str!("../../shaders/ao.wgsl");
-pub const PROXY_WGSL: &str = include_str!("../../shaders/proxy.wgsl");
 
 /// Every file in `shaders/`, by name (a test checks that this list is complete).
-pub const SHADER_FILES: &[(&str, &str)] = &[
-    ("expand.wgsl", EXPAND_WGSL),
-    ("voxel.wgsl", VOXEL_WGSL),
-    ("ao.wgsl", AO_WGSL),
-    ("proxy.wgsl", PROXY_WGSL),
-];
+pub const SHADER_FILES: &[(&str, &str)] =
+    &[("expand.wgsl", EXPAND_WGSL), ("voxel.wgsl", VOXEL_WGSL), ("ao.wgsl", AO_WGSL)];
 
 /// The compute module that expands voxels into face records.
 pub fn expand_module_source() -> &'static str {
@@ -42,18 +37,6 @@ mod tests {
 
     fn entry_points(module: &naga::Module) -> Vec<(String, naga::ShaderStage)> {
         module.entry_points.iter().map(|e| (e.name.clone(), e.stage)).collect()
-    }
-
-    #[test]
-    fn the_proxy_module_validates_with_naga() {
-        let proxy = validate("proxy.wgsl", PROXY_WGSL);
-        assert_eq!(
-            entry_points(&proxy),
-            vec![
-                ("vs_proxy".to_string(), naga::ShaderStage::Vertex),
-                ("fs_proxy".to_string(), naga::ShaderStage::Fragment)
-            ]
-        );
     }
 
     #[test]

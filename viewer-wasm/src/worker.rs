@@ -125,10 +125,14 @@ impl DecodePool {
         }
     }
 
-    /// A result for `key` arrived.
-    pub fn done(&mut self, key: &BlockKey) {
-        if let Some(id) = self.ids.remove(key) {
-            self.owner.remove(&id);
+    /// A result for `key` arrived; false when it was aborted meanwhile (ignore it).
+    pub fn done(&mut self, key: &BlockKey) -> bool {
+        match self.ids.remove(key) {
+            Some(id) => {
+                self.owner.remove(&id);
+                true
+            }
+            None => false,
         }
     }
 }
