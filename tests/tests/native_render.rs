@@ -451,3 +451,62 @@ fn occlusion_feedback_stops_requests_behind_a_wall() {
     // Control: frustum and error alone do request them.
     assert!(!without.is_empty(), "without occlusion culling nothing behind the wall was requested either");
 }
+
+/// Georeferenced scans: the koala moved by 1e7 units on every axis renders
+/// the same image close up as the koala at the origin. The viewer renders in
+/// grid units (a local frame no larger than the grid resolution; the origin
+/// stays in the manifest as f64), so nothing shakes far from the origin.
+/// Control: the same comparison fails for a camera orbited by a few pixels.
+#[test]
+fn a_scene_moved_by_1e7_renders_the_same_close_up() {
+    let store = tempfile::tempdir().unwrap();
+    let source = std::fs::read_to_string(workspace_root().join("data/koala.obj")).unwrap();
+    let moved: String = source
+        .lines()
+        .map(|line| match line.strip_prefix("v ") {
+            Some(rest) => {
+                let v: Vec<f64> = rest.split_whitespace().map(|x| x.parse().unwrap()).collect();
+                format!("v {:.9} {:.9} {:.9}\n", v[0] + 1e7, v[1] + 1e7, v[2] + 1e7)
+            }
+            None => format!("{line}\n"),
+        })
+        .collect();
+    let moved_path = store.path().join("koala_far.obj");
+    std::fs::write(&moved_path, moved).unwrap();
+    let near = build_scene(&workspace_root().join("data/koala.obj"), store.path(), &BuildOptions::default())
+        .expect("build koala");
+    let far = build_scene(&moved_path, store.path(), &BuildOptions::default()).expect("build moved koala");
+    let far_manifest: voxstream_format::Manifest =
+        serde_json::from_slice(&std::fs::read(far.scene_dir.join("manifest.json")).unwrap()).unwrap();
+    assert!(
+        far_manifest.grid.origin.iter().all(|o| *o > 9e6),
+        "the moved scene is far: {:?}",
+        far_manifest.grid
+    );
+
+    let render = |scene: &Path, orbit: f32| {
+        let mut o = open(scene, &RenderOptions::new(256, 256));
+        o.scene.camera.zoom(0.25);
+        o.scene.camera.orbit(orbit, 0.0);
+        o.render().expect("render")
+    };
+    let a = render(&near.scene_dir, 0.0);
+    let b = render(&far.scene_dir, 0.0);
+    let differing = |x: &OffscreenFrame, y: &OffscreenFrame| {
+        x.pixels
+            .chunks_exact(4)
+            .zip(y.pixels.chunks_exact(4))
+            .filter(|(p, q)| p.iter().zip(q.iter()).any(|(u, v)| u.abs_diff(*v) > 8))
+            .count()
+    };
+    let same = differing(&a, &b);
+    let covered = silhouette_from_rgba(&a.pixels, 256, 256, BACKGROUND_RGBA8).iter().filter(|s| **s).count();
+    println!(
+        "close-up: {same} of {covered} covered pixels differ between the scene at the origin and at 1e7"
+    );
+    assert!(covered > 5000, "the close-up shows too little: {covered} pixels");
+    assert!(same * 200 <= covered, "{same} pixels differ (more than 0.5 % of {covered})");
+    // Control: a camera orbited by 3 px is told apart by the same comparison.
+    let c = render(&near.scene_dir, 3.0);
+    assert!(differing(&a, &c) * 200 > covered, "the comparison cannot tell a moved camera apart");
+}
