@@ -510,3 +510,45 @@ fn a_scene_moved_by_1e7_renders_the_same_close_up() {
     let c = render(&near.scene_dir, 3.0);
     assert!(differing(&a, &c) * 200 > covered, "the comparison cannot tell a moved camera apart");
 }
+
+/// No holes while streaming: on a camera path (always-closed refinement, the
+/// only mode: a block is replaced only once all its children are ready), every
+/// frame, converged or not, covers exactly the CPU coverage of the blocks it
+/// reports drawn. Control: the same frame against the drawn set less its
+/// biggest block does not match.
+#[test]
+fn streaming_frames_on_a_path_have_no_holes() {
+    let (_store, scene) = koala_scene();
+    let mut o = open(&scene, &RenderOptions::new(256, 256));
+    o.scene.set_max_in_flight(3);
+    let mut checked = 0;
+    let mut control_failed = false;
+    for camera in camera_path(o.scene.camera).into_iter().step_by(2) {
+        o.scene.camera = camera;
+        for _ in 0..6 {
+            let requests = o.scene.start_requests();
+            o.fetch(&requests);
+            let frame = o.draw_frame().expect("frame");
+            if frame.drawn.is_empty() {
+                continue;
+            }
+            let pixels = o.read_pixels().expect("read back");
+            let blocks: Vec<_> = frame.drawn.iter().filter_map(|k| o.scene.block(k).cloned()).collect();
+            let vp = frame.view_proj.to_cols_array();
+            let silhouette = silhouette_from_rgba(&pixels, 256, 256, BACKGROUND_RGBA8);
+            let cmp = compare_masks(&silhouette, &coverage_mask(&blocks, &vp, 256, 256), 256, 256);
+            assert!(cmp.within_tolerance(), "frame {checked} (complete: {}): {cmp:?}", frame.complete);
+            checked += 1;
+            if blocks.len() > 1 && !control_failed {
+                let biggest = (0..blocks.len()).max_by_key(|i| blocks[*i].face_count()).unwrap();
+                let fewer: Vec<_> =
+                    blocks.iter().enumerate().filter(|(i, _)| *i != biggest).map(|(_, b)| b).collect();
+                let wrong = compare_masks(&silhouette, &coverage_mask(&fewer, &vp, 256, 256), 256, 256);
+                control_failed = !wrong.within_tolerance();
+            }
+        }
+    }
+    println!("{checked} streaming frames match the coverage of their drawn blocks");
+    assert!(checked >= 10, "only {checked} frames checked");
+    assert!(control_failed, "dropping a drawn block never changed the verdict");
+}

@@ -210,6 +210,11 @@ impl Offscreen {
         Ok(frame)
     }
 
+    /// The pixels of the last frame drawn (RGBA8, rows top to bottom).
+    pub fn read_pixels(&self) -> Result<Vec<u8>, OffscreenError> {
+        read_texture(&self.renderer, &self.target)
+    }
+
     /// Loads what the view wants, draws it, reads it back.
     pub fn render(&mut self) -> Result<OffscreenFrame, OffscreenError> {
         self.load_wanted();

@@ -32,6 +32,9 @@ pub struct Stats {
     pub bytes_uploaded: u64,
     /// Uploads refused because the budget had no room.
     pub uploads_refused: u32,
+    /// The longest main-thread task of the viewer's own code so far (a frame's
+    /// encoding, a worker result taken in), in ms: WebGPU's own work excluded.
+    pub longest_main_task_ms: f64,
     #[serde(skip)]
     pub errors: u32,
     #[serde(skip)]
@@ -39,6 +42,10 @@ pub struct Stats {
 }
 
 impl Stats {
+    pub fn note_main_thread_task(&mut self, ms: f64) {
+        self.longest_main_task_ms = self.longest_main_task_ms.max(ms);
+    }
+
     pub fn record_error(&mut self, message: String) {
         self.errors += 1;
         self.last_error = Some(message);
@@ -80,7 +87,7 @@ mod tests {
         };
         let v: serde_json::Value = serde_json::to_value(&s).unwrap();
         let keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
-        assert_eq!(keys.len(), 16);
+        assert_eq!(keys.len(), 17);
         for k in [
             "frameMs",
             "blocksDrawn",

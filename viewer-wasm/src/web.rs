@@ -229,6 +229,7 @@ async fn run() -> Result<(), String> {
     }
 
     let decoder = match DecodePool::new(|result: WorkerResult| {
+        let started = now_ms();
         with_app(|app| {
             let live = app.decoder.as_mut().is_some_and(|pool| pool.done(&result.key));
             if !live {
@@ -239,6 +240,7 @@ async fn run() -> Result<(), String> {
             }
             app.scene.insert_worker_result(result.key, result.fetched, result.block);
             app.start_fetches();
+            app.scene.stats.note_main_thread_task(now_ms() - started);
         });
         request_frame();
     }) {
@@ -297,6 +299,12 @@ fn request_frame() {
 
 impl App {
     fn frame(&mut self, now: f64) {
+        let started = now_ms();
+        self.frame_inner(now);
+        self.scene.stats.note_main_thread_task(now_ms() - started);
+    }
+
+    fn frame_inner(&mut self, now: f64) {
         self.resize_if_needed();
         self.start_fetches();
 
