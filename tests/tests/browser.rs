@@ -419,7 +419,7 @@ fn browser_failed_blocks_are_reported_and_drawn_as_parents() {
                     Some(rest) => {
                         counter.fetch_add(1, Ordering::SeqCst);
                         let x: u32 = rest.split('-').next().and_then(|x| x.parse().ok()).unwrap_or(0);
-                        if x % 2 == 0 {
+                        if x.is_multiple_of(2) {
                             axum::http::StatusCode::INTERNAL_SERVER_ERROR.into_response()
                         } else {
                             (axum::http::StatusCode::OK, vec![0x5a_u8; 300]).into_response()
