@@ -24,7 +24,7 @@ use crate::occlusion::{Occlusion, contains_eye, occlusion_gpu_bytes, proxy_bound
 use crate::render::{FrameParams, Renderer};
 use crate::request::{DEFAULT_MAX_IN_FLIGHT, Request, RequestQueue};
 use crate::residency::{DEFAULT_BUDGET_BYTES, Residency, block_gpu_bytes};
-use crate::select::{SelectParams, ViewParams, block_bounds, resolve_draw_set, scene_bounds};
+use crate::select::{SelectParams, ViewParams, block_bounds, resolve_draw_set_in, scene_bounds};
 use crate::stats::Stats;
 use crate::traverse::{Traversal, TraverseParams, traverse};
 
@@ -529,7 +529,10 @@ impl Scene {
         self.upload(renderer);
         let settled = self.is_settled();
         let max_level = self.manifest.coarsest_level();
-        let drawn = resolve_draw_set(&self.drawable_wanted(), max_level, |k| self.is_ready(k));
+        let drawn =
+            resolve_draw_set_in(self.select_params.refinement, &self.drawable_wanted(), max_level, |k| {
+                self.is_ready(k)
+            });
 
         self.update_occupancy(renderer, &drawn, settled, now_ms);
 

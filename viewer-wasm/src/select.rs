@@ -21,18 +21,31 @@ pub struct ViewParams {
     pub focal_pixels: f32,
 }
 
+/// Seed 003's two ways to show a view while finer blocks stream in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Refinement {
+    /// A block stays drawn until every child that replaces it is ready: no holes, ever.
+    #[default]
+    AlwaysClosed,
+    /// A ready block is drawn at once and hides its ancestor: finer sooner,
+    /// with holes where siblings are still missing (an ancestor shows only
+    /// while nothing below it is ready).
+    HolesAllowed,
+}
+
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SelectParams {
     /// Refine while a block's geometric error projects larger than this many pixels.
     pub max_error_pixels: f32,
     /// Stop refining once this many blocks are selected.
     pub max_blocks: usize,
+    pub refinement: Refinement,
 }
 
 impl Default for SelectParams {
     fn default() -> Self {
         // Issue 10: 1 px of projected geometric error by default.
-        Self { max_error_pixels: 1.0, max_blocks: 16_384 }
+        Self { max_error_pixels: 1.0, max_blocks: 16_384, refinement: Refinement::AlwaysClosed }
     }
 }
 
@@ -152,6 +165,44 @@ pub fn select_blocks(
     };
     let t = crate::traverse::traverse(index, root, view, &params, &Default::default());
     Selection { blocks: t.blocks, pages: t.pages }
+}
+
+/// [`resolve_draw_set`] for either refinement mode. Holes allowed: every
+/// ready wanted block, plus the nearest ready ancestor of a missing one only
+/// while no wanted block below that ancestor is ready.
+pub fn resolve_draw_set_in(
+    mode: Refinement,
+    wanted: &[BlockKey],
+    max_level: u8,
+    is_ready: impl Fn(&BlockKey) -> bool,
+) -> Vec<BlockKey> {
+    if mode == Refinement::AlwaysClosed {
+        return resolve_draw_set(wanted, max_level, is_ready);
+    }
+    let ready: BTreeSet<BlockKey> = wanted.iter().copied().filter(|k| is_ready(k)).collect();
+    let under = |ancestor: &BlockKey| {
+        ready.iter().any(|k| {
+            let mut a = *k;
+            while a.level < ancestor.level {
+                a = a.parent();
+            }
+            a == *ancestor && k != ancestor
+        })
+    };
+    let mut chosen = ready.clone();
+    for key in wanted.iter().filter(|k| !ready.contains(k)) {
+        let mut k = *key;
+        while k.level < max_level {
+            k = k.parent();
+            if is_ready(&k) {
+                if !under(&k) {
+                    chosen.insert(k);
+                }
+                break;
+            }
+        }
+    }
+    chosen.into_iter().collect()
 }
 
 /// What to draw now for the `wanted` selection: each wanted block if it is
@@ -406,6 +457,19 @@ pub(crate) mod tests {
         assert!(!second.pages.is_empty() && second.pages.iter().all(|p| p.root.level == 3));
         // Control: the fully loaded index refines below level 3.
         assert!(select(&m, &view, &SelectParams::default()).iter().any(|k| k.level < 3));
+    }
+
+    #[test]
+    fn holes_allowed_draws_ready_children_at_once() {
+        let root = BlockKey::new(1, 0, 0, 0);
+        let children = root.children().unwrap();
+        let ready = |k: &BlockKey| *k == root || *k == children[0];
+        // Holes allowed: the ready child shows, the root goes (holes where siblings are).
+        assert_eq!(resolve_draw_set_in(Refinement::HolesAllowed, &children, 1, ready), vec![children[0]]);
+        // Control: always closed keeps the root until all children are ready.
+        assert_eq!(resolve_draw_set_in(Refinement::AlwaysClosed, &children, 1, ready), vec![root]);
+        // Nothing below ready yet: both show the root first.
+        assert_eq!(resolve_draw_set_in(Refinement::HolesAllowed, &children, 1, |k| *k == root), vec![root]);
     }
 
     #[test]

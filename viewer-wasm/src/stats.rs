@@ -35,6 +35,10 @@ pub struct Stats {
     /// The longest main-thread task of the viewer's own code so far (a frame's
     /// encoding, a worker result taken in), in ms: WebGPU's own work excluded.
     pub longest_main_task_ms: f64,
+    /// From the page's start to the first frame with a block on screen, and
+    /// to the first complete frame (the ready marker), in ms (browser only).
+    pub first_image_ms: f64,
+    pub ready_ms: f64,
     #[serde(skip)]
     pub errors: u32,
     #[serde(skip)]
@@ -87,7 +91,7 @@ mod tests {
         };
         let v: serde_json::Value = serde_json::to_value(&s).unwrap();
         let keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
-        assert_eq!(keys.len(), 17);
+        assert_eq!(keys.len(), 19);
         for k in [
             "frameMs",
             "blocksDrawn",

@@ -18,6 +18,7 @@ use crate::fetch::{BlockSource, FetchError, http};
 use crate::render::Renderer;
 use crate::request::Request;
 use crate::scene::Scene;
+use crate::select::Refinement;
 use crate::worker::{DecodePool, WorkerResult};
 
 const CANVAS_ID: &str = "voxstream-canvas";
@@ -224,6 +225,9 @@ async fn run() -> Result<(), String> {
             log(&format!("voxstream: ignoring ?view={v}"));
         }
     }
+    if url_param("refine").as_deref() == Some("holes") {
+        scene.select_params.refinement = Refinement::HolesAllowed;
+    }
     if url_param("occlusion").as_deref() == Some("0") {
         scene.occlusion_culling = false;
     }
@@ -348,8 +352,12 @@ impl App {
     fn frame_done(&mut self, frame_number: u64, started: f64, complete: bool) {
         let done = now_ms();
         self.scene.stats.frame_ms = done - started;
+        if self.scene.stats.first_image_ms == 0.0 && self.scene.stats.blocks_drawn > 0 {
+            self.scene.stats.first_image_ms = done - self.start_ms;
+        }
         if complete && !self.ready && frame_number == self.frames {
             self.ready = true;
+            self.scene.stats.ready_ms = done - self.start_ms;
             if let Some(body) = window().document().and_then(|d| d.body()) {
                 let _ = body.dataset().set("ready", "1");
             }
@@ -543,6 +551,11 @@ impl App {
         }
         if let Some(on) = settings["occlusion"].as_bool() {
             self.scene.occlusion_culling = on;
+        }
+        match settings["refinement"].as_str() {
+            Some("closed") => self.scene.select_params.refinement = Refinement::AlwaysClosed,
+            Some("holes") => self.scene.select_params.refinement = Refinement::HolesAllowed,
+            _ => {}
         }
         if let Some(on) = settings["fly"].as_bool() {
             self.fly_mode = on;
