@@ -9,6 +9,8 @@
 //! - converge: bytes fetched, frames and wall time to the first image and to
 //!   a converged view (nothing left to fetch or upload), at 1 px, with
 //!   occlusion culling and without (the savings: bytes and faces drawn).
+//! - `--bytes-only`: the bytes the view needs by frustum and error alone
+//!   (no frames drawn, so fast at any size).
 //! - budget: a scripted orbit-and-zoom path with a 64 MiB budget: the most
 //!   resident bytes ÷ budget.
 
@@ -91,6 +93,32 @@ fn main() {
         .map(|(w, h)| (w.parse().unwrap(), h.parse().unwrap()))
         .unwrap_or((1920, 1080));
     let manifest_bytes = std::fs::metadata(scene.join("manifest.json")).map_or(0, |m| m.len());
+    if args.iter().any(|a| a == "--bytes-only") {
+        // Frustum and 1 px error alone, no frames: the bytes the view needs
+        // (blocks wanted, their ancestors, the pages that lead to them).
+        let mut o = Offscreen::open(scene, &RenderOptions::new(w, h)).expect("open scene");
+        o.scene.camera = view(&o, kind);
+        o.load_pages();
+        let coarsest = o.scene.manifest.coarsest_level();
+        let mut needed = std::collections::BTreeSet::new();
+        for k in o.scene.wanted().to_vec() {
+            let mut a = k;
+            while needed.insert(a) && a.level < coarsest {
+                a = a.parent();
+            }
+        }
+        let block_bytes: u64 =
+            needed.iter().filter_map(|k| o.scene.index.block(k)).map(|e| e.bytes as u64).sum();
+        let page_bytes = o.scene.index.page_bytes_loaded();
+        println!(
+            "{{\"measure\":\"bytes_to_converge\",\"scene\":{:?},\"view\":{kind:?},\"size\":\"{w}x{h}\",\"resolution\":{},\"blocks\":{},\"block_bytes\":{block_bytes},\"page_bytes\":{page_bytes},\"manifest_bytes\":{manifest_bytes},\"total\":{}}}",
+            scene.display().to_string(),
+            o.scene.manifest.grid.resolution,
+            needed.len(),
+            block_bytes + page_bytes + manifest_bytes
+        );
+        return;
+    }
     for occlusion in [true, false] {
         let mut o = Offscreen::open(scene, &RenderOptions::new(w, h)).expect("open scene");
         o.scene.camera = view(&o, kind);
