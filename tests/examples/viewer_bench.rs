@@ -11,6 +11,7 @@
 //!   occlusion culling and without (the savings: bytes and faces drawn).
 //! - `--bytes-only`: the bytes the view needs by frustum and error alone
 //!   (no frames drawn, so fast at any size).
+//! - `--budget-only`: just the budget path.
 //! - budget: a scripted orbit-and-zoom path with a 64 MiB budget: the most
 //!   resident bytes ÷ budget.
 
@@ -119,7 +120,8 @@ fn main() {
         );
         return;
     }
-    for occlusion in [true, false] {
+    let budget_only = args.iter().any(|a| a == "--budget-only");
+    for occlusion in [true, false].into_iter().filter(|_| !budget_only) {
         let mut o = Offscreen::open(scene, &RenderOptions::new(w, h)).expect("open scene");
         o.scene.camera = view(&o, kind);
         o.scene.occlusion_culling = occlusion;
@@ -158,7 +160,7 @@ fn main() {
         c.orbit(90.0 * i as f32, 15.0 * (i % 4) as f32);
         c.zoom(1.0 - 0.07 * i as f32);
         o.scene.camera = c;
-        let r = stream(&mut o, 200);
+        let r = stream(&mut o, 60);
         worst = worst.max(r.peak as f64 / r.budget as f64);
     }
     println!(
