@@ -30,9 +30,10 @@ use crate::traverse::{Traversal, TraverseParams, traverse};
 
 /// While streaming, rebuild the occupancy volume at most this often.
 const OCCUPANCY_REBUILD_MS: f64 = 400.0;
-/// Share of the block budget the wanted set may take: the rest holds the
-/// coarser stand-ins drawn while it loads, and the pools' rounding.
-const WANTED_SHARE_OF_BUDGET: f64 = 0.5;
+/// Share of the block budget the needed set (wanted blocks and their
+/// ancestors, counted with the pools' rounding) may take; the rest leaves
+/// room for the free list and the last frame's blocks while the view changes.
+const WANTED_SHARE_OF_BUDGET: f64 = 0.8;
 /// Decoded blocks kept on the CPU (voxel bytes), so a block evicted from the
 /// GPU comes back without a refetch.
 const DECODED_CACHE_BYTES: u64 = 256 << 20;

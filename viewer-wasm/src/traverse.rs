@@ -18,7 +18,8 @@ pub struct TraverseParams {
     pub max_error_pixels: f32,
     /// Stop refining once this many blocks are wanted (bounds CPU work).
     pub max_blocks: usize,
-    /// GPU bytes the wanted blocks may take together (estimated from face counts).
+    /// GPU bytes the wanted blocks and their ancestors may take together
+    /// (estimated from face counts).
     pub max_bytes: u64,
 }
 
@@ -46,7 +47,8 @@ pub struct Traversal {
     pub hidden: Vec<BlockKey>,
     /// Blocks kept coarser than the pixel rule asks because of the byte budget.
     pub held_by_budget: u32,
-    /// Estimated GPU bytes of `blocks`.
+    /// Estimated GPU bytes of `blocks` and all their ancestors: what must be
+    /// resident, since ancestors stand in while finer blocks load.
     pub bytes: u64,
 }
 
@@ -99,8 +101,7 @@ pub fn traverse(
                         out.culled_frustum += 1;
                     }
                 }
-                let bytes =
-                    out.bytes - bytes_of(&c.key) + children.iter().map(|k| bytes_of(&k.key)).sum::<u64>();
+                let bytes = out.bytes + children.iter().map(|k| bytes_of(&k.key)).sum::<u64>();
                 let count = done.len() + open.len() + children.len();
                 if count <= params.max_blocks && bytes <= params.max_bytes {
                     out.bytes = bytes;
