@@ -425,8 +425,10 @@ impl Scene {
         if todo.is_empty() {
             return 0;
         }
+        // What this frame can draw: the needed blocks and hidden ones already
+        // loaded. Last frame's other blocks will not be drawn again, so they may go.
         let mut protected: HashSet<BlockKey> = self.needed().into_keys().collect();
-        protected.extend(self.drawn.iter().copied());
+        protected.extend(self.traversal.hidden.iter().filter(|k| self.gpu.contains_key(k)).copied());
         let mut batch = UploadBatch::default();
         for key in todo {
             let Some((block, _)) = self.decoded.get(&key) else { continue };
