@@ -11,6 +11,7 @@ use crate::ao::cells_for_grid;
 use crate::camera::OrbitCamera;
 use crate::fetch::{BlockSource, FetchError};
 use crate::render::Renderer;
+use crate::request::Request;
 use crate::scene::Scene;
 use crate::stats::Stats;
 
@@ -46,6 +47,8 @@ pub struct OffscreenFrame {
     pub blocks: Vec<Block>,
     /// Blocks that failed to fetch or decode, with why.
     pub failures: Vec<(BlockKey, String)>,
+    /// The frame counts as complete (what sets the browser's ready marker).
+    pub complete: bool,
     pub stats: Stats,
     /// The first draw, from encoding to the GPU finishing it (includes any lazy pipeline work).
     pub first_frame_ms: f64,
@@ -155,13 +158,30 @@ impl Offscreen {
     /// their ancestors, as the browser does).
     pub fn load_wanted(&mut self) {
         loop {
-            let pages = self.load_pages();
-            let keys = self.scene.next_fetches(64);
-            if keys.is_empty() && pages == 0 {
+            let requests = self.scene.start_requests();
+            if requests.is_empty() {
                 break;
             }
-            self.load(&keys);
+            self.fetch(&requests);
         }
+        self.scene.upload_all(&self.renderer);
+    }
+
+    /// Fetches `requests` and hands the results to the scene.
+    pub fn fetch(&mut self, requests: &[Request]) {
+        let mut blocks = Vec::new();
+        for r in requests {
+            match r {
+                Request::Page(page) => {
+                    let result = pollster::block_on(self.source.page_bytes(page));
+                    self.scene.insert_page(page, result);
+                }
+                Request::Block(key) => {
+                    blocks.push((*key, pollster::block_on(self.source.block_bytes(*key, None))))
+                }
+            }
+        }
+        self.scene.insert_fetched(blocks);
     }
 
     /// Loads the hierarchy pages the current view wants (and those they lead
@@ -169,15 +189,12 @@ impl Offscreen {
     pub fn load_pages(&mut self) -> usize {
         let mut n = 0;
         loop {
-            let pages = self.scene.next_page_fetches(64);
+            let pages = self.scene.start_page_requests();
             if pages.is_empty() {
                 return n;
             }
-            for page in &pages {
-                let result = pollster::block_on(self.source.page_bytes(page));
-                self.scene.insert_page(page, result);
-            }
             n += pages.len();
+            self.fetch(&pages);
         }
     }
 
@@ -185,7 +202,28 @@ impl Offscreen {
     pub fn load(&mut self, keys: &[BlockKey]) {
         let results: Vec<_> =
             keys.iter().map(|&k| (k, pollster::block_on(self.source.block_bytes(k, None)))).collect();
-        self.scene.insert_fetched(&self.renderer, results);
+        self.scene.insert_fetched(results);
+        self.scene.upload_all(&self.renderer);
+    }
+
+    /// The adapter rendering this scene.
+    pub fn adapter_name(&self) -> &str {
+        &self.adapter
+    }
+
+    /// One streaming frame as the browser runs it: whatever was fetched is
+    /// uploaded (within the per-frame cap), the view drawn, and the GPU
+    /// waited for (so occlusion feedback is ready for the next frame).
+    pub fn draw_frame(&mut self) -> Result<crate::scene::DrawnFrame, OffscreenError> {
+        let view = self.target.create_view(&Default::default());
+        let frame = self.scene.draw(&mut self.renderer, &view, 0.0);
+        wait_idle(&self.renderer.device)?;
+        Ok(frame)
+    }
+
+    /// The pixels of the last frame drawn (RGBA8, rows top to bottom).
+    pub fn read_pixels(&self) -> Result<Vec<u8>, OffscreenError> {
+        read_texture(&self.renderer, &self.target)
     }
 
     /// Loads what the view wants, draws it, reads it back.
@@ -216,6 +254,7 @@ impl Offscreen {
             drawn_blocks: frame.drawn,
             blocks,
             failures,
+            complete: frame.complete,
             stats: self.scene.stats.clone(),
             first_frame_ms: times[0],
             frame_ms: times[1],
@@ -283,7 +322,7 @@ impl Offscreen {
     /// (vertex_count, instance_count, first_vertex, first_instance).
     pub fn draw_args(&self, key: &BlockKey) -> Result<Option<[u32; 4]>, OffscreenError> {
         let Some(gpu) = self.scene.gpu_block(key) else { return Ok(None) };
-        let bytes = read_buffer(&self.renderer, &gpu.draw_args)?;
+        let bytes = read_buffer(&self.renderer, &gpu.buffers.draw_args)?;
         Ok(Some(bytemuck::pod_read_unaligned(&bytes[..16])))
     }
 
@@ -291,9 +330,11 @@ impl Offscreen {
     /// (x | y << 6 | z << 12 | face << 18, normal, colour) records in GPU order.
     pub fn face_records(&self, key: &BlockKey) -> Result<Vec<[u32; 3]>, OffscreenError> {
         let Some(gpu) = self.scene.gpu_block(key) else { return Ok(Vec::new()) };
-        let bytes = read_buffer(&self.renderer, &gpu.face_buffer)?;
+        let bytes = read_buffer(&self.renderer, &gpu.buffers.face_buffer)?;
+        // The pooled buffer is larger than the block: only its own records count.
         Ok(bytes
             .chunks_exact(crate::expand::FACE_RECORD_BYTES as usize)
+            .take(gpu.faces as usize)
             .map(bytemuck::pod_read_unaligned)
             .collect())
     }

@@ -47,6 +47,7 @@ pub fn background_color() -> wgpu::Color {
 }
 
 struct DepthTarget {
+    texture: wgpu::Texture,
     view: wgpu::TextureView,
     size: (u32, u32),
 }
@@ -239,6 +240,11 @@ fn voxel_pipeline(
 }
 
 impl Renderer {
+    /// The depth target of the last frame (for occlusion feedback).
+    pub fn depth_texture(&self) -> Option<&wgpu::Texture> {
+        self.depth.as_ref().map(|d| &d.texture)
+    }
+
     pub fn occupancy_cells(&self) -> u32 {
         self.occupancy.cells
     }
@@ -256,11 +262,12 @@ impl Renderer {
                 sample_count: 1,
                 dimension: wgpu::TextureDimension::D2,
                 format: DEPTH_FORMAT,
-                usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+                // COPY_SRC: occlusion feedback reads the depth back (occlusion.rs).
+                usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
                 view_formats: &[],
             });
             let view = texture.create_view(&Default::default());
-            self.depth = Some(DepthTarget { view, size: (width, height) });
+            self.depth = Some(DepthTarget { texture, view, size: (width, height) });
         }
         &self.depth.as_ref().expect("just created").view
     }
@@ -309,7 +316,8 @@ impl Renderer {
                 view: &depth,
                 depth_ops: Some(wgpu::Operations {
                     load: wgpu::LoadOp::Clear(1.0),
-                    store: wgpu::StoreOp::Discard,
+                    // Kept for the occlusion feedback's readback.
+                    store: wgpu::StoreOp::Store,
                 }),
                 stencil_ops: None,
             }),
@@ -321,7 +329,7 @@ impl Renderer {
         pass.set_bind_group(0, &self.frame_group, &[]);
         for block in blocks {
             pass.set_bind_group(1, &block.bind_group, &[]);
-            pass.draw_indirect(&block.draw_args, 0);
+            pass.draw_indirect(&block.buffers.draw_args, 0);
         }
     }
 }
