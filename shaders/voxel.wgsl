@@ -13,6 +13,14 @@ struct Frame {
     // x: grid edge in grid units, y: occupancy cells per edge at mip 0,
     // z: occupancy mip count, w: AO strength (0 disables).
     volume: vec4<f32>,
+    // x: cone count, y: tan(half aperture), z: step (fraction of the cone's
+    // diameter), w: start offset along the normal (grid units).
+    ao_cone: vec4<f32>,
+    // x: R (grid units), y: falloff lambda, z: 1 = empty-space skipping,
+    // w: 1 = ignore the normal (negative control).
+    ao_range: vec4<f32>,
+    // Cone axes in the local frame (x, y tangent, z normal), w: weight.
+    ao_dirs: array<vec4<f32>, 16>,
 }
 
 struct BlockInfo {
@@ -121,8 +129,14 @@ fn vs_main(@builtin(vertex_index) vertex_index: u32) -> VertexOut {
 
 const BASE_COLOUR: vec3<f32> = vec3<f32>(0.86, 0.80, 0.72);
 
-@fragment
-fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
+struct Shaded {
+    colour: vec4<f32>,
+    // The unit normal of the AO hemisphere.
+    normal: vec3<f32>,
+    visibility: f32,
+}
+
+fn shade(in: VertexOut) -> Shaded {
     // The stored normal is the smooth surface normal, which hides the voxel
     // staircase. Where it points away from the face we are drawing (thin
     // features), bend it until it faces the same side as the face.
@@ -136,9 +150,40 @@ fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     let key = max(dot(n, frame.key_light.xyz), 0.0);
     let diffuse = 0.65 * headlight + 0.35 * key;
     let visibility = ambient_visibility(in.grid_pos, n);
-    let light = 0.3 + 0.7 * (0.4 * visibility + 0.6 * diffuse * (0.5 + 0.5 * visibility));
-    // Voxel colour (or warm grey), never darker than 0.3 x base and never below
-    // 0.2 in any channel: always distinct from the blue background (20, 24, 36),
-    // which is what the silhouette tests rely on, even for black voxels.
-    return vec4<f32>(max(in.base_colour * clamp(light, 0.3, 1.0), vec3<f32>(0.2)), 1.0);
+    // Ambient and direct light both scaled by the visibility, no floor: a fully
+    // occluded crease is black. Shaded voxels still never take the background
+    // colour (20, 24, 36): a warm or grey base scaled by one factor keeps
+    // red >= blue, which the background does not have.
+    let light = visibility * (0.3 + 0.7 * diffuse);
+    var out: Shaded;
+    out.colour = vec4<f32>(in.base_colour * light, 1.0);
+    out.normal = n;
+    out.visibility = visibility;
+    return out;
+}
+
+@fragment
+fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
+    return shade(in).colour;
+}
+
+// Colour last: with a 16-byte-aligned f32 target first, the three fit
+// WebGPU's 32 bytes of colour attachments per sample (16 + 8 + 4).
+struct GBufferOut {
+    // xyz: the grid position the AO was computed for, w: visibility V.
+    @location(0) position_ao: vec4<f32>,
+    // xyz: the AO hemisphere's unit normal, w: 1 (0 = background).
+    @location(1) normal: vec4<f32>,
+    @location(2) colour: vec4<f32>,
+}
+
+// The native `voxstream render` pass: the same shading plus what the AO saw.
+@fragment
+fn fs_gbuffer(in: VertexOut) -> GBufferOut {
+    let s = shade(in);
+    var out: GBufferOut;
+    out.colour = s.colour;
+    out.position_ao = vec4<f32>(in.grid_pos, s.visibility);
+    out.normal = vec4<f32>(s.normal, 1.0);
+    return out;
 }

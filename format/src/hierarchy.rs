@@ -739,14 +739,12 @@ mod tests {
 
     /// Post-order by Morton code of the level-0 descendants: the out-of-core pyramid's order.
     fn morton_post_order(levels: &[Vec<BlockKey>]) -> Vec<BlockKey> {
-        let coarsest = (levels.len() - 1) as u32;
         let mut all: Vec<BlockKey> = levels.iter().flatten().copied().collect();
         // A block sorts after every block in its subtree: by the Morton code of its
         // subtree's last level-0 corner, then finer first.
         all.sort_by_key(|k| {
             let s = 1u32 << k.level;
             let last = k.coord().map(|c| c * s + s - 1);
-            let _ = coarsest;
             (morton3(last[0], last[1], last[2]), k.level)
         });
         all

@@ -1,5 +1,5 @@
 // Shared by the ingest targets (included with `include!`, as each target is its own crate root).
-use voxstream::ingest::{MeshFormat, read_mesh_bytes};
+use voxstream::pipeline::read::{MeshFormat, read_mesh_bytes};
 
 /// Reads `data` as `format` and checks the reader's promise: every index is in range.
 /// Errors are fine; panics, aborts, out-of-memory and out-of-range indices are findings.

@@ -72,8 +72,11 @@ fn main() {
         None => {
             let store = tmp.path().join("store");
             let mesh = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/koala.obj");
-            let opts = voxstream::build::BuildOptions { resolution: args.resolution, ..Default::default() };
-            voxstream::build::build_scene(&mesh, &store, &opts).expect("building koala");
+            let opts = voxstream::pipeline::BuildOptions {
+                resolution: voxstream::pipeline::Resolution::Explicit(args.resolution),
+                ..Default::default()
+            };
+            voxstream::pipeline::build_scene(&mesh, &store, &opts).expect("building koala");
             let mut child = Command::new(env!("CARGO_BIN_EXE_voxstream"))
                 .args(["serve", "--addr", "127.0.0.1:0", "--read-only", "--store"])
                 .arg(&store)

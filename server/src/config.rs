@@ -34,11 +34,12 @@ pub struct ServeArgs {
     /// Builds running at once (each also uses rayon's threads inside).
     #[arg(long, env = "VOXSTREAM_BUILD_WORKERS", default_value_t = 1)]
     pub build_workers: usize,
-    /// Resolution of uploaded scenes unless the upload asks for another.
-    #[arg(long, env = "VOXSTREAM_RESOLUTION", default_value_t = 512)]
-    pub resolution: u32,
-    /// Highest resolution an upload may ask for.
-    #[arg(long, env = "VOXSTREAM_MAX_RESOLUTION", default_value_t = 2048)]
+    /// Resolution of uploaded scenes unless the upload asks for another; when
+    /// unset, matched to each scan (auto, up to --max-resolution).
+    #[arg(long, env = "VOXSTREAM_RESOLUTION")]
+    pub resolution: Option<u32>,
+    /// Highest resolution an upload may ask for, and the most auto picks.
+    #[arg(long, env = "VOXSTREAM_MAX_RESOLUTION", default_value_t = 16384)]
     pub max_resolution: u32,
     /// Origins allowed to call the API from other sites (comma-separated, or "*"); none by default.
     #[arg(long, env = "VOXSTREAM_CORS_ORIGINS", value_delimiter = ',')]
@@ -70,7 +71,7 @@ pub struct ServerConfig {
     pub protect_read: bool,
     pub max_upload_bytes: u64,
     pub build_workers: usize,
-    pub resolution: u32,
+    pub resolution: Option<u32>,
     pub max_resolution: u32,
     pub cors_origins: Vec<String>,
     pub uploads_per_minute: u32,
@@ -91,8 +92,8 @@ impl ServerConfig {
             protect_read: false,
             max_upload_bytes: 16 << 30,
             build_workers: 1,
-            resolution: 512,
-            max_resolution: 2048,
+            resolution: None,
+            max_resolution: 16384,
             cors_origins: Vec::new(),
             uploads_per_minute: 30,
             batch_max: 256,

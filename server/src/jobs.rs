@@ -20,12 +20,12 @@ use tokio::sync::{Semaphore, watch};
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
-use crate::build::{BuildError, BuildOptions, build_scene_reporting};
 use crate::catalog::{BuildInfo, Catalog, now_unix, write_build_info};
 use crate::metrics::Metrics;
-use crate::progress::Progress;
+use crate::pipeline::progress::Progress;
+use crate::pipeline::voxelize::Topology;
+use crate::pipeline::{BuildError, BuildOptions, Resolution, build_scene_reporting};
 use crate::uploads::{Uploads, write_json_atomic};
-use crate::voxelize::Topology;
 
 pub const JOBS_DIR: &str = ".jobs";
 /// Starts of one job that may be cut short by a crash before it is given up:
@@ -80,7 +80,11 @@ pub struct Job {
     /// The uploaded file as the build reads it (`<scene>.<format>`).
     pub input_file: String,
     pub input_bytes: u64,
-    pub resolution: u32,
+    /// Level-0 voxels an edge; null: matched to the scan (auto), at most `max_resolution`.
+    #[serde(default)]
+    pub resolution: Option<u32>,
+    #[serde(default = "max_resolution")]
+    pub max_resolution: u32,
     pub topology: String,
     pub created_at: u64,
     pub started_at: Option<u64>,
@@ -120,6 +124,10 @@ struct JobHandle {
     /// The build's cancel flag: set by a user's cancel or by shutdown.
     cancel: Arc<AtomicBool>,
     user_cancelled: AtomicBool,
+}
+
+fn max_resolution() -> u32 {
+    crate::pipeline::voxelize::MAX_RESOLUTION
 }
 
 pub struct JobManager {
@@ -357,7 +365,8 @@ impl JobManager {
         // More build options are coming (memory budget, ...): keep their defaults.
         #[allow(clippy::needless_update)]
         let opts = BuildOptions {
-            resolution: job.resolution,
+            resolution: job.resolution.map_or(Resolution::Auto, Resolution::Explicit),
+            max_resolution: job.max_resolution,
             name: Some(job.scene_id.clone()),
             topology: parse_topology(&job.topology).unwrap_or(Topology::Conservative),
             cancel: Some(h.cancel.clone()),

@@ -2,9 +2,9 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
-use voxstream::build::{BuildOptions, build_scene_reporting, parse_byte_size};
-use voxstream::progress::Progress;
-use voxstream::voxelize::Topology;
+use voxstream::pipeline::progress::Progress;
+use voxstream::pipeline::voxelize::Topology;
+use voxstream::pipeline::{BuildOptions, Resolution, build_scene_reporting, parse_byte_size};
 
 /// voxstream: huge 3D scans as streamed voxel blocks.
 #[derive(Parser)]
@@ -23,9 +23,14 @@ enum Command {
         /// The store directory; the scene is published as <out>/<name>.
         #[arg(long)]
         out: PathBuf,
-        /// Level-0 voxels per edge of the mesh's bounding cube (a power of two).
-        #[arg(long, default_value_t = 512)]
-        resolution: u32,
+        /// Level-0 voxels per edge of the mesh's bounding cube: `auto` (the power of
+        /// two whose voxel is closest to the scan's median triangle edge) or a power of two.
+        #[arg(long, default_value = "auto", conflicts_with = "voxel_size")]
+        resolution: Resolution,
+        /// Voxel edge in source units, instead of --resolution: the grid is the next
+        /// power of two that covers the mesh.
+        #[arg(long)]
+        voxel_size: Option<f64>,
         /// Scene id (a-z, 0-9, '-', '_'); defaults to the file name.
         #[arg(long)]
         name: Option<String>,
@@ -71,6 +76,113 @@ enum Command {
         #[arg(long)]
         web: Option<PathBuf>,
     },
+    /// Render one view of a stored scene offscreen (Vulkan; lavapipe without a GPU) and write
+    /// image.png, ao.f32, position.f64, normal.f32 and render.json.
+    Render(RenderArgs),
+    /// Benchmark the cone-traced AO: run time against error over a sweep of settings on the
+    /// analytic scenes and the named views; writes docs/ao-benchmark.md and docs/ao-pareto.png.
+    AoBench(voxstream::reference::bench::AoBenchArgs),
+    /// Ray-trace the AO reference on the CPU at the points a `render` wrote, against the
+    /// original mesh; writes reference.f32, reference_stderr.f32, reference.png, primary.f32
+    /// and compare.json.
+    ReferenceAo {
+        /// The original mesh the scene was built from.
+        #[arg(long)]
+        mesh: PathBuf,
+        /// A `voxstream render` output directory.
+        #[arg(long)]
+        render: PathBuf,
+        /// Cosine-weighted rays per pixel.
+        #[arg(long, default_value_t = voxstream::reference::DEFAULT_RAYS)]
+        rays: u32,
+        /// Skip the ray-traced view of the mesh (primary rays through each pixel).
+        #[arg(long)]
+        no_primary: bool,
+    },
+}
+
+#[derive(clap::Args)]
+struct RenderArgs {
+    /// The scene directory, <store>/<scene-id>.
+    #[arg(long)]
+    scene: PathBuf,
+    /// camera.json: {"eye":[x,y,z],"target":[x,y,z],"up":[x,y,z],"fov_y_deg":f,"near":n,"far":f}
+    /// in the scene's source coordinates.
+    #[arg(long)]
+    camera: PathBuf,
+    #[arg(long)]
+    width: u32,
+    #[arg(long)]
+    height: u32,
+    /// Output directory (created).
+    #[arg(long)]
+    out: PathBuf,
+    #[command(flatten)]
+    ao: AoArgs,
+    /// Timed frames with and without AO (median reported; 0: no timing).
+    #[arg(long, default_value_t = 3)]
+    timing_runs: usize,
+}
+
+/// Cone-traced AO settings (defaults in viewer-wasm/src/ao.rs, `AoSettings`).
+#[derive(clap::Args)]
+struct AoArgs {
+    /// Cones per pixel: 3, 5, 6, 8 or 16.
+    #[arg(long, default_value_t = 16, value_parser = parse_cones)]
+    cones: u32,
+    /// Cone half-angle in degrees (default: asin(1/sqrt(cones))).
+    #[arg(long)]
+    aperture_deg: Option<f32>,
+    /// Step along a cone as a fraction of its diameter.
+    #[arg(long, default_value_t = 0.5)]
+    step: f32,
+    /// Start offset along the normal, in finest occupancy cells.
+    #[arg(long, default_value_t = 1.5)]
+    offset_cells: f32,
+    /// R, the AO's maximum distance, in source units (default: a tenth of the scene's bounding cube edge).
+    #[arg(long)]
+    max_distance: Option<f64>,
+    /// λ in w(d) = 1 / (1 + λ·d/R).
+    #[arg(long, default_value_t = 1.0)]
+    falloff: f32,
+    /// Disable empty-space skipping.
+    #[arg(long)]
+    no_empty_skip: bool,
+    /// Negative control: lay the cones around +Z whatever the surface normal.
+    #[arg(long, hide = true)]
+    ignore_normal: bool,
+}
+
+fn parse_cones(s: &str) -> Result<u32, String> {
+    match s.parse::<u32>() {
+        Ok(n) if voxstream_viewer::ao::CONE_COUNTS.contains(&n) => Ok(n),
+        _ => Err(format!("must be one of {:?}", voxstream_viewer::ao::CONE_COUNTS)),
+    }
+}
+
+impl AoArgs {
+    fn settings(&self) -> anyhow::Result<voxstream_viewer::ao::AoSettings> {
+        let finite = |name: &str, v: f32, ok: bool| {
+            anyhow::ensure!(v.is_finite() && ok, "--{name} out of range: {v}");
+            Ok(())
+        };
+        finite("step", self.step, self.step > 0.0)?;
+        finite("offset-cells", self.offset_cells, self.offset_cells >= 0.0)?;
+        finite("falloff", self.falloff, self.falloff >= 0.0)?;
+        if let Some(a) = self.aperture_deg {
+            finite("aperture-deg", a, a > 0.0 && a < 90.0)?;
+        }
+        Ok(voxstream_viewer::ao::AoSettings {
+            cones: self.cones,
+            aperture_deg: self.aperture_deg,
+            step: self.step,
+            offset_cells: self.offset_cells,
+            max_distance: None,
+            falloff: self.falloff,
+            empty_skip: !self.no_empty_skip,
+            ignore_normal: self.ignore_normal,
+        })
+    }
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -114,8 +226,9 @@ fn no_bucket_store(path: &std::path::Path, flag: &str) -> anyhow::Result<()> {
 
 fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
-        Command::Build { mesh, out, resolution, name, topology, memory_budget, tmp } => {
+        Command::Build { mesh, out, resolution, voxel_size, name, topology, memory_budget, tmp } => {
             no_bucket_store(&out, "build --out")?;
+            let resolution = voxel_size.map_or(resolution, Resolution::VoxelSize);
             let topology = match topology {
                 TopologyArg::Conservative => Topology::Conservative,
                 TopologyArg::Separating26 => Topology::Separating26,
@@ -136,7 +249,15 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             let result = build_scene_reporting(
                 &mesh,
                 &out,
-                &BuildOptions { resolution, name, topology, cancel: None, memory_budget, temp_dir: tmp },
+                &BuildOptions {
+                    resolution,
+                    name,
+                    topology,
+                    cancel: None,
+                    memory_budget,
+                    temp_dir: tmp,
+                    ..Default::default()
+                },
                 &report,
             );
             bar.finish_and_clear();
@@ -153,6 +274,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 r.bytes,
                 r.scene_dir.display()
             );
+            println!("resolution {}: {}", r.resolution_choice.resolution, r.resolution_choice.reason);
             Ok(())
         }
         Command::Synth { triangles, out } => {
@@ -205,6 +327,31 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 r.pages,
                 r.bytes
             );
+            Ok(())
+        }
+        Command::Render(args) => {
+            let bytes = std::fs::read(&args.camera)
+                .map_err(|e| anyhow::anyhow!("cannot read --camera {}: {e}", args.camera.display()))?;
+            let camera = voxstream::render::CameraSpec::from_json(&bytes)
+                .map_err(|e| anyhow::anyhow!("{}: {e:#}", args.camera.display()))?;
+            let request = voxstream::render::RenderRequest {
+                scene_dir: args.scene.clone(),
+                camera,
+                width: args.width,
+                height: args.height,
+                ao: args.ao.settings()?,
+                max_distance: args.ao.max_distance,
+                timing_runs: args.timing_runs,
+            };
+            let out = voxstream::render::render_view(&request)?;
+            voxstream::render::write_outputs(&args.out, &out)?;
+            println!("{}", serde_json::to_string_pretty(&out.info)?);
+            Ok(())
+        }
+        Command::AoBench(args) => voxstream::reference::bench::ao_bench_main(&args),
+        Command::ReferenceAo { mesh, render, rays, no_primary } => {
+            let report = voxstream::reference::reference_command(&mesh, &render, rays, !no_primary)?;
+            println!("{}", serde_json::to_string_pretty(&report)?);
             Ok(())
         }
     }

@@ -84,7 +84,7 @@ pub fn write_sphere_ply(path: &Path, triangles: u64) -> io::Result<SynthReport> 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ingest::read_mesh;
+    use crate::pipeline::read::read_mesh;
 
     #[test]
     fn writes_a_readable_closed_sphere() {

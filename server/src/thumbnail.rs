@@ -354,7 +354,7 @@ pub async fn get_thumbnail(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::build::{BuildOptions, build_scene};
+    use crate::pipeline::{BuildOptions, build_scene};
     use crate::store::open_scene;
     use std::fmt::Write as _;
 
@@ -385,7 +385,10 @@ mod tests {
         let input = dir.path().join("shape.obj");
         std::fs::write(&input, obj).unwrap();
         let store = dir.path().join("store");
-        let opts = BuildOptions { resolution, ..Default::default() };
+        let opts = BuildOptions {
+            resolution: crate::pipeline::Resolution::Explicit(resolution),
+            ..Default::default()
+        };
         let report = build_scene(&input, &store, &opts).unwrap();
         let scene = open_scene(&store, &report.id).unwrap();
         (dir, scene)

@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::ingest::MeshFormat;
+use crate::pipeline::read::MeshFormat;
 
 pub const UPLOADS_DIR: &str = ".uploads";
 const RECORD: &str = "upload.json";
@@ -28,7 +28,9 @@ pub struct UploadRecord {
     pub file_name: Option<String>,
     pub content_type: Option<String>,
     pub scene_id: String,
-    pub resolution: u32,
+    /// `None`: auto.
+    #[serde(default)]
+    pub resolution: Option<u32>,
     pub topology: String,
     /// Replace an existing scene of the same id.
     pub replace: bool,

@@ -4,7 +4,7 @@
 
 use std::panic::{AssertUnwindSafe, catch_unwind};
 
-use voxstream::ingest::{IngestError, MeshFormat, TriangleMesh, read_mesh_bytes};
+use voxstream::pipeline::read::{IngestError, MeshFormat, TriangleMesh, read_mesh_bytes};
 
 fn read_without_panic(bytes: &[u8], format: MeshFormat) -> Result<TriangleMesh, IngestError> {
     match catch_unwind(AssertUnwindSafe(|| read_mesh_bytes(bytes, format))) {
@@ -44,7 +44,7 @@ fn obj_negative_texcoord_index_before_the_first_texcoord_is_an_error() {
 
 /// fuzz target ingest_gltf: a primitive whose POSITION names an accessor that
 /// does not exist; gltf-json 1.4.1's own validation indexes `root.accessors`
-/// with it before checking (mesh.rs:151), called from ingest/gltf.rs `validate`.
+/// with it before checking (mesh.rs:151), called from pipeline/read/gltf.rs `validate`.
 #[test]
 fn gltf_position_naming_a_missing_accessor_is_an_error() {
     let gltf = br#"{"asset":{"version":"2.0"},"meshes":[{"primitives":[{"attributes":{"POSITION":0}}]}]}"#;

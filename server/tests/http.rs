@@ -10,9 +10,9 @@ use std::time::Duration;
 use base64::Engine;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_util::sync::CancellationToken;
-use voxstream::build::{BuildOptions, build_scene};
 use voxstream::config::ServerConfig;
 use voxstream::http::{AppState, BLOCK_CACHE_CONTROL, router};
+use voxstream::pipeline::{BuildOptions, Resolution, build_scene};
 use voxstream_format::{Manifest, SceneSummary, decode_block};
 
 const TOKEN: &str = "s3cret-token";
@@ -69,7 +69,8 @@ async fn start_with(config: ServerConfig) -> Server {
 fn config(store: &Path) -> ServerConfig {
     let mut c = ServerConfig::new(store);
     c.token = Some(TOKEN.into());
-    c.resolution = 64;
+    c.resolution = Some(64);
+    c.max_resolution = 2048;
     c
 }
 
@@ -180,7 +181,12 @@ async fn serves_what_the_store_holds() {
     let mesh = dir.path().join("Box Scan.obj");
     write_test_mesh(&mesh);
     let store = dir.path().join("store");
-    let report = build_scene(&mesh, &store, &BuildOptions { resolution: 256, ..Default::default() }).unwrap();
+    let report = build_scene(
+        &mesh,
+        &store,
+        &BuildOptions { resolution: Resolution::Explicit(256), ..Default::default() },
+    )
+    .unwrap();
     assert_eq!(report.id, "box-scan");
     assert_eq!(report.levels, 3);
     let base = start_read_only(&store).await;
@@ -300,9 +306,11 @@ async fn rebuild_replaces_a_scene_atomically_and_bad_input_leaves_no_trace() {
     let mesh = dir.path().join("box.obj");
     write_test_mesh(&mesh);
     let store = dir.path().join("store");
-    build_scene(&mesh, &store, &BuildOptions { resolution: 64, ..Default::default() }).unwrap();
+    build_scene(&mesh, &store, &BuildOptions { resolution: Resolution::Explicit(64), ..Default::default() })
+        .unwrap();
     let first = std::fs::read(store.join("box/manifest.json")).unwrap();
-    build_scene(&mesh, &store, &BuildOptions { resolution: 128, ..Default::default() }).unwrap();
+    build_scene(&mesh, &store, &BuildOptions { resolution: Resolution::Explicit(128), ..Default::default() })
+        .unwrap();
     let second = Manifest::from_json(&std::fs::read(store.join("box/manifest.json")).unwrap()).unwrap();
     assert_ne!(first, second.to_json());
     assert_eq!(second.grid.resolution, 128);
@@ -373,7 +381,12 @@ async fn upload_builds_a_scene_and_streams_progress() {
     let cli_store = dir.path().join("cli");
     let copy = dir.path().join("koala-scan.obj");
     std::fs::copy(koala(), &copy).unwrap();
-    build_scene(&copy, &cli_store, &BuildOptions { resolution: 512, ..Default::default() }).unwrap();
+    build_scene(
+        &copy,
+        &cli_store,
+        &BuildOptions { resolution: Resolution::Explicit(512), ..Default::default() },
+    )
+    .unwrap();
     let cli = assert_scene_complete(&cli_store, "koala-scan");
     assert_eq!(cli.blocks, m.blocks);
     let metrics = http().get(format!("{}/metrics", s.base)).send().await.unwrap().text().await.unwrap();
@@ -620,8 +633,12 @@ async fn tus_upload_resumes_after_a_cut_connection() {
     let m = assert_scene_complete(&store, "scan");
     let copy = dir.path().join("scan.obj");
     std::fs::write(&copy, &mesh).unwrap();
-    build_scene(&copy, &dir.path().join("cli"), &BuildOptions { resolution: 128, ..Default::default() })
-        .unwrap();
+    build_scene(
+        &copy,
+        &dir.path().join("cli"),
+        &BuildOptions { resolution: Resolution::Explicit(128), ..Default::default() },
+    )
+    .unwrap();
     assert_eq!(assert_scene_complete(&dir.path().join("cli"), "scan").blocks, m.blocks);
     // After completion: PATCH is a conflict, HEAD names the job.
     let e = json_error(patch(len, vec![1]).send().await.unwrap(), 409).await;
@@ -650,7 +667,8 @@ async fn access_rules_token_read_only_and_protected_reads() {
     let store = dir.path().join("store");
     let mesh = dir.path().join("box.obj");
     write_test_mesh(&mesh);
-    build_scene(&mesh, &store, &BuildOptions { resolution: 64, ..Default::default() }).unwrap();
+    build_scene(&mesh, &store, &BuildOptions { resolution: Resolution::Explicit(64), ..Default::default() })
+        .unwrap();
     let s = start_with(config(&store)).await;
     let base = &s.base;
     let c = http();
@@ -702,12 +720,13 @@ async fn rename_and_delete_scenes() {
     let store = dir.path().join("store");
     let mesh = dir.path().join("box.obj");
     write_test_mesh(&mesh);
-    build_scene(&mesh, &store, &BuildOptions { resolution: 128, ..Default::default() }).unwrap();
+    build_scene(&mesh, &store, &BuildOptions { resolution: Resolution::Explicit(128), ..Default::default() })
+        .unwrap();
     std::fs::copy(&mesh, dir.path().join("other.obj")).unwrap();
     build_scene(
         &dir.path().join("other.obj"),
         &store,
-        &BuildOptions { resolution: 64, ..Default::default() },
+        &BuildOptions { resolution: Resolution::Explicit(64), ..Default::default() },
     )
     .unwrap();
     let s = start_with(config(&store)).await;
@@ -772,7 +791,8 @@ async fn batch_returns_framed_blocks_with_a_cap() {
     let store = dir.path().join("store");
     let mesh = dir.path().join("box.obj");
     write_test_mesh(&mesh);
-    build_scene(&mesh, &store, &BuildOptions { resolution: 256, ..Default::default() }).unwrap();
+    build_scene(&mesh, &store, &BuildOptions { resolution: Resolution::Explicit(256), ..Default::default() })
+        .unwrap();
     let mut c = config(&store);
     c.batch_max = 8;
     let s = start_with(c).await;
@@ -874,7 +894,8 @@ async fn health_metrics_openapi_and_cors() {
     let store = dir.path().join("store");
     let mesh = dir.path().join("box.obj");
     write_test_mesh(&mesh);
-    build_scene(&mesh, &store, &BuildOptions { resolution: 64, ..Default::default() }).unwrap();
+    build_scene(&mesh, &store, &BuildOptions { resolution: Resolution::Explicit(64), ..Default::default() })
+        .unwrap();
     let mut c = config(&store);
     c.cors_origins = vec!["https://viewer.example".into()];
     let s = start_with(c).await;
@@ -985,7 +1006,7 @@ async fn restart_resumes_or_fails_interrupted_jobs_and_cleans_leftovers() {
     }
 
     let mut c = config(&store);
-    c.resolution = 64;
+    c.resolution = Some(64);
     let s = start_with(c).await;
     let ja = wait_job(&s.base, &a).await;
     assert_eq!(ja["state"], "done", "{ja}");

@@ -1,19 +1,25 @@
-//! The out-of-core build (chunked stream → spilled bins → parallel blocks):
-//! byte-identical stores whatever the memory budget and thread count, the
-//! same blocks as the in-memory voxelizer, area-weighted colours, and temp
-//! files gone after success, error and cancellation.
+//! The out-of-core build (chunked stream → spilled bins → parallel blocks →
+//! streaming pyramid → writer): byte-identical stores whatever the memory
+//! budget and thread count, the same files as the in-memory reference
+//! (voxelize + `build_levels` + `write_scene`) for every topology, with
+//! colours, area-weighted colours, the budget rule, and temp files gone
+//! after success, error and cancellation.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 
-use voxstream::build::{BuildError, BuildOptions, build_scene, parse_byte_size};
-use voxstream::ingest::{TriangleMesh, read_mesh};
-use voxstream::lod::build_levels;
-use voxstream::store::packed_block;
-use voxstream::voxelize::{choose_frame, voxelize};
-use voxstream_format::encode_block;
+use voxstream::pipeline::progress::ProgressSink;
+use voxstream::pipeline::pyramid::build_levels;
+use voxstream::pipeline::read::{TriangleMesh, read_mesh};
+use voxstream::pipeline::stream::Bounds;
+use voxstream::pipeline::voxelize::{
+    EdgeHistogram, MAX_RESOLUTION, Topology, choose_frame, choose_resolution, voxelize, voxelize_reporting,
+};
+use voxstream::pipeline::write::{SceneContent, write_scene};
+use voxstream::pipeline::{BuildError, BuildOptions, MemoryPlan, Resolution, build_scene, parse_byte_size};
+use voxstream_format::SourceInfo;
 
 fn koala() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/koala.obj")
@@ -82,7 +88,7 @@ fn build_with(input: &Path, threads: usize, budget: u64, tmp: Option<&Path>) -> 
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("store");
     let opts = BuildOptions {
-        resolution: 128,
+        resolution: Resolution::Explicit(128),
         memory_budget: budget,
         temp_dir: tmp.map(Path::to_path_buf),
         ..Default::default()
@@ -103,8 +109,12 @@ fn stores_are_byte_identical_across_runs_budgets_and_threads() {
     let input = koala_ply(tmp.path());
     let reference = build_with(&input, 1, 1 << 30, None);
     assert!(reference.len() > 5 && reference.contains_key("manifest.json"));
-    // 4 MiB: the stream and the bins spill to disk, one brick in flight.
-    for (threads, budget, t) in [(1, 1 << 30, None), (3, 4 << 20, Some(tmp.path())), (2, 64 << 20, None)] {
+    // The smallest budget: the stream and the bins spill to disk, the bin
+    // buffers flush often, one brick in flight, small batches.
+    let least = MemoryPlan::minimum_budget(128);
+    for (threads, budget, t) in
+        [(1, 1 << 30, None), (3, least, Some(tmp.path())), (2, least + (64 << 20), None)]
+    {
         let got = build_with(&input, threads, budget, t);
         assert_eq!(got.keys().collect::<Vec<_>>(), reference.keys().collect::<Vec<_>>());
         for (name, bytes) in &got {
@@ -113,29 +123,148 @@ fn stores_are_byte_identical_across_runs_budgets_and_threads() {
     }
 }
 
-#[test]
-fn build_matches_the_in_memory_voxelizer() {
-    let dir = tempfile::tempdir().unwrap();
-    let store = dir.path().join("store");
-    let input = koala_ply(dir.path());
-    let opts = BuildOptions { resolution: 128, memory_budget: 4 << 20, ..Default::default() };
-    let report = build_scene(&input, &store, &opts).unwrap();
-    let (mesh, _) = read_mesh(&input).unwrap();
-    assert_eq!(mesh.colors.len(), mesh.positions.len());
-    let frame = choose_frame(&mesh, 128).unwrap();
-    let (level0, stats) = voxelize(&mesh, &frame).unwrap();
-    assert_eq!(
-        (report.triangles, report.skipped_triangles),
-        (stats.triangles + stats.skipped, stats.skipped)
-    );
-    let levels = build_levels(level0, 128);
-    for level in &levels {
-        for b in level {
-            let on_disk = std::fs::read(report.scene_dir.join(format!("blocks/{}.vxb", b.key))).unwrap();
-            assert!(on_disk == encode_block(&packed_block(b)), "block {} differs", b.key);
+/// The in-memory reference: every block voxelized at once, `build_levels`, `write_scene`.
+fn reference_scene(input: &Path, resolution: u32, topology: Topology, store: &Path, id: &str) -> PathBuf {
+    let (mesh, format) = read_mesh(input).unwrap();
+    let frame = choose_frame(&mesh, resolution).unwrap();
+    // The choice the build records: the same median, from the same valid triangles.
+    let (mut edges, mut bounds) = (EdgeHistogram::default(), Bounds::EMPTY);
+    for t in 0..mesh.triangles.len() {
+        let tri = mesh.triangle(t);
+        if voxstream::pipeline::voxelize::valid_triangle(&tri) {
+            edges.add_triangle(&tri);
+            bounds.add_triangle(&tri);
         }
     }
-    assert_eq!(report.blocks as usize, levels.iter().map(Vec::len).sum::<usize>());
+    let (same_frame, resolution_choice) =
+        choose_resolution(&bounds, Resolution::Explicit(resolution), edges.median(), MAX_RESOLUTION, 0)
+            .unwrap();
+    assert_eq!(same_frame, frame);
+    let (level0, stats) = voxelize_reporting(&mesh, &frame, topology, &ProgressSink::new(&|_| {})).unwrap();
+    let levels = build_levels(level0, resolution);
+    let content = SceneContent {
+        name: id.to_string(),
+        source: SourceInfo {
+            file: input.file_name().unwrap().to_str().unwrap().to_string(),
+            format: format.to_string(),
+            triangles: stats.triangles + stats.skipped,
+            skipped_triangles: stats.skipped,
+        },
+        grid: frame,
+        resolution_choice,
+        levels: &levels,
+    };
+    write_scene(store, id, &content).unwrap();
+    store.join(id)
+}
+
+/// A sphere of radius 1 tessellated into `n` × 2n quads (two triangles each), as ASCII PLY.
+fn sphere_ply(dir: &Path, n: usize) -> PathBuf {
+    let (rows, cols) = (n, 2 * n);
+    let mut verts = Vec::new();
+    for i in 0..=rows {
+        let theta = std::f64::consts::PI * i as f64 / rows as f64;
+        for j in 0..cols {
+            let phi = std::f64::consts::TAU * j as f64 / cols as f64;
+            verts.push([theta.sin() * phi.cos(), theta.sin() * phi.sin(), theta.cos()]);
+        }
+    }
+    let mut faces = Vec::new();
+    for i in 0..rows {
+        for j in 0..cols {
+            let (a, b) = (i * cols + j, i * cols + (j + 1) % cols);
+            let (c, d) = (a + cols, b + cols);
+            faces.push([a, b, d]);
+            faces.push([a, d, c]);
+        }
+    }
+    let mut out = format!(
+        "ply\nformat ascii 1.0\nelement vertex {}\nproperty double x\nproperty double y\nproperty double z\n\
+         element face {}\nproperty list uchar int vertex_indices\nend_header\n",
+        verts.len(),
+        faces.len()
+    );
+    for v in &verts {
+        out += &format!("{} {} {}\n", v[0], v[1], v[2]);
+    }
+    for f in &faces {
+        out += &format!("3 {} {} {}\n", f[0], f[1], f[2]);
+    }
+    let path = dir.join(format!("sphere-{n}.ply"));
+    std::fs::write(&path, out).unwrap();
+    path
+}
+
+/// Fails if the streaming pyramid or the block writer differs from the
+/// in-memory reference in any byte of any block or of the manifest: a sum in
+/// another order, a wrong octant, an error bound, a dropped or extra block,
+/// a level's totals.
+#[test]
+fn streaming_build_matches_the_in_memory_reference() {
+    let dir = tempfile::tempdir().unwrap();
+    let coloured = koala_ply(dir.path());
+    let sphere = sphere_ply(dir.path(), 60);
+    let cases = [
+        (coloured.clone(), 128, Topology::Conservative),
+        (coloured.clone(), 128, Topology::Separating26),
+        (coloured, 256, Topology::Separating6),
+        (koala(), 256, Topology::Conservative),
+        (sphere.clone(), 512, Topology::Conservative),
+        (sphere, 64, Topology::Separating26),
+    ];
+    for (k, (input, resolution, topology)) in cases.into_iter().enumerate() {
+        let id = format!("case{k}");
+        let reference = reference_scene(&input, resolution, topology, &dir.path().join("reference"), &id);
+        // The smallest budget: every store spills, the writer flushes often, small batches.
+        let opts = BuildOptions {
+            resolution: Resolution::Explicit(resolution),
+            topology,
+            name: Some(id.clone()),
+            memory_budget: MemoryPlan::minimum_budget(resolution),
+            ..Default::default()
+        };
+        let report = build_scene(&input, &dir.path().join("streamed"), &opts).unwrap();
+        let (want, got) = (files(&reference), files(&report.scene_dir));
+        assert!(want.len() >= 2 && want.contains_key("manifest.json"), "{id}: {:?}", want.keys());
+        assert_eq!(got.keys().collect::<Vec<_>>(), want.keys().collect::<Vec<_>>(), "{id}");
+        for (name, bytes) in &got {
+            assert!(
+                bytes == &want[name],
+                "{id} ({}, {resolution}, {topology:?}): {name} differs",
+                input.display()
+            );
+        }
+        let block_files = want.keys().filter(|n| n.starts_with("blocks/")).count();
+        assert_eq!(report.blocks as usize, block_files, "{id}: one file a block");
+        if resolution > 64 {
+            assert!(want.keys().any(|n| n.starts_with("pages/")), "{id}: pages are compared too");
+        }
+    }
+}
+
+/// Fails if a budget below the smallest one is accepted, or if the message
+/// does not name the smallest budget (which must itself be accepted).
+#[test]
+fn too_small_a_budget_is_refused_before_reading() {
+    let dir = tempfile::tempdir().unwrap();
+    let least = MemoryPlan::minimum_budget(65536);
+    // 65536 has 11 levels: a front of 11 full blocks is over 100 MiB.
+    assert!(least > 100 << 20 && least < 256 << 20, "{least}");
+    assert!(MemoryPlan::minimum_budget(4096) < 128 << 20, "the 4096 test below must be possible");
+    assert!(MemoryPlan::minimum_budget(128) < MemoryPlan::minimum_budget(4096));
+    // The input does not exist: the budget is checked before anything is read.
+    let missing = dir.path().join("missing.ply");
+    let opts = BuildOptions {
+        resolution: Resolution::Explicit(65536),
+        memory_budget: 16 << 20,
+        ..Default::default()
+    };
+    let err = build_scene(&missing, dir.path(), &opts).unwrap_err();
+    let text = err.to_string();
+    assert!(matches!(err, BuildError::BudgetTooSmall { .. }), "{text}");
+    let named = format!("at least {} MiB is needed", least.div_ceil(1 << 20));
+    assert!(text.contains("too small for resolution 65536") && text.contains(&named), "{text}");
+    assert!(MemoryPlan::new(least, 65536).is_ok() && MemoryPlan::new(least - 1, 65536).is_err());
 }
 
 #[test]
@@ -145,7 +274,7 @@ fn temp_files_are_removed_after_errors_and_cancellation() {
     let tmp = dir.path().join("tmp");
     std::fs::create_dir_all(&tmp).unwrap();
     let opts = |cancel: Option<Arc<AtomicBool>>| BuildOptions {
-        resolution: 64,
+        resolution: Resolution::Explicit(64),
         cancel,
         temp_dir: Some(tmp.clone()),
         ..Default::default()

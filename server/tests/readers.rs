@@ -6,11 +6,11 @@
 use std::path::{Path, PathBuf};
 
 use serde_json::json;
-use voxstream::build::{BuildOptions, build_scene};
-use voxstream::ingest::{
+use voxstream::pipeline::read::{
     IngestError, MeshFormat, ReadOptions, RecordLayout, TriangleMesh, TriangleSink, read_mesh,
     read_mesh_bytes, stream_mesh, stream_mesh_bytes,
 };
+use voxstream::pipeline::{BuildOptions, Resolution, build_scene};
 
 /// The shared meshes live beside the repository (never in it); tests that need
 /// one skip, saying so, where it is absent.
@@ -190,7 +190,7 @@ fn build_scene_accepts_stl_and_glb() {
     std::fs::write(&stl, write_binary_stl(&mesh)).unwrap();
 
     for (input, format, triangles, skipped) in [(&stl, "stl", 5, 1), (&glb, "glb", 4, 0)] {
-        let opts = BuildOptions { resolution: 64, ..Default::default() };
+        let opts = BuildOptions { resolution: Resolution::Explicit(64), ..Default::default() };
         let report = build_scene(input, &store, &opts).unwrap_or_else(|e| panic!("{format}: {e}"));
         assert_eq!((report.triangles, report.skipped_triangles), (triangles, skipped), "{format}");
         assert!(report.voxels > 0 && report.blocks > 0, "{format}: {report:?}");
@@ -441,9 +441,12 @@ property float z\nelement face 3\nproperty list uchar int vertex_indices\nend_he
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("nan.ply");
     std::fs::write(&path, &ply).unwrap();
-    let report =
-        build_scene(&path, &dir.path().join("store"), &BuildOptions { resolution: 64, ..Default::default() })
-            .unwrap();
+    let report = build_scene(
+        &path,
+        &dir.path().join("store"),
+        &BuildOptions { resolution: Resolution::Explicit(64), ..Default::default() },
+    )
+    .unwrap();
     assert_eq!((report.triangles, report.skipped_triangles), (3, 2));
     // ASCII "nan" is not a PLY number: an error naming the line, not a panic.
     let ascii =

@@ -7,10 +7,10 @@ use std::f64::consts::PI;
 use std::path::Path;
 
 use proptest::prelude::*;
-use voxstream::ingest::{TriangleMesh, read_mesh};
-use voxstream::lod::local_position;
-use voxstream::progress::ProgressSink;
-use voxstream::voxelize::{Topology, choose_frame, voxelize_reporting};
+use voxstream::pipeline::progress::ProgressSink;
+use voxstream::pipeline::pyramid::local_position;
+use voxstream::pipeline::read::{TriangleMesh, read_mesh};
+use voxstream::pipeline::voxelize::{Topology, choose_frame, voxelize_reporting};
 use voxstream_format::{BLOCK_SIZE, GridFrame};
 
 fn voxel_set(mesh: &TriangleMesh, frame: &GridFrame, topology: Topology) -> BTreeSet<[i64; 3]> {

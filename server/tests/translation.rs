@@ -7,10 +7,10 @@
 
 use std::path::Path;
 
-use voxstream::ingest::{TriangleMesh, read_mesh};
-use voxstream::lod::build_levels;
-use voxstream::store::packed_block;
-use voxstream::voxelize::{choose_frame, voxelize};
+use voxstream::pipeline::pyramid::build_levels;
+use voxstream::pipeline::read::{TriangleMesh, read_mesh};
+use voxstream::pipeline::voxelize::{choose_frame, voxelize};
+use voxstream::pipeline::write::packed_block;
 use voxstream_format::encode_block;
 
 fn koala_on_lattice() -> TriangleMesh {

@@ -4,9 +4,9 @@
 use std::collections::BTreeSet;
 
 use rand::{Rng, SeedableRng, rngs::StdRng};
-use voxstream::ingest::TriangleMesh;
-use voxstream::lod::local_position;
-use voxstream::voxelize::{self, BuildVoxel};
+use voxstream::pipeline::pyramid::local_position;
+use voxstream::pipeline::read::TriangleMesh;
+use voxstream::pipeline::voxelize::{self, BuildVoxel};
 use voxstream_format::{BLOCK_SIZE, GridFrame};
 
 const RES: u32 = 128; // 2×2×2 blocks, so triangles cross block boundaries
@@ -117,7 +117,7 @@ fn random_mesh(rng: &mut StdRng) -> TriangleMesh {
     mesh
 }
 
-fn global_voxels(blocks: &[voxstream::voxelize::SparseBlock]) -> BTreeSet<[i64; 3]> {
+fn global_voxels(blocks: &[voxstream::pipeline::voxelize::SparseBlock]) -> BTreeSet<[i64; 3]> {
     let mut set = BTreeSet::new();
     for b in blocks {
         assert!(

@@ -16,8 +16,8 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use serde_json::Value;
-use voxstream::build::{BuildOptions, build_scene};
 use voxstream::http::{AppState, router};
+use voxstream::pipeline::{BuildOptions, Resolution, build_scene};
 use voxstream_e2e::coverage;
 use voxstream_format::{BlockKey, decode_block};
 use voxstream_viewer::BACKGROUND_RGBA8;
@@ -128,8 +128,12 @@ fn browser_renders_koala_matching_cpu_coverage() {
     // 1. Scene: data/koala.obj -> temp store.
     let store = tempfile::tempdir().expect("temp store");
     let t = Instant::now();
-    let report = build_scene(&root.join("data/koala.obj"), store.path(), &BuildOptions::default())
-        .expect("build_scene(data/koala.obj)");
+    let report = build_scene(
+        &root.join("data/koala.obj"),
+        store.path(),
+        &BuildOptions { resolution: Resolution::Explicit(512), ..Default::default() },
+    )
+    .expect("build_scene(data/koala.obj)");
     println!(
         "built scene {:?}: {} triangles, {} voxels, {} blocks, {} bytes in {:.1?}",
         report.id,
@@ -263,7 +267,7 @@ fn upload_page_builds_and_opens_scene() {
     let store = tempfile::tempdir().expect("temp store");
     let mut config = voxstream::config::ServerConfig::new(store.path());
     config.web = Some(web.clone());
-    config.resolution = 64;
+    config.resolution = Some(64);
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
     let shutdown = tokio_util::sync::CancellationToken::new();
     let state = rt.block_on(async { AppState::start(config, shutdown) }).expect("AppState::start");
@@ -335,7 +339,7 @@ fn upload_page_builds_and_opens_scene() {
     let scenes = scenes.as_array().expect("a JSON array");
     assert_eq!(scenes.len(), 1, "one upload, one scene: {scenes:?}");
     let scene = &scenes[0];
-    let (mesh_data, _) = voxstream::ingest::read_mesh(&mesh).expect("read koala.obj");
+    let (mesh_data, _) = voxstream::pipeline::read::read_mesh(&mesh).expect("read koala.obj");
     assert_eq!(scene["id"], "koala");
     assert_eq!(scene["triangles"].as_u64(), Some(mesh_data.triangles.len() as u64), "{scene}");
     assert_eq!(scene["resolution"], 64, "the server default applies: {scene}");
@@ -450,4 +454,75 @@ fn static_publish_renders_in_chromium() {
     if let Err(e) = result {
         std::panic::resume_unwind(e);
     }
+}
+
+/// Failure handling in the browser: every level-0 block the page asks for fails for good, half
+/// with HTTP 500 and half with corrupt bytes (200, garbage body). The page must report them in
+/// its stats, draw their parents instead, and still set the ready marker (the harness waits for
+/// it). Control: the server counts the level-0 requests it spoiled, so the faults were exercised
+/// (the undamaged test above draws level-0 blocks for the same view).
+#[test]
+fn browser_failed_blocks_are_reported_and_drawn_as_parents() {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let root = workspace_root();
+    let web = root.join("viewer-wasm/dist");
+    require(&web.join("index.html"), "build the viewer bundle first: bash scripts/build-web.sh");
+    let script = root.join("tests/browser/e2e.mjs");
+    let store = tempfile::tempdir().expect("temp store");
+    let report = build_scene(&root.join("data/koala.obj"), store.path(), &BuildOptions::default())
+        .expect("build_scene(data/koala.obj)");
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
+    let state = AppState::load(store.path(), Some(&web)).expect("AppState::load");
+    let spoiled = Arc::new(AtomicUsize::new(0));
+    let counter = spoiled.clone();
+    let app = router(state).layer(axum::middleware::from_fn(
+        move |req: axum::extract::Request, next: axum::middleware::Next| {
+            let counter = counter.clone();
+            async move {
+                use axum::response::IntoResponse;
+                let path = req.uri().path().to_string();
+                let level0 = path.rsplit_once("/blocks/0-").map(|(_, rest)| rest.to_string());
+                match level0 {
+                    Some(rest) => {
+                        counter.fetch_add(1, Ordering::SeqCst);
+                        let x: u32 = rest.split('-').next().and_then(|x| x.parse().ok()).unwrap_or(0);
+                        if x.is_multiple_of(2) {
+                            axum::http::StatusCode::INTERNAL_SERVER_ERROR.into_response()
+                        } else {
+                            (axum::http::StatusCode::OK, vec![0x5a_u8; 300]).into_response()
+                        }
+                    }
+                    None => next.run(req).await,
+                }
+            }
+        },
+    ));
+    let listener = rt.block_on(tokio::net::TcpListener::bind("127.0.0.1:0")).expect("bind 127.0.0.1:0");
+    let addr = listener.local_addr().unwrap();
+    let server = rt.spawn(async move { axum::serve(listener, app).await });
+    let url = format!("http://{addr}/?scene={}", report.id);
+    let out = artifacts_dir().join("failure");
+    std::fs::create_dir_all(&out).unwrap();
+    let mut cmd = Command::new("node");
+    cmd.arg(&script).arg(&url).arg(&out).current_dir(&root);
+    let (ok, log) = run_with_timeout(cmd, HARNESS_TIMEOUT);
+    assert!(ok, "the page never became ready with failing blocks:\n{log}");
+    let result: Value = serde_json::from_slice(&std::fs::read(out.join("browser.json")).unwrap()).unwrap();
+    let stats = &result["stats"];
+    let spoiled = spoiled.load(Ordering::SeqCst) as u64;
+    println!("spoiled {spoiled} level-0 requests; stats {stats}");
+    assert!(spoiled > 0, "the view asked for no level-0 block: the faults were never exercised");
+    // Requests aborted because the view changed (occlusion feedback) are not failures.
+    let failed = stats["blocksFailed"].as_u64().unwrap_or(0);
+    assert!(failed > 0 && failed <= spoiled, "spoiled blocks are reported as failed: {stats}");
+    let drawn: Vec<BlockKey> = result["view"]["drawnBlocks"]
+        .as_array()
+        .expect("drawnBlocks")
+        .iter()
+        .map(|k| k.as_str().unwrap().parse().unwrap())
+        .collect();
+    assert!(!drawn.is_empty(), "nothing drawn");
+    assert!(drawn.iter().all(|k| k.level > 0), "a failed level-0 block is drawn: {drawn:?}");
+    assert!(drawn.iter().any(|k| k.level == 1), "no parent stands in for the failed blocks: {drawn:?}");
+    server.abort();
 }

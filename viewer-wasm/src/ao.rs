@@ -1,4 +1,13 @@
-//! Occupancy volume for cone-traced ambient occlusion (shaders/ao.wgsl).
+//! Cone-traced ambient occlusion (shaders/ao.wgsl): the settings the shader
+//! reads ([`AoSettings`], [`AoUniform`]) and the occupancy volume it traces.
+//!
+//! **The definition** (issue 9; the reference in `voxstream reference-ao` uses
+//! the same): V(p, n) = 1 − (1/π) ∫ w(d(ω)) cos θ dω over the hemisphere of n,
+//! d(ω) the distance to the first surface (both sides count), w(d) = 1 / (1 +
+//! λ·d/R) for d ≤ R, else 0. The shader estimates it with cones whose axes are
+//! a fixed cosine-weighted set (equal weights, so the estimator is 1 − mean of
+//! the cones' weighted occlusion); along a cone, front-to-back opacity α is
+//! accumulated and each step adds (1 − α)·α_step·w(d_step).
 //!
 //! The drawn blocks are splatted into a cubic grid of at most 128³ cells over
 //! the whole scene grid, with a mip chain of averaged occupancy built on the
@@ -10,7 +19,152 @@
 //! into the volume as the fine blocks it stands for would: the AO does not
 //! darken or brighten as the LOD changes.
 
-use voxstream_format::{BLOCK_SIZE, Block, FULL_COVERAGE};
+use voxstream_format::{BLOCK_SIZE, Block, FULL_COVERAGE, oct_decode};
+
+/// Cone counts with a fixed direction set ([`cone_directions`]).
+pub const CONE_COUNTS: [u32; 5] = [3, 5, 6, 8, 16];
+/// Most cones the uniform holds.
+pub const MAX_CONES: usize = 16;
+
+/// Every setting of the cone tracer, in the units the user gives them; turned
+/// into the shader's [`AoUniform`] by [`AoSettings::uniform`].
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct AoSettings {
+    /// 3, 5, 6, 8 or 16 cones (others are rounded to the nearest of these).
+    pub cones: u32,
+    /// Half-angle of each cone in degrees; `None`: asin(1/√cones), the cone
+    /// whose projected disk has the area of its share (π/cones) of the
+    /// projected hemisphere.
+    pub aperture_deg: Option<f32>,
+    /// Step along a cone as a fraction of its diameter there.
+    pub step: f32,
+    /// Start offset along the normal in finest occupancy cells (see the shader:
+    /// this is what keeps a surface from occluding itself).
+    pub offset_cells: f32,
+    /// R in grid units; `None`: [`default_max_distance`].
+    pub max_distance: Option<f32>,
+    /// λ in w(d) = 1 / (1 + λ·d/R).
+    pub falloff: f32,
+    /// Skip ahead where a coarser mip is empty.
+    pub empty_skip: bool,
+    /// Test only: cones laid around +Z whatever the normal (a deliberately wrong AO).
+    pub ignore_normal: bool,
+}
+
+impl Default for AoSettings {
+    fn default() -> Self {
+        Self {
+            cones: 6,
+            aperture_deg: None,
+            step: 1.0,
+            offset_cells: 1.5,
+            max_distance: None,
+            falloff: 1.0,
+            empty_skip: false,
+            ignore_normal: false,
+        }
+    }
+}
+
+/// The default R in grid units: a tenth of the scene's grid edge (its bounding
+/// cube), so a statue and a building get the same relative reach, and at least
+/// four finest occupancy cells.
+pub fn default_max_distance(grid_resolution: u32) -> f32 {
+    let cell = (grid_resolution as f32 / cells_for_grid(grid_resolution) as f32).max(1.0);
+    (grid_resolution as f32 * 0.1).max(4.0 * cell)
+}
+
+/// The cone count actually used for a requested one: the nearest of [`CONE_COUNTS`].
+pub fn supported_cones(cones: u32) -> u32 {
+    *CONE_COUNTS.iter().min_by_key(|&&c| c.abs_diff(cones)).expect("non-empty")
+}
+
+/// `cones` unit axes in the local frame (x, y tangent, z = normal): Malley's
+/// method on a Vogel spiral, i.e. points spread evenly (equal area) over the
+/// unit disk lifted to the hemisphere. Equal-area disk cells are equal
+/// projected solid angle, so the directions are cosine-weighted and every cone
+/// has the weight 1/cones.
+pub fn cone_directions(cones: u32) -> Vec<[f32; 3]> {
+    let n = cones.max(1);
+    let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+    (0..n)
+        .map(|i| {
+            let r = ((i as f64 + 0.5) / n as f64).sqrt();
+            let phi = i as f64 * golden;
+            let z = (1.0 - r * r).max(0.0).sqrt();
+            [(r * phi.cos()) as f32, (r * phi.sin()) as f32, z as f32]
+        })
+        .collect()
+}
+
+/// The AO part of the frame uniform (layout shared with `Frame` in voxel.wgsl).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct AoUniform {
+    /// x: cone count, y: tan(half aperture), z: step (fraction of the
+    /// diameter), w: start offset along the normal (grid units).
+    pub cone: [f32; 4],
+    /// x: R (grid units), y: λ, z: 1 = empty-space skipping, w: 1 = ignore the normal.
+    pub range: [f32; 4],
+    /// Cone axes in the local frame, w: weight.
+    pub dirs: [[f32; 4]; MAX_CONES],
+}
+
+impl AoSettings {
+    pub fn cone_count(&self) -> u32 {
+        supported_cones(self.cones)
+    }
+
+    /// Half-angle in degrees, the default applied.
+    pub fn aperture(&self) -> f32 {
+        self.aperture_deg
+            .filter(|a| a.is_finite())
+            .unwrap_or_else(|| (1.0 / (self.cone_count() as f32).sqrt()).asin().to_degrees())
+            .clamp(1.0, 80.0)
+    }
+
+    /// R in grid units, the default applied.
+    pub fn max_distance_grid(&self, grid_resolution: u32) -> f32 {
+        self.max_distance
+            .filter(|r| r.is_finite() && *r > 0.0)
+            .unwrap_or_else(|| default_max_distance(grid_resolution))
+    }
+
+    /// Start offset along the normal in grid units.
+    pub fn offset_grid(&self, grid_resolution: u32) -> f32 {
+        let cell = (grid_resolution as f32 / cells_for_grid(grid_resolution) as f32).max(1.0);
+        finite_or(self.offset_cells, 1.5).clamp(0.0, 8.0) * cell
+    }
+
+    /// The shader's uniform. Every value is finite and in range whatever the
+    /// settings hold: NaN or degenerate settings never reach the shader.
+    pub fn uniform(&self, grid_resolution: u32) -> AoUniform {
+        let cones = self.cone_count();
+        let mut dirs = [[0.0; 4]; MAX_CONES];
+        for (d, axis) in dirs.iter_mut().zip(cone_directions(cones)) {
+            *d = [axis[0], axis[1], axis[2], 1.0 / cones as f32];
+        }
+        AoUniform {
+            cone: [
+                cones as f32,
+                self.aperture().to_radians().tan(),
+                finite_or(self.step, 0.5).clamp(0.05, 4.0),
+                self.offset_grid(grid_resolution),
+            ],
+            range: [
+                self.max_distance_grid(grid_resolution).min(4.0 * grid_resolution.max(1) as f32),
+                finite_or(self.falloff, 1.0).clamp(0.0, 1e3),
+                if self.empty_skip { 1.0 } else { 0.0 },
+                if self.ignore_normal { 1.0 } else { 0.0 },
+            ],
+            dirs,
+        }
+    }
+}
+
+fn finite_or(v: f32, default: f32) -> f32 {
+    if v.is_finite() { v } else { default }
+}
 
 /// Cells per edge of the finest occupancy mip (or the grid resolution if smaller).
 pub const MAX_CELLS: u32 = 128;
@@ -46,6 +200,8 @@ impl OccupancyVolume {
         let n = cells as usize;
         let per_level0 = 1.0 / (cell_edge * cell_edge) as f32;
         let mut density = vec![0f32; n * n * n];
+        // Summed surface normals per cell: they tell a solid's inside from a room's.
+        let mut normals = vec![[0f32; 3]; n * n * n];
         for block in blocks {
             let voxel_edge = 1u64 << block.key.level;
             let volume = (voxel_edge * voxel_edge * voxel_edge) as f32;
@@ -62,17 +218,21 @@ impl OccupancyVolume {
                     continue;
                 }
                 let [x0, y0, z0] = first.map(|c| c as usize);
+                let normal = oct_decode(v.normal);
                 for z in z0..(z0 + span).min(n) {
                     for y in y0..(y0 + span).min(n) {
                         let row = (z * n + y) * n;
-                        for d in &mut density[row + x0..row + (x0 + span).min(n)] {
-                            *d += share;
+                        for i in row + x0..row + (x0 + span).min(n) {
+                            density[i] += share;
+                            for a in 0..3 {
+                                normals[i][a] += normal[a] * share;
+                            }
                         }
                     }
                 }
             }
         }
-        fill_enclosed(&mut density, n);
+        fill_enclosed(&mut density, &normals, n);
         let mut mips = Vec::new();
         let mut level = density;
         let mut edge = n;
@@ -99,60 +259,101 @@ impl OccupancyVolume {
 }
 
 /// Marks empty cells that the outside cannot reach (6-connected through empty
-/// cells) as full. The blocks hold surface voxels only, so without this a solid
-/// body would read as a thin shell and coarse mips (wide cones) would see
-/// through it. Where the shell has a gap (say, between blocks of different
-/// levels while streaming) the flood leaks in and that body simply stays hollow.
-fn fill_enclosed(density: &mut [f32], n: usize) {
+/// cells) as full when they are the inside of a solid. The blocks hold surface
+/// voxels only, so without this a solid body would read as a thin shell and
+/// coarse mips (wide cones) would see through it. An enclosed region is a
+/// solid's inside when the surface around it faces away from it (the summed
+/// normals of the occupied cells next to it point outwards), and free space,
+/// say a closed room scanned from inside, when they face into it. Where a
+/// shell has a gap (say, between blocks of different levels while streaming)
+/// the flood leaks in and that body simply stays hollow.
+fn fill_enclosed(density: &mut [f32], normals: &[[f32; 3]], n: usize) {
     let index = |x: usize, y: usize, z: usize| (z * n + y) * n + x;
-    let mut outside = vec![false; density.len()];
+    let neighbours = |i: usize| {
+        let (x, y, z) = (i % n, (i / n) % n, i / (n * n));
+        let mut out = [None; 6];
+        if x > 0 {
+            out[0] = Some((index(x - 1, y, z), [-1.0, 0.0, 0.0]));
+        }
+        if x + 1 < n {
+            out[1] = Some((index(x + 1, y, z), [1.0, 0.0, 0.0]));
+        }
+        if y > 0 {
+            out[2] = Some((index(x, y - 1, z), [0.0, -1.0, 0.0]));
+        }
+        if y + 1 < n {
+            out[3] = Some((index(x, y + 1, z), [0.0, 1.0, 0.0]));
+        }
+        if z > 0 {
+            out[4] = Some((index(x, y, z - 1), [0.0, 0.0, -1.0]));
+        }
+        if z + 1 < n {
+            out[5] = Some((index(x, y, z + 1), [0.0, 0.0, 1.0]));
+        }
+        out
+    };
+    // 0: not yet reached, 1: outside, 2..: enclosed component ids.
+    let mut label = vec![0u32; density.len()];
     let mut stack = Vec::new();
     for a in 0..n {
         for b in 0..n {
             for (x, y, z) in [(0, a, b), (n - 1, a, b), (a, 0, b), (a, n - 1, b), (a, b, 0), (a, b, n - 1)] {
                 let i = index(x, y, z);
-                if density[i] == 0.0 && !outside[i] {
-                    outside[i] = true;
-                    stack.push((x, y, z));
+                if density[i] == 0.0 && label[i] == 0 {
+                    label[i] = 1;
+                    stack.push(i);
                 }
             }
         }
     }
-    while let Some((x, y, z)) = stack.pop() {
-        let mut visit = |x: usize, y: usize, z: usize| {
-            let i = index(x, y, z);
-            if density[i] == 0.0 && !outside[i] {
-                outside[i] = true;
-                stack.push((x, y, z));
+    while let Some(i) = stack.pop() {
+        for (j, _) in neighbours(i).into_iter().flatten() {
+            if density[j] == 0.0 && label[j] == 0 {
+                label[j] = 1;
+                stack.push(j);
             }
-        };
-        if x > 0 {
-            visit(x - 1, y, z);
-        }
-        if x + 1 < n {
-            visit(x + 1, y, z);
-        }
-        if y > 0 {
-            visit(x, y - 1, z);
-        }
-        if y + 1 < n {
-            visit(x, y + 1, z);
-        }
-        if z > 0 {
-            visit(x, y, z - 1);
-        }
-        if z + 1 < n {
-            visit(x, y, z + 1);
         }
     }
-    for (d, out) in density.iter_mut().zip(outside) {
-        if *d == 0.0 && !out {
-            *d = 1.0;
+    for seed in 0..density.len() {
+        if density[seed] != 0.0 || label[seed] != 0 {
+            continue;
+        }
+        // One enclosed component: collect it and let its walls vote.
+        let mut members = vec![seed];
+        label[seed] = 2;
+        let mut vote = 0.0f64;
+        let mut k = 0;
+        while k < members.len() {
+            let i = members[k];
+            k += 1;
+            for (j, step) in neighbours(i).into_iter().flatten() {
+                if density[j] == 0.0 {
+                    if label[j] == 0 {
+                        label[j] = 2;
+                        members.push(j);
+                    }
+                } else {
+                    // The wall cell j lies at `step` from i: its normal faces i when it points along −step.
+                    let nj = normals[j];
+                    vote -= (nj[0] * step[0] + nj[1] * step[1] + nj[2] * step[2]) as f64;
+                }
+            }
+        }
+        if vote <= 0.0 {
+            for i in members {
+                density[i] = 1.0;
+            }
         }
     }
 }
 
-/// Averages 2×2×2 cells (values clamped to 1 first, as the texture stores them).
+/// The next mip: a cell's opacity to a ray crossing it, estimated as twice the
+/// mean of its 2×2×2 children (values clamped to 1 first, as the texture stores
+/// them), clamped to 1. A surface sheet through a cell fills 4 of its 8
+/// children and stays opaque (2 · 4/8) at every mip, a solid stays 1, and a
+/// lone child covers a quarter of the cell's cross-section (2 · 1/8): the
+/// projected-area estimate, where a plain mean would thin a wall out by half
+/// per mip and let wide cones see through it.
 fn downsample(src: &[f32], edge: usize) -> Vec<f32> {
     let half = edge / 2;
     let mut out = vec![0f32; half * half * half];
@@ -166,7 +367,7 @@ fn downsample(src: &[f32], edge: usize) -> Vec<f32> {
                         sum += src[row].min(1.0) + src[row + 1].min(1.0);
                     }
                 }
-                out[(z * half + y) * half + x] = sum / 8.0;
+                out[(z * half + y) * half + x] = (sum / 4.0).min(1.0);
             }
         }
     }
@@ -249,6 +450,42 @@ mod tests {
     }
 
     #[test]
+    fn cone_directions_are_unit_cosine_weighted_and_in_the_hemisphere() {
+        for cones in CONE_COUNTS {
+            let dirs = cone_directions(cones);
+            assert_eq!(dirs.len(), cones as usize);
+            let mut mean_cos = 0.0;
+            for d in &dirs {
+                let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                assert!((len - 1.0).abs() < 1e-5 && d[2] > 0.0, "{cones}: {d:?}");
+                mean_cos += d[2] as f64 / cones as f64;
+            }
+            // E[cos θ] under the cosine-weighted density is 2/3.
+            assert!((mean_cos - 2.0 / 3.0).abs() < 0.03, "{cones} cones: mean cos {mean_cos}");
+        }
+        assert_eq!(supported_cones(7), 6);
+        assert_eq!(supported_cones(100), 16);
+    }
+
+    #[test]
+    fn nan_settings_never_reach_the_uniform() {
+        let bad = AoSettings {
+            aperture_deg: Some(f32::NAN),
+            step: f32::INFINITY,
+            offset_cells: f32::NAN,
+            max_distance: Some(f32::NAN),
+            falloff: f32::NEG_INFINITY,
+            ..AoSettings::default()
+        };
+        let u = bad.uniform(512);
+        let all = u.cone.iter().chain(&u.range).chain(u.dirs.iter().flatten());
+        for v in all {
+            assert!(v.is_finite(), "{u:?}");
+        }
+        assert!(u.range[0] > 0.0 && u.cone[1] > 0.0 && u.cone[2] > 0.0);
+    }
+
+    #[test]
     fn cell_count_is_a_bounded_power_of_two() {
         assert_eq!(cells_for_grid(512), 128);
         assert_eq!(cells_for_grid(128), 128);
@@ -298,10 +535,14 @@ mod tests {
             let (f, c) = (fine.value(mip, 0, 0, 0), coarse.value(mip, 0, 0, 0));
             assert!((f - c).abs() <= 2.0 / 255.0, "mip {mip}: fine {f}, coarse {c}");
         }
-        assert!((fine.value(1, 0, 0, 0) - 0.5).abs() < 2.0 / 255.0);
-        // A full-coverage coarse voxel would read twice as dense here.
+        // The sheet crosses the whole mip-1 cell: opaque; a quarter of a mip-2 cell.
+        assert_eq!(fine.value(1, 0, 0, 0), 1.0);
+        assert!((fine.value(2, 0, 0, 0) - 0.25).abs() < 2.0 / 255.0);
+        // At mip 0 the coarse voxel spreads its sheet's mass (half opaque per
+        // cell); a full-coverage one would read opaque.
+        assert!((coarse.value(0, 1, 1, 1) - 0.5).abs() < 2.0 / 255.0);
         let full = OccupancyVolume::build(512, [&block(3, [0, 0, 0], &[[0, 0, 0]])]);
-        assert_eq!(full.value(1, 0, 0, 0), 1.0);
+        assert_eq!(full.value(0, 1, 1, 1), 1.0);
     }
 
     #[test]
@@ -310,10 +551,11 @@ mod tests {
         let vol = OccupancyVolume::build(512, [&b]);
         assert_eq!(vol.mip_count(), 8);
         assert_eq!(vol.mips.last().unwrap().len(), 1);
-        // 2³ full cells: mip 1 has one full cell, mip 2 an eighth, mip 3 a 64th.
+        // 2³ full cells: mip 1 has one full cell, which covers a quarter of a
+        // mip-2 cell's cross-section and a 16th of a mip-3 cell's.
         assert_eq!(vol.value(1, 0, 0, 0), 1.0);
-        assert!((vol.value(2, 0, 0, 0) - 0.125).abs() < 1.0 / 255.0);
-        assert!((vol.value(3, 0, 0, 0) - 1.0 / 64.0).abs() < 1.0 / 255.0);
+        assert!((vol.value(2, 0, 0, 0) - 0.25).abs() < 1.0 / 255.0);
+        assert!((vol.value(3, 0, 0, 0) - 1.0 / 16.0).abs() < 1.0 / 255.0);
         for (mip, bytes) in vol.mips.iter().enumerate() {
             assert_eq!(bytes.len(), (128usize >> mip).pow(3));
         }
@@ -347,6 +589,29 @@ mod tests {
         let open = OccupancyVolume::build(64, [&cube_shell(8, 40, true)]);
         assert_eq!(open.value(0, 20, 20, 20), 0.0, "a shell with a hole is not filled");
         assert_eq!(open.value(0, 8, 20, 20), 1.0, "its walls are");
+    }
+
+    #[test]
+    fn a_room_seen_from_inside_stays_empty() {
+        // The shell of a cube whose normals all point inwards: a closed room.
+        let mut room = cube_shell(8, 40, false);
+        for v in &mut room.voxels {
+            let p = v.local().map(|c| c as f32 - 23.5);
+            let axis = (0..3).max_by(|&a, &b| p[a].abs().total_cmp(&p[b].abs())).unwrap();
+            let mut n = [0.0; 3];
+            n[axis] = -p[axis].signum();
+            v.normal = oct_encode(n);
+        }
+        let vol = OccupancyVolume::build(64, [&room]);
+        assert_eq!(vol.value(0, 20, 20, 20), 0.0, "the room's air is not solid");
+        assert_eq!(vol.value(0, 8, 20, 20), 1.0);
+        // The same shell with outward normals is a solid box.
+        for v in &mut room.voxels {
+            let n = oct_decode(v.normal);
+            v.normal = oct_encode([-n[0], -n[1], -n[2]]);
+        }
+        let vol = OccupancyVolume::build(64, [&room]);
+        assert_eq!(vol.value(0, 20, 20, 20), 1.0, "a closed solid is filled");
     }
 
     #[test]

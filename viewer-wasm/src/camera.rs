@@ -127,10 +127,83 @@ impl OrbitCamera {
     }
 }
 
+impl OrbitCamera {
+    /// Fly mode: moves eye and target together by `forward`, `right` and
+    /// `up` grid units along the view axes (WASD, Q/E).
+    pub fn fly(&mut self, forward: f32, right: f32, up: f32) {
+        let f = self.forward();
+        let r = f.cross(Vec3::Y).normalize_or(Vec3::X);
+        self.target += f * forward + r * right + Vec3::Y * up;
+    }
+
+    /// Fly speed: a scene crossed in about ten seconds, in grid units per second.
+    pub fn fly_speed(&self) -> f32 {
+        self.scene_radius * 0.2
+    }
+
+    /// Mouse look: turns the view about the eye (the eye stays put) by a drag of (dx, dy) pixels.
+    pub fn look(&mut self, dx: f32, dy: f32) {
+        let eye = self.eye();
+        self.yaw -= dx * ORBIT_RADIANS_PER_PIXEL * 0.5;
+        self.pitch = (self.pitch - dy * ORBIT_RADIANS_PER_PIXEL * 0.5).clamp(-MAX_PITCH, MAX_PITCH);
+        self.target = eye + self.forward() * self.distance;
+    }
+
+    /// The view as URL text: target x, y, z, yaw, pitch, distance.
+    pub fn to_url(&self) -> String {
+        let t = self.target;
+        format!("{:.3},{:.3},{:.3},{:.5},{:.5},{:.3}", t.x, t.y, t.z, self.yaw, self.pitch, self.distance)
+    }
+
+    /// Applies a view from [`OrbitCamera::to_url`]; anything malformed leaves the camera as it is.
+    pub fn apply_url(&mut self, text: &str) -> bool {
+        let v: Vec<f32> = text.split(',').filter_map(|x| x.trim().parse().ok()).collect();
+        if v.len() != 6 || v.iter().any(|x| !x.is_finite()) || v[5] <= 0.0 {
+            return false;
+        }
+        self.target = Vec3::new(v[0], v[1], v[2]);
+        self.yaw = v[3];
+        self.pitch = v[4].clamp(-MAX_PITCH, MAX_PITCH);
+        self.distance = v[5];
+        true
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use glam::Vec4;
+
+    #[test]
+    fn look_keeps_the_eye_and_fly_moves_along_the_view() {
+        let mut cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(100.0));
+        let eye = cam.eye();
+        cam.look(40.0, -25.0);
+        assert!((cam.eye() - eye).length() < 1e-3, "look moved the eye");
+        // Control: orbit by the same drag moves it.
+        let mut orbited = cam;
+        orbited.orbit(40.0, -25.0);
+        assert!((orbited.eye() - cam.eye()).length() > 1.0);
+        let before = cam.eye();
+        cam.fly(10.0, 0.0, 0.0);
+        let moved = cam.eye() - before;
+        assert!((moved - cam.forward() * 10.0).length() < 1e-3, "fly forward moved by {moved}");
+    }
+
+    #[test]
+    fn the_view_round_trips_through_the_url() {
+        let mut cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(100.0));
+        cam.orbit(33.0, 12.0);
+        cam.zoom(0.4);
+        let mut other = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(100.0));
+        assert!(other.apply_url(&cam.to_url()));
+        assert!((other.eye() - cam.eye()).length() < 1e-2 && (other.target - cam.target).length() < 1e-2);
+        let unchanged = other;
+        for bad in ["", "1,2,3", "a,b,c,d,e,f", "1,2,3,4,5,-1", "1,2,3,4,5,NaN"] {
+            assert!(!other.apply_url(bad), "{bad:?} accepted");
+            assert_eq!(other, unchanged);
+        }
+    }
 
     fn project(m: Mat4, p: Vec3) -> Vec3 {
         let c = m * Vec4::new(p.x, p.y, p.z, 1.0);

@@ -17,14 +17,19 @@ pub enum DecodeError {
 
 /// Decodes the bytes fetched for `key`, checking them against its manifest entry.
 pub fn decode_fetched(key: BlockKey, entry: Option<&BlockEntry>, bytes: &[u8]) -> Result<Block, DecodeError> {
+    decode_checked(key, entry.map(|e| e.voxels), bytes)
+}
+
+/// [`decode_fetched`] given only the voxel count the manifest states (what a worker knows).
+pub fn decode_checked(key: BlockKey, voxels: Option<u32>, bytes: &[u8]) -> Result<Block, DecodeError> {
     let block = decode_block(bytes).map_err(|source| DecodeError::Codec { key, source })?;
     if block.key != key {
         return Err(DecodeError::WrongKey { expected: key, got: block.key });
     }
-    if let Some(entry) = entry {
+    if let Some(expected) = voxels {
         let got = block.voxels.len() as u32;
-        if got != entry.voxels {
-            return Err(DecodeError::WrongCount { key, expected: entry.voxels, got });
+        if got != expected {
+            return Err(DecodeError::WrongCount { key, expected, got });
         }
     }
     Ok(block)

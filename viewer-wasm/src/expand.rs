@@ -1,12 +1,13 @@
 //! GPU voxel expansion: one compute dispatch per block turns its PackedVoxel
 //! storage buffer into face records and fills the indirect draw args
-//! (shaders/expand.wgsl). The CPU only sizes the face buffer, exactly, from the
-//! popcount of the face masks ([`Block::face_count`]).
+//! (shaders/expand.wgsl). The CPU only sizes the face buffer from the popcount
+//! of the face masks ([`Block::face_count`]); a frame's blocks are uploaded
+//! with one staging write ([`UploadBatch`]) and expanded in one compute pass.
 
 use bytemuck::{Pod, Zeroable};
 use voxstream_format::{BLOCK_SIZE, Block, BlockKey, PackedVoxel};
-use wgpu::util::DeviceExt;
 
+use crate::residency::BlockBuffers;
 use crate::shaders;
 
 /// Bytes of one face record (shaders: `FaceRecord`).
@@ -35,21 +36,11 @@ impl BlockUniform {
 pub struct GpuBlock {
     pub key: BlockKey,
     pub faces: u32,
-    /// Face records written by the compute pass (vertex-pulled by the draw).
-    pub face_buffer: wgpu::Buffer,
-    /// `DrawIndirectArgs`, vertex count filled in by the compute pass.
-    pub draw_args: wgpu::Buffer,
+    /// Pooled buffers (see [`crate::residency`]): face records written by the
+    /// compute pass (the first `faces`), indirect draw args, block uniform.
+    pub buffers: BlockBuffers,
     /// Group 1 of the draw pipeline: block uniform + face buffer.
     pub bind_group: wgpu::BindGroup,
-    pub gpu_bytes: u64,
-}
-
-impl GpuBlock {
-    /// Frees the GPU memory now rather than whenever the handles are collected.
-    pub fn destroy(&self) {
-        self.face_buffer.destroy();
-        self.draw_args.destroy();
-    }
 }
 
 /// Layout of group 1 in voxel.wgsl: what one block's draw reads.
@@ -129,85 +120,170 @@ impl Expander {
         Self { pipeline, layout }
     }
 
-    /// Uploads `block`'s voxels and records the compute pass that expands them
-    /// into `encoder`. Returns `None` for a block without faces (nothing to draw).
-    /// The voxel buffer is only needed by this pass and is released with it.
-    pub fn expand(
+    /// Records one compute pass that expands every block of `batch` (whose
+    /// voxels [`UploadBatch::finish`] has just written) into its buffers.
+    pub fn expand_batch(
         &self,
         device: &wgpu::Device,
         encoder: &mut wgpu::CommandEncoder,
-        block: &Block,
+        batch: UploadBatch,
         draw_layout: &wgpu::BindGroupLayout,
-    ) -> Option<GpuBlock> {
-        let faces = block.face_count();
-        if faces == 0 || block.voxels.is_empty() {
-            return None;
+        upload: &wgpu::Buffer,
+    ) -> Vec<GpuBlock> {
+        let mut groups = Vec::with_capacity(batch.items.len());
+        for item in &batch.items {
+            // Args (0, 1, 0, 0) and the block uniform sit after the voxels in the upload buffer.
+            let tail = item.offset + item.voxel_bytes;
+            encoder.copy_buffer_to_buffer(upload, tail, &item.buffers.draw_args, 0, 16);
+            encoder.copy_buffer_to_buffer(upload, tail + 16, &item.buffers.uniform, 0, 16);
+            let label = format!("expand {}", item.key);
+            groups.push(device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some(&label),
+                layout: &self.layout,
+                entries: &[
+                    wgpu::BindGroupEntry {
+                        binding: 0,
+                        resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                            buffer: upload,
+                            offset: item.offset,
+                            size: wgpu::BufferSize::new(item.voxel_bytes),
+                        }),
+                    },
+                    wgpu::BindGroupEntry { binding: 1, resource: face_binding(&item.buffers, item.faces) },
+                    wgpu::BindGroupEntry { binding: 2, resource: item.buffers.draw_args.as_entire_binding() },
+                ],
+            }));
         }
-        let label = format!("block {}", block.key);
-        let voxel_buffer = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some(&label),
-            contents: bytemuck::cast_slice(&block.voxels),
-            usage: wgpu::BufferUsages::STORAGE,
-        });
-        let face_bytes = faces as u64 * FACE_RECORD_BYTES;
-        let face_buffer = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some(&label),
-            size: face_bytes,
-            // COPY_SRC lets tests read the records back.
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-            mapped_at_creation: false,
-        });
-        let draw_args = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some(&label),
-            contents: wgpu::util::DrawIndirectArgs {
-                vertex_count: 0,
-                instance_count: 1,
-                first_vertex: 0,
-                first_instance: 0,
-            }
-            .as_bytes(),
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::INDIRECT | wgpu::BufferUsages::COPY_SRC,
-        });
-        let expand_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some(&label),
-            layout: &self.layout,
-            entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: voxel_buffer.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 1, resource: face_buffer.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 2, resource: draw_args.as_entire_binding() },
-            ],
-        });
         {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some(&label),
+                label: Some("expand blocks"),
                 timestamp_writes: None,
             });
             pass.set_pipeline(&self.pipeline);
-            pass.set_bind_group(0, &expand_group, &[]);
-            pass.dispatch_workgroups((block.voxels.len() as u32).div_ceil(WORKGROUP_SIZE), 1, 1);
+            for (item, group) in batch.items.iter().zip(&groups) {
+                pass.set_bind_group(0, group, &[]);
+                let voxels = (item.voxel_bytes / size_of::<PackedVoxel>() as u64) as u32;
+                pass.dispatch_workgroups(voxels.div_ceil(WORKGROUP_SIZE), 1, 1);
+            }
         }
-        let uniform = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some(&label),
-            contents: bytemuck::bytes_of(&BlockUniform::for_key(&block.key)),
-            usage: wgpu::BufferUsages::UNIFORM,
-        });
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some(&label),
-            layout: draw_layout,
-            entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: uniform.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 1, resource: face_buffer.as_entire_binding() },
-            ],
-        });
-        Some(GpuBlock {
-            key: block.key,
-            faces,
-            face_buffer,
-            draw_args,
-            bind_group,
-            gpu_bytes: face_bytes + 16 + 16,
-        })
+        batch
+            .items
+            .into_iter()
+            .map(|item| {
+                let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                    label: Some(&format!("block {}", item.key)),
+                    layout: draw_layout,
+                    entries: &[
+                        wgpu::BindGroupEntry {
+                            binding: 0,
+                            resource: item.buffers.uniform.as_entire_binding(),
+                        },
+                        wgpu::BindGroupEntry {
+                            binding: 1,
+                            resource: face_binding(&item.buffers, item.faces),
+                        },
+                    ],
+                });
+                GpuBlock { key: item.key, faces: item.faces, buffers: item.buffers, bind_group }
+            })
+            .collect()
     }
+}
+
+/// The face records of a block: only the first `faces` of its pooled buffer,
+/// so `arrayLength` in the shaders is the block's own face count.
+fn face_binding(buffers: &BlockBuffers, faces: u32) -> wgpu::BindingResource<'_> {
+    wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+        buffer: &buffers.face_buffer,
+        offset: 0,
+        size: wgpu::BufferSize::new(faces.max(1) as u64 * FACE_RECORD_BYTES),
+    })
+}
+
+/// Bytes of the upload buffer, and so the per-frame upload cap. A block holds
+/// at most 64³ voxels of 12 bytes (3 MiB), so any single block fits.
+pub const UPLOAD_BYTES_PER_FRAME: u64 = 4 << 20;
+/// Storage-buffer binding offsets must be multiples of this (WebGPU's default limit).
+const UPLOAD_ALIGN: u64 = 256;
+
+struct UploadItem {
+    key: BlockKey,
+    faces: u32,
+    offset: u64,
+    voxel_bytes: u64,
+    buffers: BlockBuffers,
+}
+
+/// One frame's uploads: every block's voxels, draw args and uniform packed
+/// into one CPU buffer, written to the GPU with one `write_buffer`.
+#[derive(Default)]
+pub struct UploadBatch {
+    bytes: Vec<u8>,
+    items: Vec<UploadItem>,
+}
+
+impl UploadBatch {
+    /// Bytes `block` takes in a batch (with alignment).
+    pub fn bytes_for(block: &Block) -> u64 {
+        (std::mem::size_of_val(block.voxels.as_slice()) as u64 + 32).next_multiple_of(UPLOAD_ALIGN)
+    }
+
+    pub fn len(&self) -> usize {
+        self.items.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.items.is_empty()
+    }
+
+    pub fn byte_len(&self) -> u64 {
+        self.bytes.len() as u64
+    }
+
+    /// Whether `block` still fits under the per-frame cap.
+    pub fn fits(&self, block: &Block) -> bool {
+        self.byte_len() + Self::bytes_for(block) <= UPLOAD_BYTES_PER_FRAME
+    }
+
+    /// Adds `block` (which must have faces) to be expanded into `buffers`.
+    pub fn push(&mut self, block: &Block, buffers: BlockBuffers) {
+        let offset = self.bytes.len() as u64;
+        let voxels: &[u8] = bytemuck::cast_slice(&block.voxels);
+        self.bytes.extend_from_slice(voxels);
+        let args = wgpu::util::DrawIndirectArgs {
+            vertex_count: 0,
+            instance_count: 1,
+            first_vertex: 0,
+            first_instance: 0,
+        };
+        self.bytes.extend_from_slice(args.as_bytes());
+        self.bytes.extend_from_slice(bytemuck::bytes_of(&BlockUniform::for_key(&block.key)));
+        self.bytes.resize(self.bytes.len().next_multiple_of(UPLOAD_ALIGN as usize), 0);
+        self.items.push(UploadItem {
+            key: block.key,
+            faces: block.face_count(),
+            offset,
+            voxel_bytes: voxels.len() as u64,
+            buffers,
+        });
+    }
+
+    /// The one staging write of the frame.
+    pub fn write(&self, queue: &wgpu::Queue, upload: &wgpu::Buffer) {
+        if !self.bytes.is_empty() {
+            queue.write_buffer(upload, 0, &self.bytes);
+        }
+    }
+}
+
+/// The buffer every frame's uploads go through.
+pub fn upload_buffer(device: &wgpu::Device) -> wgpu::Buffer {
+    device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("block uploads"),
+        size: UPLOAD_BYTES_PER_FRAME,
+        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    })
 }
 
 #[cfg(test)]

@@ -53,6 +53,39 @@ impl BlockSource {
         }
     }
 
+    /// [`BlockSource::page_bytes`], abortable through `signal` in the browser.
+    #[cfg(target_arch = "wasm32")]
+    pub async fn page_bytes_with(
+        &self,
+        page: &PageRef,
+        signal: Option<&web_sys::AbortSignal>,
+    ) -> Result<Vec<u8>, FetchError> {
+        let BlockSource::Http { scene_url } = self;
+        let what = format!("hierarchy page {}", page.root);
+        http::get_bytes_with(&format!("{scene_url}/pages/{}.{}", page.root, page.hash), &what, signal).await
+    }
+
+    /// [`BlockSource::block_bytes`], abortable through `signal` in the browser.
+    #[cfg(target_arch = "wasm32")]
+    pub async fn block_bytes_with(
+        &self,
+        key: BlockKey,
+        hash: Option<&str>,
+        signal: Option<&web_sys::AbortSignal>,
+    ) -> Result<Vec<u8>, FetchError> {
+        http::get_bytes_with(&self.block_url(key, hash), &format!("block {key}"), signal).await
+    }
+
+    /// The URL of a block (immutable when `hash` is given).
+    #[cfg(target_arch = "wasm32")]
+    pub fn block_url(&self, key: BlockKey, hash: Option<&str>) -> String {
+        let BlockSource::Http { scene_url } = self;
+        match hash {
+            Some(h) => format!("{scene_url}/blocks/{key}.{h}"),
+            None => format!("{scene_url}/blocks/{key}"),
+        }
+    }
+
     /// A block's bytes; `hash` is its blake3 from the manifest, which makes the
     /// URL immutable (without it the server answers with a revalidated URL).
     pub async fn block_bytes(&self, key: BlockKey, hash: Option<&str>) -> Result<Vec<u8>, FetchError> {
@@ -96,10 +129,26 @@ pub(crate) mod http {
 
     /// GET `url` and return the body; non-2xx statuses are errors.
     pub async fn get_bytes(url: &str, what: &str) -> Result<Vec<u8>, FetchError> {
+        get_bytes_with(url, what, None).await
+    }
+
+    /// [`get_bytes`] that `signal` can abort.
+    pub async fn get_bytes_with(
+        url: &str,
+        what: &str,
+        signal: Option<&web_sys::AbortSignal>,
+    ) -> Result<Vec<u8>, FetchError> {
         let failed = |e: JsValue| FetchError::Failed { what: what.to_string(), message: js_message(&e) };
         let window = web_sys::window().ok_or_else(|| failed(JsValue::from_str("no window")))?;
-        let response: web_sys::Response =
-            JsFuture::from(window.fetch_with_str(url)).await.map_err(failed)?.dyn_into().map_err(failed)?;
+        let init = web_sys::RequestInit::new();
+        if let Some(signal) = signal {
+            init.set_signal(Some(signal));
+        }
+        let response: web_sys::Response = JsFuture::from(window.fetch_with_str_and_init(url, &init))
+            .await
+            .map_err(failed)?
+            .dyn_into()
+            .map_err(failed)?;
         match response.status() {
             200..=299 => {}
             404 => return Err(FetchError::NotFound { what: what.to_string() }),

@@ -2,29 +2,36 @@
 //! as WebGPU in the browser (module `web`) and on Vulkan natively for tests
 //! ([`offscreen`]). Both targets share every stage of the data flow:
 //!
-//! [`fetch`] (bytes from HTTP or a store directory) → [`decode`] (validated
-//! [`voxstream_format::Block`]) → [`expand`] (compute pass: voxels to face
-//! records and indirect draw args) → [`render`] (vertex pulling, shading) with
-//! [`ao`] (occupancy volume for cone-traced ambient occlusion). [`camera`] is
-//! the orbit camera, [`select`] the screen-space LOD rule and [`scene`] the
-//! state that ties them together (block cache, what to fetch, what to draw,
-//! stats).
+//! [`traverse`] (what the view wants: frustum, 1 px error, occlusion
+//! feedback, byte budget) → [`request`] (the fetch queue; [`fetch`] gets bytes
+//! from HTTP or a store directory) → [`decode`] (validated
+//! [`voxstream_format::Block`]) → upload and [`expand`] (one staging write per
+//! frame, compute pass: voxels to face records and indirect draw args) →
+//! [`render`] (vertex pulling, shading, with [`ao`]) → feedback.
+//! [`residency`] holds GPU memory under a hard budget, [`camera`] is the
+//! camera, [`select`] the LOD geometry and [`scene`] the thin driver.
 
 pub mod ao;
 pub mod camera;
 pub mod decode;
 pub mod expand;
 pub mod fetch;
+pub mod occlusion;
 pub mod render;
+pub mod request;
+pub mod residency;
 pub mod scene;
 pub mod select;
 pub mod shaders;
 pub mod stats;
+pub mod traverse;
 
 #[cfg(not(target_arch = "wasm32"))]
 pub mod offscreen;
 #[cfg(target_arch = "wasm32")]
 mod web;
+#[cfg(target_arch = "wasm32")]
+pub mod worker;
 
 /// Clear colour of every frame, exactly as it lands in an Rgba8Unorm target.
 /// Shaded voxels never take this value (see shaders/voxel.wgsl).

@@ -11,6 +11,7 @@ use crate::ao::cells_for_grid;
 use crate::camera::OrbitCamera;
 use crate::fetch::{BlockSource, FetchError};
 use crate::render::Renderer;
+use crate::request::Request;
 use crate::scene::Scene;
 use crate::stats::Stats;
 
@@ -46,6 +47,8 @@ pub struct OffscreenFrame {
     pub blocks: Vec<Block>,
     /// Blocks that failed to fetch or decode, with why.
     pub failures: Vec<(BlockKey, String)>,
+    /// The frame counts as complete (what sets the browser's ready marker).
+    pub complete: bool,
     pub stats: Stats,
     /// The first draw, from encoding to the GPU finishing it (includes any lazy pipeline work).
     pub first_frame_ms: f64,
@@ -53,6 +56,17 @@ pub struct OffscreenFrame {
     pub frame_ms: f64,
     /// The adapter that rendered it, e.g. "llvmpipe (LLVM 19.1.7, 256 bits) (Vulkan)".
     pub adapter: String,
+}
+
+/// A frame drawn with the G-buffer pass (`fs_gbuffer`): the shaded image plus,
+/// per pixel (rows top to bottom), what the AO was computed for.
+#[derive(Debug, Clone)]
+pub struct GBufferFrame {
+    pub frame: OffscreenFrame,
+    /// xyz: grid-unit position on the drawn voxel face, w: the visibility V.
+    pub position_ao: Vec<[f32; 4]>,
+    /// xyz: the AO hemisphere's unit normal (f16 precision), w: 1 on a surface, 0 on the background.
+    pub normal: Vec<[f32; 4]>,
 }
 
 /// A native device and queue.
@@ -144,13 +158,30 @@ impl Offscreen {
     /// their ancestors, as the browser does).
     pub fn load_wanted(&mut self) {
         loop {
-            let pages = self.load_pages();
-            let keys = self.scene.next_fetches(64);
-            if keys.is_empty() && pages == 0 {
+            let requests = self.scene.start_requests();
+            if requests.is_empty() {
                 break;
             }
-            self.load(&keys);
+            self.fetch(&requests);
         }
+        self.scene.upload_all(&self.renderer);
+    }
+
+    /// Fetches `requests` and hands the results to the scene.
+    pub fn fetch(&mut self, requests: &[Request]) {
+        let mut blocks = Vec::new();
+        for r in requests {
+            match r {
+                Request::Page(page) => {
+                    let result = pollster::block_on(self.source.page_bytes(page));
+                    self.scene.insert_page(page, result);
+                }
+                Request::Block(key) => {
+                    blocks.push((*key, pollster::block_on(self.source.block_bytes(*key, None))))
+                }
+            }
+        }
+        self.scene.insert_fetched(blocks);
     }
 
     /// Loads the hierarchy pages the current view wants (and those they lead
@@ -158,15 +189,12 @@ impl Offscreen {
     pub fn load_pages(&mut self) -> usize {
         let mut n = 0;
         loop {
-            let pages = self.scene.next_page_fetches(64);
+            let pages = self.scene.start_page_requests();
             if pages.is_empty() {
                 return n;
             }
-            for page in &pages {
-                let result = pollster::block_on(self.source.page_bytes(page));
-                self.scene.insert_page(page, result);
-            }
             n += pages.len();
+            self.fetch(&pages);
         }
     }
 
@@ -174,7 +202,28 @@ impl Offscreen {
     pub fn load(&mut self, keys: &[BlockKey]) {
         let results: Vec<_> =
             keys.iter().map(|&k| (k, pollster::block_on(self.source.block_bytes(k, None)))).collect();
-        self.scene.insert_fetched(&self.renderer, results);
+        self.scene.insert_fetched(results);
+        self.scene.upload_all(&self.renderer);
+    }
+
+    /// The adapter rendering this scene.
+    pub fn adapter_name(&self) -> &str {
+        &self.adapter
+    }
+
+    /// One streaming frame as the browser runs it: whatever was fetched is
+    /// uploaded (within the per-frame cap), the view drawn, and the GPU
+    /// waited for (so occlusion feedback is ready for the next frame).
+    pub fn draw_frame(&mut self) -> Result<crate::scene::DrawnFrame, OffscreenError> {
+        let view = self.target.create_view(&Default::default());
+        let frame = self.scene.draw(&mut self.renderer, &view, 0.0);
+        wait_idle(&self.renderer.device)?;
+        Ok(frame)
+    }
+
+    /// The pixels of the last frame drawn (RGBA8, rows top to bottom).
+    pub fn read_pixels(&self) -> Result<Vec<u8>, OffscreenError> {
+        read_texture(&self.renderer, &self.target)
     }
 
     /// Loads what the view wants, draws it, reads it back.
@@ -205,6 +254,7 @@ impl Offscreen {
             drawn_blocks: frame.drawn,
             blocks,
             failures,
+            complete: frame.complete,
             stats: self.scene.stats.clone(),
             first_frame_ms: times[0],
             frame_ms: times[1],
@@ -212,11 +262,67 @@ impl Offscreen {
         })
     }
 
+    /// Loads what the view wants and draws it with the G-buffer pass, reading
+    /// back the image, positions, normals and visibilities.
+    pub fn render_gbuffer(&mut self) -> Result<GBufferFrame, OffscreenError> {
+        let (width, height) = (self.target.width(), self.target.height());
+        let make = |label, format| {
+            self.renderer.device.create_texture(&wgpu::TextureDescriptor {
+                label: Some(label),
+                size: wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format,
+                usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+                view_formats: &[],
+            })
+        };
+        let position = make("g-buffer position + visibility", crate::render::GBUFFER_POSITION_FORMAT);
+        let normal = make("g-buffer normal", crate::render::GBUFFER_NORMAL_FORMAT);
+        self.renderer
+            .set_gbuffer(position.create_view(&Default::default()), normal.create_view(&Default::default()));
+        let frame = self.render();
+        self.renderer.clear_gbuffer();
+        let frame = frame?;
+        let position_ao = read_texture_bytes(&self.renderer, &position, 16)?
+            .chunks_exact(16)
+            .map(bytemuck::pod_read_unaligned)
+            .collect();
+        let normal = read_texture_bytes(&self.renderer, &normal, 8)?
+            .chunks_exact(8)
+            .map(|t| std::array::from_fn(|i| f16_to_f32(u16::from_le_bytes([t[2 * i], t[2 * i + 1]]))))
+            .collect();
+        Ok(GBufferFrame { position_ao, normal, frame })
+    }
+
+    /// Median milliseconds of `runs` frames of the loaded view at `ao_strength`
+    /// (0: no AO), each from encoding until the GPU is idle.
+    pub fn time_frames(&mut self, ao_strength: f32, runs: usize) -> Result<f64, OffscreenError> {
+        self.load_wanted();
+        let saved = self.scene.ao_strength;
+        self.scene.ao_strength = ao_strength;
+        let view = self.target.create_view(&Default::default());
+        let mut times = Vec::new();
+        // One untimed frame first: it rebuilds the occupancy volume when AO was off.
+        for i in 0..=runs.max(1) {
+            let start = Instant::now();
+            self.scene.draw(&mut self.renderer, &view, 0.0);
+            wait_idle(&self.renderer.device)?;
+            if i > 0 {
+                times.push(start.elapsed().as_secs_f64() * 1e3);
+            }
+        }
+        self.scene.ao_strength = saved;
+        times.sort_by(f64::total_cmp);
+        Ok(times[times.len() / 2])
+    }
+
     /// The indirect draw args the compute pass wrote for a cached block:
     /// (vertex_count, instance_count, first_vertex, first_instance).
     pub fn draw_args(&self, key: &BlockKey) -> Result<Option<[u32; 4]>, OffscreenError> {
         let Some(gpu) = self.scene.gpu_block(key) else { return Ok(None) };
-        let bytes = read_buffer(&self.renderer, &gpu.draw_args)?;
+        let bytes = read_buffer(&self.renderer, &gpu.buffers.draw_args)?;
         Ok(Some(bytemuck::pod_read_unaligned(&bytes[..16])))
     }
 
@@ -224,9 +330,11 @@ impl Offscreen {
     /// (x | y << 6 | z << 12 | face << 18, normal, colour) records in GPU order.
     pub fn face_records(&self, key: &BlockKey) -> Result<Vec<[u32; 3]>, OffscreenError> {
         let Some(gpu) = self.scene.gpu_block(key) else { return Ok(Vec::new()) };
-        let bytes = read_buffer(&self.renderer, &gpu.face_buffer)?;
+        let bytes = read_buffer(&self.renderer, &gpu.buffers.face_buffer)?;
+        // The pooled buffer is larger than the block: only its own records count.
         Ok(bytes
             .chunks_exact(crate::expand::FACE_RECORD_BYTES as usize)
+            .take(gpu.faces as usize)
             .map(bytemuck::pod_read_unaligned)
             .collect())
     }
@@ -237,6 +345,19 @@ impl Offscreen {
 /// selected block is loaded.
 pub fn render_scene(scene_dir: &Path, width: u32, height: u32) -> Result<OffscreenFrame, OffscreenError> {
     Offscreen::open(scene_dir, &RenderOptions::new(width, height))?.render()
+}
+
+/// IEEE half → f32 (the G-buffer's normal target).
+fn f16_to_f32(h: u16) -> f32 {
+    let sign = if h & 0x8000 != 0 { -1.0 } else { 1.0 };
+    let exp = ((h >> 10) & 0x1f) as i32;
+    let frac = (h & 0x3ff) as f32;
+    match exp {
+        0 => sign * frac * 2f32.powi(-24),
+        31 if frac == 0.0 => sign * f32::INFINITY,
+        31 => f32::NAN,
+        _ => sign * (1.0 + frac / 1024.0) * 2f32.powi(exp - 15),
+    }
 }
 
 fn wait_idle(device: &wgpu::Device) -> Result<(), OffscreenError> {
@@ -277,8 +398,17 @@ pub fn read_buffer(renderer: &Renderer, buffer: &wgpu::Buffer) -> Result<Vec<u8>
 
 /// Copies an Rgba8 texture back, dropping the row padding wgpu requires.
 fn read_texture(renderer: &Renderer, texture: &wgpu::Texture) -> Result<Vec<u8>, OffscreenError> {
+    read_texture_bytes(renderer, texture, 4)
+}
+
+/// Copies a texture of `texel_bytes` per texel back, rows top to bottom, unpadded.
+fn read_texture_bytes(
+    renderer: &Renderer,
+    texture: &wgpu::Texture,
+    texel_bytes: u32,
+) -> Result<Vec<u8>, OffscreenError> {
     let (width, height) = (texture.width(), texture.height());
-    let row = width * 4;
+    let row = width * texel_bytes;
     let padded = row.div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
     let staging = renderer.device.create_buffer(&wgpu::BufferDescriptor {
         label: Some("frame readback"),
@@ -307,4 +437,18 @@ fn read_texture(renderer: &Renderer, texture: &wgpu::Texture) -> Result<Vec<u8>,
     renderer.queue.submit([encoder.finish()]);
     let bytes = map_and_read(renderer, &staging)?;
     Ok(bytes.chunks_exact(padded as usize).flat_map(|r| &r[..row as usize]).copied().collect())
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn half_floats_decode() {
+        use super::f16_to_f32;
+        assert_eq!(f16_to_f32(0x3c00), 1.0);
+        assert_eq!(f16_to_f32(0xbc00), -1.0);
+        assert_eq!(f16_to_f32(0x3800), 0.5);
+        assert_eq!(f16_to_f32(0x0000), 0.0);
+        assert_eq!(f16_to_f32(0x3555), 0.333_251_95);
+        assert!(f16_to_f32(0x7e00).is_nan());
+    }
 }

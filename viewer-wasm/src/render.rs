@@ -5,7 +5,7 @@
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec3};
 
-use crate::ao::{OccupancyTexture, OccupancyVolume};
+use crate::ao::{AoSettings, AoUniform, OccupancyTexture, OccupancyVolume};
 use crate::expand::{Expander, GpuBlock, block_bind_group_layout};
 use crate::shaders;
 
@@ -20,7 +20,14 @@ pub struct FrameUniform {
     pub key_light: [f32; 4],
     /// Grid edge (grid units), occupancy cells per edge, occupancy mips, AO strength.
     pub volume: [f32; 4],
+    /// `ao_cone`, `ao_range`, `ao_dirs`.
+    pub ao: AoUniform,
 }
+
+/// Format of the G-buffer's position + visibility target.
+pub const GBUFFER_POSITION_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
+/// Format of the G-buffer's normal target.
+pub const GBUFFER_NORMAL_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
 
 /// What one frame is drawn with.
 #[derive(Debug, Clone, Copy)]
@@ -40,6 +47,7 @@ pub fn background_color() -> wgpu::Color {
 }
 
 struct DepthTarget {
+    texture: wgpu::Texture,
     view: wgpu::TextureView,
     size: (u32, u32),
 }
@@ -55,6 +63,15 @@ pub struct Renderer {
     frame_group: wgpu::BindGroup,
     occupancy: OccupancyTexture,
     depth: Option<DepthTarget>,
+    /// The cone tracer's settings, read at every frame.
+    pub ao: AoSettings,
+    module: wgpu::ShaderModule,
+    layout: wgpu::PipelineLayout,
+    gbuffer_pipeline: Option<wgpu::RenderPipeline>,
+    /// When set, frames are drawn with `fs_gbuffer` into these two and the
+    /// colour target: position + visibility ([`GBUFFER_POSITION_FORMAT`]) and
+    /// normal (w = 1 on a surface, [`GBUFFER_NORMAL_FORMAT`]).
+    gbuffer: Option<[wgpu::TextureView; 2]>,
 }
 
 impl Renderer {
@@ -130,43 +147,7 @@ impl Renderer {
             bind_group_layouts: &[Some(&frame_layout), Some(&block_layout)],
             immediate_size: 0,
         });
-        let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some("voxel draw"),
-            layout: Some(&layout),
-            vertex: wgpu::VertexState {
-                module: &module,
-                entry_point: Some("vs_main"),
-                compilation_options: Default::default(),
-                buffers: &[],
-            },
-            primitive: wgpu::PrimitiveState {
-                topology: wgpu::PrimitiveTopology::TriangleList,
-                front_face: wgpu::FrontFace::Ccw,
-                // Exposed faces bound closed shells, so back faces are always hidden.
-                cull_mode: Some(wgpu::Face::Back),
-                ..Default::default()
-            },
-            depth_stencil: Some(wgpu::DepthStencilState {
-                format: DEPTH_FORMAT,
-                depth_write_enabled: Some(true),
-                depth_compare: Some(wgpu::CompareFunction::Less),
-                stencil: Default::default(),
-                bias: Default::default(),
-            }),
-            multisample: Default::default(),
-            fragment: Some(wgpu::FragmentState {
-                module: &module,
-                entry_point: Some("fs_main"),
-                compilation_options: Default::default(),
-                targets: &[Some(wgpu::ColorTargetState {
-                    format: color_format,
-                    blend: None,
-                    write_mask: wgpu::ColorWrites::ALL,
-                })],
-            }),
-            multiview_mask: None,
-            cache: None,
-        });
+        let pipeline = voxel_pipeline(&device, &module, &layout, &[Some(color_format.into())], "fs_main");
         Self {
             device,
             queue,
@@ -178,7 +159,90 @@ impl Renderer {
             frame_group,
             occupancy,
             depth: None,
+            ao: AoSettings::default(),
+            module,
+            layout,
+            gbuffer_pipeline: None,
+            gbuffer: None,
         }
+    }
+
+    /// Draws the following frames into the G-buffer targets `position_ao` and
+    /// `normal` (the colour target's size) as well.
+    pub fn set_gbuffer(&mut self, position_ao: wgpu::TextureView, normal: wgpu::TextureView) {
+        if self.gbuffer_pipeline.is_none() {
+            let targets = [
+                Some(GBUFFER_POSITION_FORMAT.into()),
+                Some(GBUFFER_NORMAL_FORMAT.into()),
+                Some(self.color_format.into()),
+            ];
+            self.gbuffer_pipeline =
+                Some(voxel_pipeline(&self.device, &self.module, &self.layout, &targets, "fs_gbuffer"));
+        }
+        self.gbuffer = Some([position_ao, normal]);
+    }
+
+    /// Back to drawing the colour target only.
+    pub fn clear_gbuffer(&mut self) {
+        self.gbuffer = None;
+    }
+}
+
+fn attachment(view: &wgpu::TextureView, clear: wgpu::Color) -> Option<wgpu::RenderPassColorAttachment<'_>> {
+    Some(wgpu::RenderPassColorAttachment {
+        view,
+        depth_slice: None,
+        resolve_target: None,
+        ops: wgpu::Operations { load: wgpu::LoadOp::Clear(clear), store: wgpu::StoreOp::Store },
+    })
+}
+
+fn voxel_pipeline(
+    device: &wgpu::Device,
+    module: &wgpu::ShaderModule,
+    layout: &wgpu::PipelineLayout,
+    targets: &[Option<wgpu::ColorTargetState>],
+    fragment: &str,
+) -> wgpu::RenderPipeline {
+    device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some("voxel draw"),
+        layout: Some(layout),
+        vertex: wgpu::VertexState {
+            module,
+            entry_point: Some("vs_main"),
+            compilation_options: Default::default(),
+            buffers: &[],
+        },
+        primitive: wgpu::PrimitiveState {
+            topology: wgpu::PrimitiveTopology::TriangleList,
+            front_face: wgpu::FrontFace::Ccw,
+            // Exposed faces bound closed shells, so back faces are always hidden.
+            cull_mode: Some(wgpu::Face::Back),
+            ..Default::default()
+        },
+        depth_stencil: Some(wgpu::DepthStencilState {
+            format: DEPTH_FORMAT,
+            depth_write_enabled: Some(true),
+            depth_compare: Some(wgpu::CompareFunction::Less),
+            stencil: Default::default(),
+            bias: Default::default(),
+        }),
+        multisample: Default::default(),
+        fragment: Some(wgpu::FragmentState {
+            module,
+            entry_point: Some(fragment),
+            compilation_options: Default::default(),
+            targets,
+        }),
+        multiview_mask: None,
+        cache: None,
+    })
+}
+
+impl Renderer {
+    /// The depth target of the last frame (for occlusion feedback).
+    pub fn depth_texture(&self) -> Option<&wgpu::Texture> {
+        self.depth.as_ref().map(|d| &d.texture)
     }
 
     pub fn occupancy_cells(&self) -> u32 {
@@ -198,11 +262,12 @@ impl Renderer {
                 sample_count: 1,
                 dimension: wgpu::TextureDimension::D2,
                 format: DEPTH_FORMAT,
-                usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+                // COPY_SRC: occlusion feedback reads the depth back (occlusion.rs).
+                usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
                 view_formats: &[],
             });
             let view = texture.create_view(&Default::default());
-            self.depth = Some(DepthTarget { view, size: (width, height) });
+            self.depth = Some(DepthTarget { texture, view, size: (width, height) });
         }
         &self.depth.as_ref().expect("just created").view
     }
@@ -228,26 +293,31 @@ impl Renderer {
                 self.occupancy.mip_count() as f32,
                 params.ao_strength,
             ],
+            ao: self.ao.uniform(params.grid_resolution as u32),
         };
         self.queue.write_buffer(&self.frame_uniform, 0, bytemuck::bytes_of(&uniform));
         let (width, height) = (size.0.max(1), size.1.max(1));
         let depth = self.depth_view(width, height).clone();
+        let (attachments, pipeline) = match (&self.gbuffer, &self.gbuffer_pipeline) {
+            (Some([position, normal]), Some(pipeline)) => (
+                vec![
+                    attachment(position, wgpu::Color::TRANSPARENT),
+                    attachment(normal, wgpu::Color::TRANSPARENT),
+                    attachment(target, background_color()),
+                ],
+                pipeline,
+            ),
+            _ => (vec![attachment(target, background_color())], &self.pipeline),
+        };
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("voxels"),
-            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                view: target,
-                depth_slice: None,
-                resolve_target: None,
-                ops: wgpu::Operations {
-                    load: wgpu::LoadOp::Clear(background_color()),
-                    store: wgpu::StoreOp::Store,
-                },
-            })],
+            color_attachments: &attachments,
             depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
                 view: &depth,
                 depth_ops: Some(wgpu::Operations {
                     load: wgpu::LoadOp::Clear(1.0),
-                    store: wgpu::StoreOp::Discard,
+                    // Kept for the occlusion feedback's readback.
+                    store: wgpu::StoreOp::Store,
                 }),
                 stencil_ops: None,
             }),
@@ -255,11 +325,11 @@ impl Renderer {
             occlusion_query_set: None,
             multiview_mask: None,
         });
-        pass.set_pipeline(&self.pipeline);
+        pass.set_pipeline(pipeline);
         pass.set_bind_group(0, &self.frame_group, &[]);
         for block in blocks {
             pass.set_bind_group(1, &block.bind_group, &[]);
-            pass.draw_indirect(&block.draw_args, 0);
+            pass.draw_indirect(&block.buffers.draw_args, 0);
         }
     }
 }

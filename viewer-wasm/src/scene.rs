@@ -1,6 +1,12 @@
-//! The viewer's state for one scene, shared by the browser and the native
-//! offscreen path: camera, current selection, the block cache (decoded blocks
-//! and their GPU buffers), what to fetch next, what to draw, and stats.
+//! The thin driver both the browser loop and the native offscreen loop call,
+//! one frame at a time, through the viewer's stages:
+//!
+//! traverse ([`crate::traverse`]: what the view wants, within the budget) →
+//! request ([`crate::request`]: what to fetch next, what to abort) →
+//! decode ([`crate::decode`], fed by the caller) → upload (one staging write
+//! per frame, capped, [`crate::expand::UploadBatch`]) → expand (compute) →
+//! draw ([`crate::render`]) → feedback (what was visible).
+//! GPU memory goes through [`crate::residency`] under a hard byte budget.
 //! It never fetches by itself; the caller feeds it fetched bytes, so the same
 //! code runs under the browser's event loop and a blocking native loop.
 
@@ -12,23 +18,36 @@ use voxstream_format::{Block, BlockKey, HierarchyPage, Manifest, PageRef, SceneI
 use crate::ao::OccupancyVolume;
 use crate::camera::OrbitCamera;
 use crate::decode::decode_fetched;
-use crate::expand::GpuBlock;
+use crate::expand::{GpuBlock, UPLOAD_BYTES_PER_FRAME, UploadBatch, upload_buffer};
 use crate::fetch::FetchError;
+use crate::occlusion::{Occlusion, contains_eye, occlusion_gpu_bytes, proxy_bounds};
 use crate::render::{FrameParams, Renderer};
-use crate::select::{SelectParams, ViewParams, block_bounds, resolve_draw_set, scene_bounds, select_blocks};
+use crate::request::{DEFAULT_MAX_IN_FLIGHT, Request, RequestQueue};
+use crate::residency::{DEFAULT_BUDGET_BYTES, Residency, block_gpu_bytes};
+use crate::select::{SelectParams, ViewParams, block_bounds, resolve_draw_set_in, scene_bounds};
 use crate::stats::Stats;
+use crate::traverse::{Traversal, TraverseParams, traverse};
 
-/// GPU bytes of cached blocks beyond which blocks that are neither wanted nor
-/// drawn are evicted, least recently drawn first.
-const CACHE_BUDGET_BYTES: u64 = 384 << 20;
 /// While streaming, rebuild the occupancy volume at most this often.
 const OCCUPANCY_REBUILD_MS: f64 = 400.0;
+/// Share of the block budget the needed set (wanted blocks and their
+/// ancestors, counted with the pools' rounding) may take; the rest leaves
+/// room for the free list and the last frame's blocks while the view changes.
+const WANTED_SHARE_OF_BUDGET: f64 = 0.8;
+/// Decoded blocks kept on the CPU (voxel bytes), so a block evicted from the
+/// GPU comes back without a refetch.
+const DECODED_CACHE_BYTES: u64 = 256 << 20;
 
-struct CachedBlock {
-    block: Block,
-    /// `None` for a block without faces.
-    gpu: Option<GpuBlock>,
-    last_drawn: u64,
+/// A view given by matrices instead of the orbit camera (native `voxstream
+/// render` with a camera.json); when set it replaces `Scene::camera`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FixedView {
+    /// Grid units → clip space (wgpu depth 0..1).
+    pub view_proj: Mat4,
+    /// Eye in grid units.
+    pub eye: Vec3,
+    /// Pixels per grid unit at distance 1 for this viewport.
+    pub focal_pixels: f32,
 }
 
 /// What a call to [`Scene::draw`] drew.
@@ -36,30 +55,48 @@ struct CachedBlock {
 pub struct DrawnFrame {
     pub view_proj: Mat4,
     pub drawn: Vec<BlockKey>,
-    /// Every wanted block was loaded (or failed for good) and is drawn as itself.
+    /// Every needed block and page is settled (loaded, or failed for good and
+    /// drawn as its ancestor): nothing more will change this view.
     pub complete: bool,
 }
+
+/// The state the traversal was computed for.
+type TraversedFor = (OrbitCamera, (u32, u32), usize, SelectParams, u64, usize, u64, Option<FixedView>);
 
 pub struct Scene {
     pub manifest: Manifest,
     /// The hierarchy as far as its pages have loaded.
     pub index: SceneIndex,
     pub camera: OrbitCamera,
+    /// Overrides `camera` when set.
+    pub fixed_view: Option<FixedView>,
     pub select_params: SelectParams,
     /// 0 disables ambient occlusion; 1 is full strength.
     pub ao_strength: f32,
+    /// Occlusion culling from GPU feedback (on by default).
+    pub occlusion_culling: bool,
     pub stats: Stats,
     viewport: (u32, u32),
-    /// Camera, viewport and pages loaded when `wanted` was computed.
-    selected_for: Option<(OrbitCamera, (u32, u32), usize)>,
-    wanted: Vec<BlockKey>,
-    /// Pages the current view needs, largest projected error first.
-    wanted_pages: Vec<PageRef>,
-    pending_pages: HashSet<BlockKey>,
+    traversed_for: Option<TraversedFor>,
+    traversal: Traversal,
+    requests: RequestQueue,
     failed_pages: HashMap<BlockKey, String>,
-    cache: HashMap<BlockKey, CachedBlock>,
-    pending: HashSet<BlockKey>,
+    residency: Residency,
+    /// Blocks on the GPU.
+    gpu: HashMap<BlockKey, GpuBlock>,
+    /// Decoded blocks without faces: ready, nothing to put on the GPU.
+    empty: HashSet<BlockKey>,
+    /// Decoded blocks on the CPU, with the frame they were last needed.
+    decoded: HashMap<BlockKey, (Block, u64)>,
+    decoded_bytes: u64,
     failed: HashMap<BlockKey, String>,
+    upload: Option<wgpu::Buffer>,
+    occlusion: Option<Occlusion>,
+    /// Bumped whenever `hidden` changes (the traversal depends on it).
+    hidden_generation: u64,
+    feedback_changed_frame: u64,
+    /// Blocks the newest feedback found hidden.
+    hidden: HashSet<BlockKey>,
     drawn: Vec<BlockKey>,
     occupancy_for: Option<Vec<BlockKey>>,
     occupancy_built_ms: f64,
@@ -74,18 +111,27 @@ impl Scene {
             index: SceneIndex::new(&manifest),
             manifest,
             camera,
+            fixed_view: None,
             select_params: SelectParams::default(),
             ao_strength: 1.0,
-            stats: Stats::default(),
+            occlusion_culling: true,
+            stats: Stats { budget_bytes: DEFAULT_BUDGET_BYTES, ..Default::default() },
             viewport: (viewport.0.max(1), viewport.1.max(1)),
-            selected_for: None,
-            wanted: Vec::new(),
-            wanted_pages: Vec::new(),
-            pending_pages: HashSet::new(),
+            traversed_for: None,
+            traversal: Traversal::default(),
+            requests: RequestQueue::new(DEFAULT_MAX_IN_FLIGHT),
             failed_pages: HashMap::new(),
-            cache: HashMap::new(),
-            pending: HashSet::new(),
+            residency: Residency::new(DEFAULT_BUDGET_BYTES),
+            gpu: HashMap::new(),
+            empty: HashSet::new(),
+            decoded: HashMap::new(),
+            decoded_bytes: 0,
             failed: HashMap::new(),
+            upload: None,
+            occlusion: None,
+            hidden_generation: 0,
+            feedback_changed_frame: 0,
+            hidden: HashSet::new(),
             drawn: Vec::new(),
             occupancy_for: None,
             occupancy_built_ms: f64::NEG_INFINITY,
@@ -106,47 +152,185 @@ impl Scene {
     }
 
     pub fn view_proj(&self) -> Mat4 {
-        self.camera.view_proj(self.aspect())
-    }
-
-    /// The blocks this view wants, recomputed when the camera, the viewport or
-    /// the loaded part of the hierarchy changed.
-    pub fn wanted(&mut self) -> &[BlockKey] {
-        let now = (self.camera, self.viewport, self.index.pages_loaded());
-        if self.selected_for != Some(now) {
-            let view = ViewParams {
-                view_proj: self.view_proj(),
-                eye: self.camera.eye(),
-                focal_pixels: self.camera.focal_pixels(self.viewport.1 as f32),
-            };
-            let selection = select_blocks(&self.index, &self.manifest.root.key, &view, &self.select_params);
-            self.wanted = selection.blocks;
-            self.wanted_pages = selection.pages;
-            self.selected_for = Some(now);
+        match &self.fixed_view {
+            Some(v) => v.view_proj,
+            None => self.camera.view_proj(self.aspect()),
         }
-        &self.wanted
     }
 
-    /// Hierarchy pages the view needs that are neither loaded, in flight nor
-    /// failed, most needed first, at most `max`; they are marked in flight.
-    /// Fetch them before blocks: they decide which blocks are wanted.
-    pub fn next_page_fetches(&mut self, max: usize) -> Vec<PageRef> {
-        self.wanted();
-        let todo: Vec<PageRef> = self
-            .wanted_pages
+    /// The eye in grid units (of the fixed view when set).
+    pub fn eye(&self) -> Vec3 {
+        self.fixed_view.map_or_else(|| self.camera.eye(), |v| v.eye)
+    }
+
+    /// The hard GPU byte budget for everything the viewer holds.
+    pub fn budget_bytes(&self) -> u64 {
+        self.residency.budget()
+    }
+
+    pub fn set_budget_bytes(&mut self, bytes: u64) {
+        self.residency.set_budget(bytes);
+        self.stats.budget_bytes = bytes;
+    }
+
+    /// The GPU memory bookkeeping.
+    pub fn residency(&self) -> &Residency {
+        &self.residency
+    }
+
+    /// The last traversal.
+    pub fn traversal(&mut self) -> &Traversal {
+        self.update_traversal();
+        &self.traversal
+    }
+
+    /// Most requests in flight at once.
+    pub fn set_max_in_flight(&mut self, n: usize) {
+        self.requests.max_in_flight = n.max(1);
+    }
+
+    /// GPU bytes of the frame's own targets: colour and depth at the viewport
+    /// size, the occupancy volume with its mips, uniforms, the upload buffer.
+    fn fixed_gpu_bytes(&self, occupancy_cells: u32) -> u64 {
+        let pixels = self.viewport.0 as u64 * self.viewport.1 as u64;
+        let occupancy: u64 =
+            (0..=occupancy_cells.max(1).ilog2()).map(|m| ((occupancy_cells >> m) as u64).pow(3)).sum();
+        pixels * 4 * 2
+            + occupancy
+            + 256
+            + UPLOAD_BYTES_PER_FRAME
+            + occlusion_gpu_bytes(self.viewport.0, self.viewport.1)
+    }
+
+    fn traverse_params(&self) -> TraverseParams {
+        TraverseParams {
+            max_error_pixels: self.select_params.max_error_pixels,
+            max_blocks: self.select_params.max_blocks,
+            max_bytes: (self.residency.block_budget() as f64 * WANTED_SHARE_OF_BUDGET) as u64,
+        }
+    }
+
+    /// Runs the traversal when the camera, viewport, loaded pages, parameters
+    /// or budget changed, and replans the requests.
+    fn update_traversal(&mut self) {
+        let now = (
+            self.camera,
+            self.viewport,
+            self.index.pages_loaded(),
+            self.select_params,
+            self.residency.budget(),
+            self.failed_pages.len(),
+            self.hidden_generation,
+            self.fixed_view,
+        );
+        if self.traversed_for.as_ref() == Some(&now) {
+            return;
+        }
+        let view = ViewParams {
+            view_proj: self.view_proj(),
+            eye: self.eye(),
+            focal_pixels: self
+                .fixed_view
+                .map_or_else(|| self.camera.focal_pixels(self.viewport.1 as f32), |v| v.focal_pixels),
+        };
+        let no_feedback = HashSet::new();
+        let occluded = if self.occlusion_culling { &self.hidden } else { &no_feedback };
+        self.traversal =
+            traverse(&self.index, &self.manifest.root.key, &view, &self.traverse_params(), occluded);
+        self.stats.culled_frustum = self.traversal.culled_frustum;
+        self.stats.culled_occlusion = self.traversal.culled_occlusion;
+        self.traversed_for = Some(now);
+        self.plan_requests();
+    }
+
+    fn plan_requests(&mut self) {
+        let pages: Vec<PageRef> = self
+            .traversal
+            .pages
             .iter()
-            .filter(|p| !self.pending_pages.contains(&p.root) && !self.failed_pages.contains_key(&p.root))
-            .take(max)
+            .filter(|p| !self.failed_pages.contains_key(&p.root))
             .cloned()
             .collect();
-        self.pending_pages.extend(todo.iter().map(|p| p.root));
-        todo
+        let (decoded, failed, empty) = (&self.decoded, &self.failed, &self.empty);
+        let present = |k: &BlockKey| decoded.contains_key(k) || failed.contains_key(k) || empty.contains(k);
+        let needed = self.needed();
+        let failed_pages = &self.failed_pages;
+        self.requests.plan(&pages, &needed, |k| failed_pages.contains_key(k), present);
+    }
+
+    /// What must be loaded, with its projected error: the wanted blocks but
+    /// the hidden ones, and all their ancestors (stand-ins while they load).
+    fn needed(&self) -> HashMap<BlockKey, f32> {
+        let hidden: HashSet<&BlockKey> = self.traversal.hidden.iter().collect();
+        let max_level = self.manifest.coarsest_level();
+        let mut needed = HashMap::new();
+        for key in self.traversal.blocks.iter().filter(|k| !hidden.contains(k)) {
+            let mut k = *key;
+            loop {
+                if needed.contains_key(&k) {
+                    break;
+                }
+                if self.index.block(&k).is_some() {
+                    needed.insert(k, self.traversal.priority.get(&k).copied().unwrap_or(f32::INFINITY));
+                }
+                if k.level >= max_level {
+                    break;
+                }
+                k = k.parent();
+            }
+        }
+        needed
+    }
+
+    /// The blocks to resolve the draw set from: the wanted ones, a hidden
+    /// block only if it is loaded (it is invisible; its ancestor must not
+    /// stand in for it and cover its visible siblings).
+    fn drawable_wanted(&self) -> Vec<BlockKey> {
+        let hidden: HashSet<&BlockKey> = self.traversal.hidden.iter().collect();
+        self.traversal.blocks.iter().filter(|k| !hidden.contains(k) || self.is_ready(k)).copied().collect()
+    }
+
+    /// The blocks this view wants (sorted by key).
+    pub fn wanted(&mut self) -> &[BlockKey] {
+        self.update_traversal();
+        &self.traversal.blocks
+    }
+
+    /// The next requests to start (pages first, then blocks by projected
+    /// error), within the in-flight cap; they are marked in flight.
+    pub fn start_requests(&mut self) -> Vec<Request> {
+        self.update_traversal();
+        let started = self.requests.start();
+        self.stats.requests_in_flight = self.requests.in_flight() as u32;
+        started
+    }
+
+    /// Like [`Scene::start_requests`], hierarchy pages only.
+    pub fn start_page_requests(&mut self) -> Vec<Request> {
+        self.update_traversal();
+        let started = self.requests.start_where(|r| matches!(r, Request::Page(_)));
+        self.stats.requests_in_flight = self.requests.in_flight() as u32;
+        started
+    }
+
+    /// In-flight requests this view no longer needs: abort them.
+    pub fn take_stale_requests(&mut self) -> Vec<Request> {
+        self.update_traversal();
+        let stale = self.requests.take_stale();
+        self.stats.requests_aborted += stale.len() as u32;
+        self.stats.requests_in_flight = self.requests.in_flight() as u32;
+        stale
     }
 
     /// Takes a fetched page. A page that fails is not asked for again; the
     /// blocks above it stay drawn as they are.
     pub fn insert_page(&mut self, page: &PageRef, result: Result<Vec<u8>, FetchError>) {
-        self.pending_pages.remove(&page.root);
+        self.requests.finished(&Request::Page(page.clone()));
+        self.stats.requests_in_flight = self.requests.in_flight() as u32;
+        // An answer for a page loaded meanwhile (or aborted and answered anyway).
+        if !self.index.missing_pages().any(|p| p.root == page.root) {
+            return;
+        }
         let outcome = result.map_err(|e| e.to_string()).and_then(|bytes| {
             self.stats.bytes_fetched += bytes.len() as u64;
             let decoded = HierarchyPage::decode(&bytes, page).map_err(|e| e.to_string())?;
@@ -159,65 +343,26 @@ impl Scene {
                 self.failed_pages.insert(page.root, e);
             }
         }
-    }
-
-    /// The wanted blocks and all their ancestors present in the manifest: the
-    /// ancestors are the stand-ins while finer blocks stream in (or fail).
-    fn needed(&mut self) -> HashSet<BlockKey> {
-        self.wanted();
-        let max_level = self.manifest.coarsest_level();
-        let mut needed = HashSet::new();
-        for key in &self.wanted {
-            let mut k = *key;
-            while needed.insert(k) && k.level < max_level {
-                k = k.parent();
-            }
-        }
-        needed.retain(|k| self.index.block(k).is_some());
-        needed
-    }
-
-    /// Needed blocks that are neither cached, in flight nor failed, coarsest
-    /// first (so the view fills in coarse to fine), nearest first within a
-    /// level, at most `max`; they are marked in flight.
-    pub fn next_fetches(&mut self, max: usize) -> Vec<BlockKey> {
-        let mut todo: Vec<BlockKey> = self
-            .needed()
-            .into_iter()
-            .filter(|k| {
-                !self.cache.contains_key(k) && !self.pending.contains(k) && !self.failed.contains_key(k)
-            })
-            .collect();
-        let eye = self.camera.eye();
-        let dist = |k: &BlockKey| block_bounds(&self.index, k).map_or(f32::INFINITY, |b| b.distance_to(eye));
-        todo.sort_by(|a, b| b.level.cmp(&a.level).then(dist(a).total_cmp(&dist(b))).then(a.cmp(b)));
-        todo.truncate(max);
-        self.pending.extend(todo.iter().copied());
-        todo
+        self.plan_requests();
     }
 
     pub fn in_flight(&self) -> usize {
-        self.pending.len() + self.pending_pages.len()
+        self.requests.in_flight()
     }
 
     pub fn record_bytes_fetched(&mut self, bytes: u64) {
         self.stats.bytes_fetched += bytes;
     }
 
-    /// Takes fetched results: decodes them, expands them on the GPU in one
-    /// submission and caches them. Failures are recorded (stats line) and the
-    /// block is not asked for again; its ancestor keeps standing in for it.
+    /// Takes fetched block bytes: decodes them and keeps them for upload.
+    /// Failures are recorded (stats) and the block is not asked for again;
+    /// its ancestor keeps standing in for it.
     pub fn insert_fetched(
         &mut self,
-        renderer: &Renderer,
         results: impl IntoIterator<Item = (BlockKey, Result<Vec<u8>, FetchError>)>,
     ) {
-        let mut encoder = renderer
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("expand blocks") });
-        let mut expanded = 0;
         for (key, result) in results {
-            self.pending.remove(&key);
+            self.requests.finished(&Request::Block(key));
             let bytes = match result {
                 Ok(bytes) => bytes,
                 Err(e) => {
@@ -226,26 +371,46 @@ impl Scene {
                 }
             };
             self.stats.bytes_fetched += bytes.len() as u64;
-            let block = match decode_fetched(key, self.index.block(&key), &bytes) {
-                Ok(block) => block,
-                Err(e) => {
-                    self.fail(key, e.to_string());
-                    continue;
-                }
-            };
-            let gpu =
-                renderer.expander.expand(&renderer.device, &mut encoder, &block, &renderer.block_layout);
-            expanded += 1;
-            self.stats.blocks_loaded += 1;
-            self.cache.insert(key, CachedBlock { block, gpu, last_drawn: self.frame_counter });
+            match decode_fetched(key, self.index.block(&key), &bytes) {
+                Ok(block) => self.insert_decoded(block),
+                Err(e) => self.fail(key, e.to_string()),
+            }
         }
-        if expanded > 0 {
-            renderer.queue.submit([encoder.finish()]);
+        self.stats.requests_in_flight = self.requests.in_flight() as u32;
+        self.plan_requests();
+    }
+
+    /// Takes a worker's answer for block `key`: `fetched` response bytes and
+    /// the decoded block, or why it failed for good.
+    pub fn insert_worker_result(&mut self, key: BlockKey, fetched: u64, block: Result<Block, String>) {
+        self.requests.finished(&Request::Block(key));
+        self.stats.bytes_fetched += fetched;
+        match block {
+            Ok(block) if block.key == key => self.insert_decoded(block),
+            Ok(block) => self.fail(key, format!("asked for block {key}, got block {}", block.key)),
+            Err(e) => self.fail(key, e),
+        }
+        self.stats.requests_in_flight = self.requests.in_flight() as u32;
+        self.plan_requests();
+    }
+
+    /// Takes a decoded block.
+    pub fn insert_decoded(&mut self, block: Block) {
+        let key = block.key;
+        self.stats.blocks_loaded += 1;
+        if block.face_count() == 0 {
+            self.empty.insert(key);
+            return;
+        }
+        self.decoded_bytes += std::mem::size_of_val(block.voxels.as_slice()) as u64;
+        if let Some((old, _)) = self.decoded.insert(key, (block, self.frame_counter)) {
+            self.decoded_bytes -= std::mem::size_of_val(old.voxels.as_slice()) as u64;
         }
     }
 
     fn fail(&mut self, key: BlockKey, message: String) {
         self.stats.record_error(message);
+        self.stats.blocks_failed += 1;
         self.failed.insert(key, self.stats.last_error.clone().unwrap_or_default());
     }
 
@@ -253,26 +418,131 @@ impl Scene {
         self.failed.iter()
     }
 
-    /// Every wanted block and page is settled (loaded or failed) and nothing is in flight.
+    fn is_ready(&self, key: &BlockKey) -> bool {
+        self.gpu.contains_key(key) || self.empty.contains(key)
+    }
+
+    /// Decoded needed blocks not on the GPU yet, most needed first.
+    fn awaiting_upload(&self) -> Vec<BlockKey> {
+        let mut keys: Vec<(f32, BlockKey)> = self
+            .needed()
+            .into_iter()
+            .filter(|(k, _)| self.decoded.contains_key(k) && !self.gpu.contains_key(k))
+            .map(|(k, p)| (p, k))
+            .collect();
+        keys.sort_by(|a, b| b.0.total_cmp(&a.0).then(b.1.level.cmp(&a.1.level)).then(a.1.cmp(&b.1)));
+        keys.into_iter().map(|(_, k)| k).collect()
+    }
+
+    /// Whether decoded blocks wait for the GPU.
+    pub fn has_pending_uploads(&mut self) -> bool {
+        self.update_traversal();
+        !self.awaiting_upload().is_empty()
+    }
+
+    /// One frame's upload: needed decoded blocks, most needed first, up to the
+    /// per-frame byte cap, in one staging write and one compute pass, each
+    /// into pooled buffers the residency grants within the budget. Returns how
+    /// many blocks went up.
+    pub fn upload(&mut self, renderer: &Renderer) -> usize {
+        self.update_traversal();
+        self.residency.set_fixed_bytes(self.fixed_gpu_bytes(renderer.occupancy_cells()));
+        let todo = self.awaiting_upload();
+        if todo.is_empty() {
+            return 0;
+        }
+        // What this frame can draw: the needed blocks and hidden ones already
+        // loaded. Last frame's other blocks will not be drawn again, so they may go.
+        let mut protected: HashSet<BlockKey> = self.needed().into_keys().collect();
+        protected.extend(self.traversal.hidden.iter().filter(|k| self.gpu.contains_key(k)).copied());
+        let mut batch = UploadBatch::default();
+        for key in todo {
+            let Some((block, _)) = self.decoded.get(&key) else { continue };
+            if !batch.fits(block) {
+                break;
+            }
+            let faces = block.face_count();
+            let room = self.residency.make_room(block_gpu_bytes(faces), &protected);
+            for victim in &room.evict {
+                if let Some(g) = self.gpu.remove(victim) {
+                    self.residency.release(victim, g.buffers);
+                }
+            }
+            if !room.fits {
+                self.stats.uploads_refused += 1;
+                break;
+            }
+            let Some(buffers) = self.residency.allocate(&renderer.device, key, faces, self.frame_counter)
+            else {
+                self.stats.uploads_refused += 1;
+                break;
+            };
+            let Some((block, _)) = self.decoded.get(&key) else { continue };
+            batch.push(block, buffers);
+        }
+        if batch.is_empty() {
+            return 0;
+        }
+        let upload = self.upload.get_or_insert_with(|| upload_buffer(&renderer.device));
+        batch.write(&renderer.queue, upload);
+        self.stats.bytes_uploaded += batch.byte_len();
+        let mut encoder = renderer
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("upload blocks") });
+        let blocks = renderer.expander.expand_batch(
+            &renderer.device,
+            &mut encoder,
+            batch,
+            &renderer.block_layout,
+            upload,
+        );
+        renderer.queue.submit([encoder.finish()]);
+        let n = blocks.len();
+        for g in blocks {
+            self.gpu.insert(g.key, g);
+        }
+        self.note_residency();
+        n
+    }
+
+    /// Whether another frame would change something without new input:
+    /// blocks wait for the per-frame upload cap, or the feedback changed
+    /// lately (the next frames' queries settle it).
+    pub fn needs_another_frame(&mut self) -> bool {
+        self.has_pending_uploads() || self.frame_counter <= self.feedback_changed_frame + 2
+    }
+
+    /// Uploads until nothing needed waits (native loops; the browser uploads once per frame).
+    pub fn upload_all(&mut self, renderer: &Renderer) {
+        while self.upload(renderer) > 0 {}
+    }
+
+    fn note_residency(&mut self) {
+        self.stats.resident_bytes = self.residency.used_bytes();
+        self.stats.peak_resident_bytes = self.residency.peak_bytes();
+        self.stats.budget_bytes = self.residency.budget();
+    }
+
+    /// Every needed block and page is settled (on the GPU, empty or failed for
+    /// good), nothing waits for the GPU and nothing is in flight.
     pub fn is_settled(&mut self) -> bool {
-        self.wanted();
-        self.pending.is_empty()
-            && self.pending_pages.is_empty()
-            && self.wanted.iter().all(|k| self.cache.contains_key(k) || self.failed.contains_key(k))
-            && self.wanted_pages.iter().all(|p| self.failed_pages.contains_key(&p.root))
+        self.update_traversal();
+        self.requests.in_flight() == 0
+            && self.needed().keys().all(|k| self.is_ready(k) || self.failed.contains_key(k))
+            && self.traversal.pages.iter().all(|p| self.failed_pages.contains_key(&p.root))
     }
 
     pub fn is_cached(&self, key: &BlockKey) -> bool {
-        self.cache.contains_key(key)
+        self.is_ready(key)
     }
 
-    /// The decoded block, if cached.
+    /// The decoded block, if kept.
     pub fn block(&self, key: &BlockKey) -> Option<&Block> {
-        self.cache.get(key).map(|c| &c.block)
+        self.decoded.get(key).map(|(b, _)| b)
     }
 
     pub fn gpu_block(&self, key: &BlockKey) -> Option<&GpuBlock> {
-        self.cache.get(key).and_then(|c| c.gpu.as_ref())
+        self.gpu.get(key)
     }
 
     /// Keys drawn by the last [`Scene::draw`].
@@ -280,49 +550,120 @@ impl Scene {
         &self.drawn
     }
 
-    /// Draws the current view into `target` and submits it. `now_ms` paces
-    /// occupancy rebuilds while streaming.
+    /// Uploads this frame's share, draws the current view into `target` and
+    /// submits it. `now_ms` paces occupancy rebuilds while streaming.
     pub fn draw(&mut self, renderer: &mut Renderer, target: &wgpu::TextureView, now_ms: f64) -> DrawnFrame {
         self.frame_counter += 1;
+        self.take_feedback();
+        self.upload(renderer);
         let settled = self.is_settled();
         let max_level = self.manifest.coarsest_level();
-        let cache = &self.cache;
-        let drawn = resolve_draw_set(&self.wanted, max_level, |k| cache.contains_key(k));
-        let complete = settled && drawn == self.wanted;
+        let drawn =
+            resolve_draw_set_in(self.select_params.refinement, &self.drawable_wanted(), max_level, |k| {
+                self.is_ready(k)
+            });
 
         self.update_occupancy(renderer, &drawn, settled, now_ms);
 
-        let mut gpu_blocks = Vec::with_capacity(drawn.len());
         let mut faces = 0u64;
         for key in &drawn {
-            if let Some(c) = self.cache.get_mut(key) {
-                c.last_drawn = self.frame_counter;
-                if let Some(g) = &c.gpu {
-                    faces += g.faces as u64;
-                }
+            self.residency.mark_visible(key, self.frame_counter);
+            if let Some(g) = self.gpu.get(key) {
+                faces += g.faces as u64;
             }
         }
-        for key in &drawn {
-            if let Some(g) = self.gpu_block(key) {
-                gpu_blocks.push(g);
+        for key in self.traversal.priority.keys() {
+            if let Some(entry) = self.decoded.get_mut(key) {
+                entry.1 = self.frame_counter;
             }
         }
+        let gpu_blocks: Vec<&GpuBlock> = drawn.iter().filter_map(|k| self.gpu.get(k)).collect();
         let params = FrameParams {
             view_proj: self.view_proj(),
-            eye: self.camera.eye(),
+            eye: self.eye(),
             grid_resolution: self.manifest.grid.resolution as f32,
             ao_strength: self.ao_strength,
         };
+        let tests = if self.occlusion_culling { self.occlusion_tests() } else { Vec::new() };
         let mut encoder =
             renderer.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
         renderer.encode_frame(&mut encoder, target, self.viewport, &params, &gpu_blocks);
+        let occlusion = self.occlusion.get_or_insert_with(Occlusion::default);
+        occlusion.prepare(&renderer.device, self.viewport, params.view_proj, tests, self.frame_counter);
+        if let Some(depth) = renderer.depth_texture() {
+            occlusion.encode_copy(&mut encoder, depth);
+        }
         renderer.queue.submit([encoder.finish()]);
+        occlusion.after_submit();
 
         self.stats.blocks_drawn = drawn.len() as u32;
         self.stats.faces_drawn = faces;
         self.drawn = drawn.clone();
-        self.evict();
-        DrawnFrame { view_proj: params.view_proj, drawn, complete }
+        self.enforce_budget();
+        self.trim_decoded();
+        self.note_residency();
+        DrawnFrame { view_proj: params.view_proj, drawn, complete: settled }
+    }
+
+    /// Blocks whose visibility decides refinement: every visited block whose
+    /// error asks for refining (coarsest first, they prune most), but those
+    /// around the eye, which are always visible.
+    fn occlusion_tests(&self) -> Vec<(BlockKey, crate::select::Aabb)> {
+        let eye = self.eye();
+        let mut tests: Vec<(BlockKey, crate::select::Aabb)> = self
+            .traversal
+            .priority
+            .iter()
+            .filter(|(_, p)| **p > self.select_params.max_error_pixels)
+            .filter_map(|(k, _)| Some((*k, proxy_bounds(&block_bounds(&self.index, k)?, k))))
+            .filter(|(_, b)| !contains_eye(b, eye))
+            .collect();
+        tests.sort_by(|a, b| b.0.level.cmp(&a.0.level).then(a.0.cmp(&b.0)));
+        tests
+    }
+
+    /// Takes the newest occlusion feedback, if any arrived.
+    fn take_feedback(&mut self) {
+        let Some(v) = self.occlusion.as_mut().and_then(Occlusion::take_results) else { return };
+        if v.hidden != self.hidden {
+            self.hidden = v.hidden;
+            self.hidden_generation += 1;
+            self.feedback_changed_frame = self.frame_counter;
+        }
+    }
+
+    /// After a budget change: evicts until within it, never what was just drawn.
+    fn enforce_budget(&mut self) {
+        let protected: HashSet<BlockKey> = self.drawn.iter().copied().collect();
+        let room = self.residency.make_room(0, &protected);
+        for victim in &room.evict {
+            if let Some(g) = self.gpu.remove(victim) {
+                self.residency.release(victim, g.buffers);
+            }
+        }
+    }
+
+    /// Drops decoded CPU copies beyond [`DECODED_CACHE_BYTES`], least recently
+    /// needed first, never one on the GPU or needed now.
+    fn trim_decoded(&mut self) {
+        if self.decoded_bytes <= DECODED_CACHE_BYTES {
+            return;
+        }
+        let mut victims: Vec<(u64, BlockKey)> = self
+            .decoded
+            .iter()
+            .filter(|(k, _)| !self.gpu.contains_key(k) && !self.traversal.priority.contains_key(k))
+            .map(|(k, (_, frame))| (*frame, *k))
+            .collect();
+        victims.sort();
+        for (_, key) in victims {
+            if self.decoded_bytes <= DECODED_CACHE_BYTES {
+                break;
+            }
+            if let Some((b, _)) = self.decoded.remove(&key) {
+                self.decoded_bytes -= std::mem::size_of_val(b.voxels.as_slice()) as u64;
+            }
+        }
     }
 
     /// The blocks the occupancy volume is splatted from: the drawn blocks, each
@@ -339,7 +680,7 @@ impl Scene {
                 while a.level < cell_level {
                     a = a.parent();
                 }
-                if self.cache.contains_key(&a) { a } else { *key }
+                if self.decoded.contains_key(&a) { a } else { *key }
             })
             .collect();
         sources.sort();
@@ -371,34 +712,6 @@ impl Scene {
         }
         self.occupancy_for = Some(sources);
         self.occupancy_built_ms = now_ms;
-    }
-
-    /// Drops least recently drawn blocks beyond the budget, never one that is
-    /// needed (wanted or a stand-in), drawn, or on the coarsest level.
-    fn evict(&mut self) {
-        let mut total: u64 = self.cache.values().filter_map(|c| c.gpu.as_ref()).map(|g| g.gpu_bytes).sum();
-        if total <= CACHE_BUDGET_BYTES {
-            return;
-        }
-        let mut keep = self.needed();
-        keep.extend(self.drawn.iter().copied());
-        let coarsest = self.manifest.coarsest_level();
-        let mut victims: Vec<(u64, BlockKey)> = self
-            .cache
-            .iter()
-            .filter(|(k, _)| !keep.contains(k) && k.level != coarsest)
-            .map(|(k, c)| (c.last_drawn, *k))
-            .collect();
-        victims.sort();
-        for (_, key) in victims {
-            if total <= CACHE_BUDGET_BYTES {
-                break;
-            }
-            if let Some(g) = self.cache.remove(&key).and_then(|c| c.gpu) {
-                total -= g.gpu_bytes;
-                g.destroy();
-            }
-        }
     }
 }
 

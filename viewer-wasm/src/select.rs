@@ -7,7 +7,7 @@
 //! Plus the rule that keeps a coarser block on screen until its children load.
 
 use std::cmp::Ordering;
-use std::collections::{BTreeSet, BinaryHeap};
+use std::collections::BTreeSet;
 
 use glam::{Mat4, Vec3, Vec4};
 use voxstream_format::{BlockEntry, BlockKey, Manifest, PageRef, SceneIndex};
@@ -21,19 +21,31 @@ pub struct ViewParams {
     pub focal_pixels: f32,
 }
 
-#[derive(Debug, Clone, Copy)]
+/// Seed 003's two ways to show a view while finer blocks stream in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Refinement {
+    /// A block stays drawn until every child that replaces it is ready: no holes, ever.
+    #[default]
+    AlwaysClosed,
+    /// A ready block is drawn at once and hides its ancestor: finer sooner,
+    /// with holes where siblings are still missing (an ancestor shows only
+    /// while nothing below it is ready).
+    HolesAllowed,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SelectParams {
     /// Refine while a block's geometric error projects larger than this many pixels.
     pub max_error_pixels: f32,
     /// Stop refining once this many blocks are selected.
     pub max_blocks: usize,
+    pub refinement: Refinement,
 }
 
 impl Default for SelectParams {
     fn default() -> Self {
-        // The error of a level-l block is about 0.9–1.5 voxel edges (2^l), so
-        // 2 px of error is about the 1.5 px voxel of the per-level rule before it.
-        Self { max_error_pixels: 2.0, max_blocks: 768 }
+        // Issue 10: 1 px of projected geometric error by default.
+        Self { max_error_pixels: 1.0, max_blocks: 16_384, refinement: Refinement::AlwaysClosed }
     }
 }
 
@@ -106,9 +118,9 @@ pub fn error_pixels(error: f32, bounds: &Aabb, view: &ViewParams) -> f32 {
     error * view.focal_pixels / dist
 }
 
-struct Candidate {
-    key: BlockKey,
-    pixels: f32,
+pub(crate) struct Candidate {
+    pub key: BlockKey,
+    pub pixels: f32,
 }
 
 impl PartialEq for Candidate {
@@ -138,44 +150,59 @@ pub struct Selection {
     pub pages: Vec<PageRef>,
 }
 
-/// The blocks to show for this view, coarse to fine refinement by largest
-/// projected error first, so a block budget spends itself where it shows most.
-/// A block whose children sit in a page not loaded yet stays selected, and
-/// that page is asked for.
+/// The blocks to show for this view: [`crate::traverse::traverse`] without
+/// a byte budget or occlusion feedback.
 pub fn select_blocks(
     index: &SceneIndex,
     root: &BlockKey,
     view: &ViewParams,
     params: &SelectParams,
 ) -> Selection {
-    let frustum = Frustum::from_view_proj(view.view_proj);
-    let visible = |entry: &BlockEntry| -> Option<Candidate> {
-        let bounds = entry_bounds(entry);
-        frustum
-            .intersects(&bounds)
-            .then(|| Candidate { key: entry.key, pixels: error_pixels(entry.geometric_error, &bounds, view) })
+    let params = crate::traverse::TraverseParams {
+        max_error_pixels: params.max_error_pixels,
+        max_blocks: params.max_blocks,
+        ..Default::default()
     };
-    let mut open: BinaryHeap<Candidate> = index.block(root).and_then(visible).into_iter().collect();
-    let mut done = Vec::new();
-    let mut pages = Vec::new();
-    while let Some(c) = open.pop() {
-        if c.pixels > params.max_error_pixels {
-            if let Some(page) = index.pending_page_for(&c.key) {
-                pages.push(page.clone());
-            } else {
-                let has_children = index.block(&c.key).is_some_and(|e| e.child_mask != 0);
-                // Existing children all outside the frustum: nothing visible here at finer levels.
-                let children: Vec<Candidate> = index.children(&c.key).filter_map(visible).collect();
-                if has_children && done.len() + open.len() + children.len() <= params.max_blocks {
-                    open.extend(children);
-                    continue;
+    let t = crate::traverse::traverse(index, root, view, &params, &Default::default());
+    Selection { blocks: t.blocks, pages: t.pages }
+}
+
+/// [`resolve_draw_set`] for either refinement mode. Holes allowed: every
+/// ready wanted block, plus the nearest ready ancestor of a missing one only
+/// while no wanted block below that ancestor is ready.
+pub fn resolve_draw_set_in(
+    mode: Refinement,
+    wanted: &[BlockKey],
+    max_level: u8,
+    is_ready: impl Fn(&BlockKey) -> bool,
+) -> Vec<BlockKey> {
+    if mode == Refinement::AlwaysClosed {
+        return resolve_draw_set(wanted, max_level, is_ready);
+    }
+    let ready: BTreeSet<BlockKey> = wanted.iter().copied().filter(|k| is_ready(k)).collect();
+    let under = |ancestor: &BlockKey| {
+        ready.iter().any(|k| {
+            let mut a = *k;
+            while a.level < ancestor.level {
+                a = a.parent();
+            }
+            a == *ancestor && k != ancestor
+        })
+    };
+    let mut chosen = ready.clone();
+    for key in wanted.iter().filter(|k| !ready.contains(k)) {
+        let mut k = *key;
+        while k.level < max_level {
+            k = k.parent();
+            if is_ready(&k) {
+                if !under(&k) {
+                    chosen.insert(k);
                 }
+                break;
             }
         }
-        done.push(c.key);
     }
-    done.sort();
-    Selection { blocks: done, pages }
+    chosen.into_iter().collect()
 }
 
 /// What to draw now for the `wanted` selection: each wanted block if it is
@@ -216,7 +243,7 @@ pub fn resolve_draw_set(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::camera::OrbitCamera;
     use voxstream_format::{
@@ -300,7 +327,7 @@ mod tests {
     }
 
     /// The bound for a diagonal surface (lod.rs): √3 per halving.
-    fn pyramid(res: u32) -> (Manifest, SceneIndex) {
+    pub(crate) fn pyramid(res: u32) -> (Manifest, SceneIndex) {
         pyramid_with(res, |k| ((1u32 << k.level) - 1) as f32 * 3f32.sqrt())
     }
 
@@ -430,6 +457,19 @@ mod tests {
         assert!(!second.pages.is_empty() && second.pages.iter().all(|p| p.root.level == 3));
         // Control: the fully loaded index refines below level 3.
         assert!(select(&m, &view, &SelectParams::default()).iter().any(|k| k.level < 3));
+    }
+
+    #[test]
+    fn holes_allowed_draws_ready_children_at_once() {
+        let root = BlockKey::new(1, 0, 0, 0);
+        let children = root.children().unwrap();
+        let ready = |k: &BlockKey| *k == root || *k == children[0];
+        // Holes allowed: the ready child shows, the root goes (holes where siblings are).
+        assert_eq!(resolve_draw_set_in(Refinement::HolesAllowed, &children, 1, ready), vec![children[0]]);
+        // Control: always closed keeps the root until all children are ready.
+        assert_eq!(resolve_draw_set_in(Refinement::AlwaysClosed, &children, 1, ready), vec![root]);
+        // Nothing below ready yet: both show the root first.
+        assert_eq!(resolve_draw_set_in(Refinement::HolesAllowed, &children, 1, |k| *k == root), vec![root]);
     }
 
     #[test]

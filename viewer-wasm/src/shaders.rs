@@ -48,7 +48,8 @@ mod tests {
             entry_points(&voxel),
             vec![
                 ("vs_main".to_string(), naga::ShaderStage::Vertex),
-                ("fs_main".to_string(), naga::ShaderStage::Fragment)
+                ("fs_main".to_string(), naga::ShaderStage::Fragment),
+                ("fs_gbuffer".to_string(), naga::ShaderStage::Fragment)
             ]
         );
     }

@@ -15,6 +15,30 @@ pub struct Stats {
     pub faces_drawn: u64,
     /// Hierarchy pages loaded so far.
     pub pages_loaded: u32,
+    /// Blocks skipped by the last traversal because their bounds leave the frustum.
+    pub culled_frustum: u32,
+    /// Blocks the last traversal did not refine because feedback saw them hidden.
+    pub culled_occlusion: u32,
+    /// GPU bytes held now (every buffer and texture), the most ever held, and the budget.
+    pub resident_bytes: u64,
+    pub peak_resident_bytes: u64,
+    pub budget_bytes: u64,
+    pub requests_in_flight: u32,
+    /// In-flight requests aborted because the view no longer needed them.
+    pub requests_aborted: u32,
+    /// Blocks that failed for good (fetch or decode); drawn as their ancestor.
+    pub blocks_failed: u32,
+    /// Bytes written to the GPU by block uploads.
+    pub bytes_uploaded: u64,
+    /// Uploads refused because the budget had no room.
+    pub uploads_refused: u32,
+    /// The longest main-thread task of the viewer's own code so far (a frame's
+    /// encoding, a worker result taken in), in ms: WebGPU's own work excluded.
+    pub longest_main_task_ms: f64,
+    /// From the page's start to the first frame with a block on screen, and
+    /// to the first complete frame (the ready marker), in ms (browser only).
+    pub first_image_ms: f64,
+    pub ready_ms: f64,
     #[serde(skip)]
     pub errors: u32,
     #[serde(skip)]
@@ -22,6 +46,10 @@ pub struct Stats {
 }
 
 impl Stats {
+    pub fn note_main_thread_task(&mut self, ms: f64) {
+        self.longest_main_task_ms = self.longest_main_task_ms.max(ms);
+    }
+
     pub fn record_error(&mut self, message: String) {
         self.errors += 1;
         self.last_error = Some(message);
@@ -30,12 +58,14 @@ impl Stats {
     /// The stats line: short enough for one line of a narrow window.
     pub fn line(&self) -> String {
         let mut s = format!(
-            "{:.1} ms · {} blocks drawn · {} faces · {} loaded · {:.2} MB fetched",
+            "{:.1} ms · {} blocks drawn · {} faces · {} loaded · {:.2} MB fetched · {:.0}/{:.0} MiB GPU",
             self.frame_ms,
             self.blocks_drawn,
             self.faces_drawn,
             self.blocks_loaded,
-            self.bytes_fetched as f64 / 1e6
+            self.bytes_fetched as f64 / 1e6,
+            self.resident_bytes as f64 / (1 << 20) as f64,
+            self.budget_bytes as f64 / (1 << 20) as f64,
         );
         if let Some(e) = &self.last_error {
             s.push_str(&format!(" · {} error(s), last: {e}", self.errors));
@@ -61,8 +91,23 @@ mod tests {
         };
         let v: serde_json::Value = serde_json::to_value(&s).unwrap();
         let keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
-        assert_eq!(keys.len(), 6);
-        for k in ["frameMs", "blocksDrawn", "bytesFetched", "blocksLoaded", "facesDrawn", "pagesLoaded"] {
+        assert_eq!(keys.len(), 19);
+        for k in [
+            "frameMs",
+            "blocksDrawn",
+            "bytesFetched",
+            "blocksLoaded",
+            "facesDrawn",
+            "pagesLoaded",
+            "culledFrustum",
+            "culledOcclusion",
+            "residentBytes",
+            "peakResidentBytes",
+            "budgetBytes",
+            "requestsInFlight",
+            "requestsAborted",
+            "blocksFailed",
+        ] {
             assert!(keys.contains(&k), "missing {k}");
         }
     }

@@ -16,10 +16,11 @@ use web_sys::{HtmlCanvasElement, PointerEvent, WheelEvent};
 use crate::ao::cells_for_grid;
 use crate::fetch::{BlockSource, FetchError, http};
 use crate::render::Renderer;
+use crate::request::Request;
 use crate::scene::Scene;
+use crate::select::Refinement;
+use crate::worker::{DecodePool, WorkerResult};
 
-/// Block requests in flight at once (browsers allow ~6 HTTP/1.1 connections per origin).
-const MAX_IN_FLIGHT: usize = 6;
 const CANVAS_ID: &str = "voxstream-canvas";
 const STATS_ID: &str = "voxstream-stats";
 
@@ -50,9 +51,24 @@ struct App {
     canvas: HtmlCanvasElement,
     pointers: HashMap<i32, Pointer>,
     last_view_proj: [f32; 16],
+    /// Decode workers; `None` where workers could not start (then the main thread decodes).
+    decoder: Option<DecodePool>,
+    /// Abort handles of requests in flight, by [`request_id`].
+    aborts: HashMap<String, web_sys::AbortController>,
     ready: bool,
+    /// Fly mode: drag looks around, WASD/QE move.
+    fly_mode: bool,
+    /// The view the page opened with, for reset.
+    home: crate::camera::OrbitCamera,
     start_ms: f64,
     frames: u64,
+}
+
+fn request_id(r: &Request) -> String {
+    match r {
+        Request::Page(p) => format!("page {}", p.root),
+        Request::Block(k) => format!("block {k}"),
+    }
 }
 
 fn window() -> web_sys::Window {
@@ -81,6 +97,10 @@ fn fail(msg: &str) {
 #[wasm_bindgen(start)]
 pub fn start() {
     console_error_panic_hook::set_once();
+    // The decode workers load this module too; they have no window and run no viewer.
+    if web_sys::window().is_none() {
+        return;
+    }
     wasm_bindgen_futures::spawn_local(async {
         if let Err(e) = run().await {
             fail(&e);
@@ -203,8 +223,47 @@ async fn run() -> Result<(), String> {
     if let Some(px) = url_number("px", 0.25..=64.0) {
         scene.select_params.max_error_pixels = px;
     }
+    // ?budget=64 holds the viewer to 64 MiB of GPU memory (default 512).
+    if let Some(mib) = url_number("budget", 16.0..=65536.0) {
+        scene.set_budget_bytes((mib as f64 * (1 << 20) as f64) as u64);
+    }
     scene.record_bytes_fetched(manifest_bytes.len() as u64);
+    let home = scene.camera;
+    // ?view=x,y,z,yaw,pitch,distance opens a shared view.
+    if let Some(v) = url_param("view") {
+        if !scene.camera.apply_url(&v) {
+            log(&format!("voxstream: ignoring ?view={v}"));
+        }
+    }
+    if url_param("refine").as_deref() == Some("holes") {
+        scene.select_params.refinement = Refinement::HolesAllowed;
+    }
+    if url_param("occlusion").as_deref() == Some("0") {
+        scene.occlusion_culling = false;
+    }
 
+    let decoder = match DecodePool::new(|result: WorkerResult| {
+        let started = now_ms();
+        with_app(|app| {
+            let live = app.decoder.as_mut().is_some_and(|pool| pool.done(&result.key));
+            if !live {
+                return;
+            }
+            if let Err(e) = &result.block {
+                web_sys::console::warn_1(&JsValue::from_str(&format!("voxstream: {e}")));
+            }
+            app.scene.insert_worker_result(result.key, result.fetched, result.block);
+            app.start_fetches();
+            app.scene.stats.note_main_thread_task(now_ms() - started);
+        });
+        request_frame();
+    }) {
+        Ok(pool) => Some(pool),
+        Err(e) => {
+            log(&format!("voxstream: decoding on the main thread ({e})"));
+            None
+        }
+    };
     APP.with(|app| {
         *app.borrow_mut() = Some(App {
             renderer,
@@ -215,7 +274,11 @@ async fn run() -> Result<(), String> {
             canvas: canvas.clone(),
             pointers: HashMap::new(),
             last_view_proj: [0.0; 16],
+            aborts: HashMap::new(),
+            decoder,
             ready: false,
+            fly_mode: false,
+            home,
             start_ms,
             frames: 0,
         })
@@ -250,6 +313,12 @@ fn request_frame() {
 
 impl App {
     fn frame(&mut self, now: f64) {
+        let started = now_ms();
+        self.frame_inner(now);
+        self.scene.stats.note_main_thread_task(now_ms() - started);
+    }
+
+    fn frame_inner(&mut self, now: f64) {
         self.resize_if_needed();
         self.start_fetches();
 
@@ -269,6 +338,10 @@ impl App {
         let view = texture.texture.create_view(&Default::default());
         let frame = self.scene.draw(&mut self.renderer, &view, now);
         self.renderer.queue.present(texture);
+        if self.scene.needs_another_frame() {
+            // Blocks wait for the per-frame upload cap, or occlusion feedback is settling.
+            REDRAW_AFTER_FLIGHT.with(|r| r.set(true));
+        }
         self.last_view_proj = frame.view_proj.to_cols_array();
         self.frames += 1;
         let frame_number = self.frames;
@@ -289,8 +362,12 @@ impl App {
     fn frame_done(&mut self, frame_number: u64, started: f64, complete: bool) {
         let done = now_ms();
         self.scene.stats.frame_ms = done - started;
+        if self.scene.stats.first_image_ms == 0.0 && self.scene.stats.blocks_drawn > 0 {
+            self.scene.stats.first_image_ms = done - self.start_ms;
+        }
         if complete && !self.ready && frame_number == self.frames {
             self.ready = true;
+            self.scene.stats.ready_ms = done - self.start_ms;
             if let Some(body) = window().document().and_then(|d| d.body()) {
                 let _ = body.dataset().set("ready", "1");
             }
@@ -322,37 +399,66 @@ impl App {
     }
 
     fn start_fetches(&mut self) {
-        // Pages first: they decide which blocks the view wants.
-        let free = MAX_IN_FLIGHT.saturating_sub(self.scene.in_flight());
-        for page in self.scene.next_page_fetches(free) {
-            let source = self.source.clone();
-            wasm_bindgen_futures::spawn_local(async move {
-                let result = source.page_bytes(&page).await;
-                with_app(|app| {
-                    app.scene.insert_page(&page, result);
-                    app.start_fetches();
-                });
-                request_frame();
-            });
+        // Requests the view no longer needs give their connection back.
+        for stale in self.scene.take_stale_requests() {
+            if let Some(abort) = self.aborts.remove(&request_id(&stale)) {
+                abort.abort();
+            }
+            if let (Request::Block(key), Some(pool)) = (&stale, self.decoder.as_mut()) {
+                pool.abort(key);
+            }
         }
-        let free = MAX_IN_FLIGHT.saturating_sub(self.scene.in_flight());
-        for key in self.scene.next_fetches(free) {
+        for request in self.scene.start_requests() {
+            if let (Request::Block(key), Some(pool)) = (&request, self.decoder.as_mut()) {
+                // Fetch and decode in a worker; the main thread only uploads.
+                let entry = self.scene.index.block(key);
+                let url = self.source.block_url(*key, entry.map(|e| e.hash.as_str()));
+                pool.submit(*key, &url, entry.map(|e| e.voxels));
+                continue;
+            }
             let source = self.source.clone();
-            let hash = self.scene.index.block(&key).map(|e| e.hash.clone());
-            wasm_bindgen_futures::spawn_local(async move {
-                let result: Result<Vec<u8>, FetchError> = source.block_bytes(key, hash.as_deref()).await;
-                with_app(|app| {
-                    let errors = app.scene.stats.errors;
-                    app.scene.insert_fetched(&app.renderer, [(key, result)]);
-                    if app.scene.stats.errors > errors {
-                        let e = app.scene.stats.last_error.as_deref().unwrap_or("");
-                        web_sys::console::warn_1(&JsValue::from_str(&format!("voxstream: {e}")));
-                    }
-                    // Keep the connections busy; frames come at the GPU's pace.
-                    app.start_fetches();
-                });
-                request_frame();
-            });
+            let abort = web_sys::AbortController::new().ok();
+            let signal = abort.as_ref().map(|a| a.signal());
+            if let Some(a) = abort {
+                self.aborts.insert(request_id(&request), a);
+            }
+            match request {
+                Request::Page(page) => {
+                    wasm_bindgen_futures::spawn_local(async move {
+                        let result = source.page_bytes_with(&page, signal.as_ref()).await;
+                        with_app(|app| {
+                            // Aborted (no longer needed): the queue has already let it go.
+                            if app.aborts.remove(&request_id(&Request::Page(page.clone()))).is_none() {
+                                return;
+                            }
+                            app.scene.insert_page(&page, result);
+                            app.start_fetches();
+                        });
+                        request_frame();
+                    });
+                }
+                Request::Block(key) => {
+                    let hash = self.scene.index.block(&key).map(|e| e.hash.clone());
+                    wasm_bindgen_futures::spawn_local(async move {
+                        let result: Result<Vec<u8>, FetchError> =
+                            source.block_bytes_with(key, hash.as_deref(), signal.as_ref()).await;
+                        with_app(|app| {
+                            if app.aborts.remove(&request_id(&Request::Block(key))).is_none() {
+                                return;
+                            }
+                            let errors = app.scene.stats.errors;
+                            app.scene.insert_fetched([(key, result)]);
+                            if app.scene.stats.errors > errors {
+                                let e = app.scene.stats.last_error.as_deref().unwrap_or("");
+                                web_sys::console::warn_1(&JsValue::from_str(&format!("voxstream: {e}")));
+                            }
+                            // Keep the connections busy; frames come at the GPU's pace.
+                            app.start_fetches();
+                        });
+                        request_frame();
+                    });
+                }
+            }
         }
     }
 
@@ -375,7 +481,9 @@ impl App {
         let Some(p) = self.pointers.get(&e.pointer_id()) else { return };
         let (dx, dy) = (x - p.x, y - p.y);
         if self.pointers.len() == 1 {
-            if p.button == 0 && !p.shift {
+            if p.button == 0 && !p.shift && self.fly_mode {
+                self.scene.camera.look(dx, dy);
+            } else if p.button == 0 && !p.shift {
                 self.scene.camera.orbit(dx, dy);
             } else {
                 self.scene.camera.pan(dx, dy, css_height);
@@ -401,7 +509,72 @@ impl App {
             p.x = x;
             p.y = y;
         }
+        self.camera_moved();
+    }
+
+    /// After any camera change: the URL carries the view, and a frame follows.
+    fn camera_moved(&mut self) {
+        let location = window().location();
+        if let (Ok(search), Ok(history)) = (location.search(), window().history()) {
+            if let Ok(params) = web_sys::UrlSearchParams::new_with_str(&search) {
+                params.set("view", &self.scene.camera.to_url());
+                let _ = history.replace_state_with_url(
+                    &JsValue::NULL,
+                    "",
+                    Some(&format!("?{}", String::from(params.to_string()))),
+                );
+            }
+        }
         request_frame();
+    }
+
+    fn key_down(&mut self, e: &web_sys::KeyboardEvent) {
+        let step = self.scene.camera.fly_speed() * if e.shift_key() { 0.2 } else { 0.05 };
+        let cam = &mut self.scene.camera;
+        match e.key().to_lowercase().as_str() {
+            "f" => {
+                self.fly_mode = !self.fly_mode;
+                log(&format!("voxstream: fly mode {}", if self.fly_mode { "on" } else { "off" }));
+            }
+            "r" => *cam = self.home,
+            "w" => cam.fly(step, 0.0, 0.0),
+            "s" => cam.fly(-step, 0.0, 0.0),
+            "a" => cam.fly(0.0, -step, 0.0),
+            "d" => cam.fly(0.0, step, 0.0),
+            "e" => cam.fly(0.0, 0.0, step),
+            "q" => cam.fly(0.0, 0.0, -step),
+            _ => return,
+        }
+        self.camera_moved();
+    }
+
+    /// `window.voxstream.set({px, budget, ao, occlusion, fly})`: the panel's settings.
+    fn apply_settings(&mut self, settings: &serde_json::Value) {
+        if let Some(px) = settings["px"].as_f64().filter(|v| (0.25..=64.0).contains(v)) {
+            self.scene.select_params.max_error_pixels = px as f32;
+        }
+        if let Some(mib) = settings["budget"].as_f64().filter(|v| (16.0..=65536.0).contains(v)) {
+            self.scene.set_budget_bytes((mib * (1 << 20) as f64) as u64);
+        }
+        if let Some(ao) = settings["ao"].as_f64().filter(|v| (0.0..=1.0).contains(v)) {
+            self.scene.ao_strength = ao as f32;
+        }
+        if let Some(on) = settings["occlusion"].as_bool() {
+            self.scene.occlusion_culling = on;
+        }
+        match settings["refinement"].as_str() {
+            Some("closed") => self.scene.select_params.refinement = Refinement::AlwaysClosed,
+            Some("holes") => self.scene.select_params.refinement = Refinement::HolesAllowed,
+            _ => {}
+        }
+        if let Some(on) = settings["fly"].as_bool() {
+            self.fly_mode = on;
+        }
+        if settings["reset"].as_bool() == Some(true) {
+            self.scene.camera = self.home;
+        }
+        self.start_fetches();
+        self.camera_moved();
     }
 
     fn pointer_up(&mut self, e: &PointerEvent) {
@@ -415,7 +588,7 @@ impl App {
             _ => e.delta_y(),
         };
         self.scene.camera.zoom((pixels * 0.0015).clamp(-1.0, 1.0).exp() as f32);
-        request_frame();
+        self.camera_moved();
     }
 }
 
@@ -463,6 +636,16 @@ fn install_input(canvas: &HtmlCanvasElement) -> Result<(), String> {
     })?;
     listen::<web_sys::MouseEvent>(target, "contextmenu", false, |e| e.prevent_default())?;
     listen::<web_sys::Event>(window().as_ref(), "resize", true, |_| request_frame())?;
+    listen::<web_sys::KeyboardEvent>(window().as_ref(), "keydown", true, |e| {
+        // Typing into the panel's fields is not flying.
+        let typing = e
+            .target()
+            .and_then(|t| t.dyn_into::<web_sys::Element>().ok())
+            .is_some_and(|el| matches!(el.tag_name().as_str(), "INPUT" | "SELECT" | "TEXTAREA"));
+        if !typing {
+            with_app(|app| app.key_down(e));
+        }
+    })?;
     Ok(())
 }
 
@@ -492,10 +675,18 @@ fn install_js_api() -> Result<(), String> {
         js_sys::Reflect::set(&api, &JsValue::from_str(name), f)
             .map_err(|e| format!("window.voxstream.{name}: {e:?}"))
     };
+    let settings = Closure::<dyn Fn(JsValue)>::new(|value: JsValue| {
+        let text = js_sys::JSON::stringify(&value).map(String::from).unwrap_or_default();
+        if let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) {
+            with_app(|app| app.apply_settings(&v));
+        }
+    });
     set("stats", stats.as_ref())?;
     set("view", view.as_ref())?;
+    set("set", settings.as_ref())?;
     stats.forget();
     view.forget();
+    settings.forget();
     js_sys::Reflect::set(&window(), &JsValue::from_str("voxstream"), &api)
         .map_err(|e| format!("window.voxstream: {e:?}"))?;
     Ok(())

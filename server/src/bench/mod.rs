@@ -50,9 +50,9 @@ pub struct BenchArgs {
     /// Comma-separated thread counts (RAYON_NUM_THREADS of each build).
     #[arg(long, default_value = "1,2")]
     pub threads: String,
-    /// Level-0 voxels per edge, passed to every build.
-    #[arg(long, default_value_t = 512)]
-    pub resolution: u32,
+    /// Level-0 voxels per edge (`auto` or a power of two), passed to every build.
+    #[arg(long, default_value = "auto")]
+    pub resolution: crate::pipeline::Resolution,
     /// Passed through to `voxstream build --memory-budget`; peak RSS is judged against it.
     #[arg(long)]
     pub memory_budget: Option<String>,
@@ -160,7 +160,7 @@ impl Bench<'_> {
     }
 
     fn measure_voxstream(&self, name: &str, input: &Path) -> anyhow::Result<(VoxstreamReport, Option<u64>)> {
-        let mut report = VoxstreamReport { resolution: self.args.resolution, ..Default::default() };
+        let mut report = VoxstreamReport::default();
         let store = self.scratch.join("store");
         let mut triangles = None;
         for &n in &self.threads {
@@ -181,6 +181,7 @@ impl Bench<'_> {
                         .context("the build's manifest")?;
                 let bytes = dir_size(&scene)?;
                 triangles = Some(manifest.source.triangles);
+                report.resolution = manifest.grid.resolution;
                 report.scene_bytes = Some(bytes);
                 report.bytes_per_triangle = Some(bytes as f64 / manifest.source.triangles.max(1) as f64);
                 report.voxels_level0 = manifest.levels.first().map(|l| l.voxels);
@@ -286,11 +287,13 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<Report> {
     let threads = parse_thread_list(&args.threads).map_err(|e| anyhow::anyhow!("--threads: {e}"))?;
     let budget_bytes = match &args.memory_budget {
         Some(b) => {
-            Some(crate::build::parse_byte_size(b).map_err(|e| anyhow::anyhow!("--memory-budget: {e}"))?)
+            Some(crate::pipeline::parse_byte_size(b).map_err(|e| anyhow::anyhow!("--memory-budget: {e}"))?)
         }
         None => None,
     };
-    crate::voxelize::check_resolution(args.resolution)?;
+    if let crate::pipeline::Resolution::Explicit(r) = args.resolution {
+        crate::pipeline::voxelize::check_resolution(r)?;
+    }
     let machine = machine();
     let exe = std::env::current_exe().context("locating the voxstream binary")?;
     let mut inputs: Vec<PathBuf> = if args.inputs.is_empty() {
@@ -348,7 +351,7 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<Report> {
             voxstream_version: env!("CARGO_PKG_VERSION"),
             runs: args.runs as usize,
             threads,
-            resolution: args.resolution,
+            resolution: args.resolution.to_string(),
             synth_triangles: args.synth_triangles,
             memory_budget: args.memory_budget.clone(),
             meshopt_cluster_triangles: CLUSTER_TRIANGLES,

@@ -182,7 +182,7 @@ pub struct PeerRun {
 pub fn run_peer(input: &std::path::Path, threads: usize) -> anyhow::Result<PeerRun> {
     let threads = threads.max(1);
     let start = Instant::now();
-    let (mut mesh, _) = crate::ingest::read_mesh(input)?;
+    let (mut mesh, _) = crate::pipeline::read::read_mesh(input)?;
     let parse_seconds = start.elapsed().as_secs_f64();
     let input_triangles = mesh.triangles.len() as u64;
     let vertices_in = mesh.positions.len() as u64;

@@ -91,6 +91,7 @@ pub fn summarize_runs(
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct VoxstreamReport {
     pub threads: BTreeMap<String, ThreadSummary>,
+    /// The resolution the build used (with `auto`, what it chose).
     pub resolution: u32,
     /// Σ sizes of every file under the published scene directory (all levels + manifest).
     pub scene_bytes: Option<u64>,
@@ -255,7 +256,8 @@ pub struct Config {
     pub voxstream_version: &'static str,
     pub runs: usize,
     pub threads: Vec<usize>,
-    pub resolution: u32,
+    /// `auto` or a power of two, as passed to every build.
+    pub resolution: String,
     pub synth_triangles: u64,
     pub memory_budget: Option<String>,
     pub meshopt_cluster_triangles: usize,
@@ -418,7 +420,7 @@ mod tests {
                 voxstream_version: "0",
                 runs: 1,
                 threads: vec![1, 2],
-                resolution: 512,
+                resolution: "512".into(),
                 synth_triangles: 0,
                 memory_budget: None,
                 meshopt_cluster_triangles: 128,
@@ -457,14 +459,14 @@ mod tests {
         assert!(parse_thread_list("1,1").is_err());
         assert!(parse_thread_list("1,x").is_err());
         assert!(parse_thread_list("").is_err());
-        assert_eq!(crate::build::parse_byte_size("4G").unwrap(), 4 << 30);
-        assert_eq!(crate::build::parse_byte_size("512MiB").unwrap(), 512 << 20);
-        assert_eq!(crate::build::parse_byte_size("1.5g").unwrap(), 3 << 29);
-        assert_eq!(crate::build::parse_byte_size("1000000").unwrap(), 1_000_000);
-        assert_eq!(crate::build::parse_byte_size("64 kb").unwrap(), 64 << 10);
-        assert!(crate::build::parse_byte_size("4X").is_err());
-        assert!(crate::build::parse_byte_size("G").is_err());
-        assert!(crate::build::parse_byte_size("0").is_err());
-        assert!(crate::build::parse_byte_size("99999999T").is_err());
+        assert_eq!(crate::pipeline::parse_byte_size("4G").unwrap(), 4 << 30);
+        assert_eq!(crate::pipeline::parse_byte_size("512MiB").unwrap(), 512 << 20);
+        assert_eq!(crate::pipeline::parse_byte_size("1.5g").unwrap(), 3 << 29);
+        assert_eq!(crate::pipeline::parse_byte_size("1000000").unwrap(), 1_000_000);
+        assert_eq!(crate::pipeline::parse_byte_size("64 kb").unwrap(), 64 << 10);
+        assert!(crate::pipeline::parse_byte_size("4X").is_err());
+        assert!(crate::pipeline::parse_byte_size("G").is_err());
+        assert!(crate::pipeline::parse_byte_size("0").is_err());
+        assert!(crate::pipeline::parse_byte_size("99999999T").is_err());
     }
 }

@@ -224,8 +224,7 @@ pub async fn get_block(
     let cache =
         HeaderValue::from_static(if addressed { BLOCK_CACHE_CONTROL } else { MANIFEST_CACHE_CONTROL });
     if etag_matches(&headers, &etag) {
-        return Ok((StatusCode::NOT_MODIFIED, [(header::ETAG, etag), (header::CACHE_CONTROL, cache)])
-            .into_response());
+        return Ok(not_modified(etag, cache));
     }
     let entry = entry.clone();
     let scene2 = scene.clone();
@@ -234,7 +233,16 @@ pub async fn get_block(
         .map_err(|e| ApiError::internal(e.to_string()))??;
     state.metrics.blocks_served.inc();
     state.metrics.block_bytes_served.inc_by(bytes.len() as u64);
-    Ok((
+    Ok(octet_stream(etag, cache, bytes))
+}
+
+fn not_modified(etag: HeaderValue, cache: HeaderValue) -> Response {
+    (StatusCode::NOT_MODIFIED, [(header::ETAG, etag), (header::CACHE_CONTROL, cache)]).into_response()
+}
+
+/// Encoded bytes (a block or a page) with their strong ETag and cache policy.
+fn octet_stream(etag: HeaderValue, cache: HeaderValue, bytes: Vec<u8>) -> Response {
+    (
         [
             (header::CONTENT_TYPE, HeaderValue::from_static("application/octet-stream")),
             (header::ETAG, etag),
@@ -242,7 +250,7 @@ pub async fn get_block(
         ],
         bytes,
     )
-        .into_response())
+        .into_response()
 }
 
 #[utoipa::path(get, path = "/api/scenes/{id}/pages/{page}", tag = "scenes",
@@ -280,18 +288,9 @@ pub async fn get_page(
         )));
     }
     if etag_matches(&headers, &etag) {
-        return Ok((StatusCode::NOT_MODIFIED, [(header::ETAG, etag), (header::CACHE_CONTROL, cache)])
-            .into_response());
+        return Ok(not_modified(etag, cache));
     }
-    Ok((
-        [
-            (header::CONTENT_TYPE, HeaderValue::from_static("application/octet-stream")),
-            (header::ETAG, etag),
-            (header::CACHE_CONTROL, cache),
-        ],
-        bytes,
-    )
-        .into_response())
+    Ok(octet_stream(etag, cache, bytes))
 }
 
 #[derive(Debug, Deserialize, utoipa::ToSchema)]

@@ -46,7 +46,7 @@ pub struct UploadOptions {
     pub filename: Option<String>,
     /// Scene id to publish; defaults to the file name's stem.
     pub id: Option<String>,
-    /// Level-0 voxels per edge (a power of two up to --max-resolution).
+    /// Level-0 voxels per edge (a power of two up to --max-resolution); matched to the scan when absent.
     pub resolution: Option<u32>,
     /// conservative, 26-separating or 6-separating.
     pub topology: Option<String>,
@@ -88,8 +88,11 @@ fn plan_upload(
         (None, Some(name)) => id_from_file_stem(std::path::Path::new(name)),
         (None, None) => "scene".to_string(),
     };
-    let resolution = opts.resolution.unwrap_or(state.config.resolution);
-    if !resolution.is_power_of_two() || resolution < 64 || resolution > state.config.max_resolution {
+    // None: matched to the scan (auto), up to --max-resolution.
+    let resolution = opts.resolution.or(state.config.resolution);
+    if let Some(resolution) = resolution
+        && (!resolution.is_power_of_two() || resolution < 64 || resolution > state.config.max_resolution)
+    {
         return Err(ApiError::bad_request(format!(
             "resolution {resolution} must be a power of two from 64 to {}",
             state.config.max_resolution
@@ -199,6 +202,7 @@ async fn start_job(state: &AppState, record: UploadRecord, bytes: u64) -> Result
         input_file: input.file_name().and_then(|f| f.to_str()).unwrap_or_default().to_string(),
         input_bytes: bytes,
         resolution: record.resolution,
+        max_resolution: state.config.max_resolution,
         topology: record.topology.clone(),
         created_at: now_unix(),
         started_at: None,

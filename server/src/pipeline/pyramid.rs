@@ -1,7 +1,7 @@
 //! LOD: exposed-face masks and the 2³ merge that builds coarser levels
 //! (seed 003 §3): a parent voxel exists if any of its 8 children does, its
 //! face mask is the OR of theirs and its normal and colour sums are the sums
-//! of theirs (averaged when packed: `store::packed_block`).
+//! of theirs (averaged when packed: `write::packed_block`).
 //!
 //! Skirts: a level-0 face on a block's boundary is always marked exposed,
 //! whatever the neighbour block holds, so a block next to a coarser or finer
@@ -29,7 +29,7 @@ use std::collections::BTreeMap;
 use rayon::prelude::*;
 use voxstream_format::{BLOCK_SIZE, BLOCK_VOXELS, BlockKey, Face, demorton3, morton3};
 
-use crate::voxelize::{BuildVoxel, SparseBlock};
+use crate::pipeline::voxelize::{BuildVoxel, SparseBlock};
 
 /// A voxel on any level while the LOD is built.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -66,15 +66,42 @@ pub fn local_position(v: &BuildVoxel) -> [u32; 3] {
 /// every face on the block boundary (the skirt). Voxels buried on all six
 /// sides get an empty mask and stay (their solidity counts for coverage).
 pub fn mark_exposed_faces(block: &mut SparseBlock) {
+    mark_faces(&mut block.voxels);
+}
+
+/// [`mark_exposed_faces`] for a level-0 block already in pyramid form.
+pub fn mark_exposed_faces_lod(block: &mut LodBlock) {
+    mark_faces(&mut block.voxels);
+}
+
+trait HasVoxel {
+    fn build_voxel(&mut self) -> &mut BuildVoxel;
+}
+
+impl HasVoxel for BuildVoxel {
+    fn build_voxel(&mut self) -> &mut BuildVoxel {
+        self
+    }
+}
+
+impl HasVoxel for LodVoxel {
+    fn build_voxel(&mut self) -> &mut BuildVoxel {
+        &mut self.voxel
+    }
+}
+
+fn mark_faces<V: HasVoxel>(voxels: &mut [V]) {
     let mut occupied = vec![0u64; BLOCK_VOXELS / 64];
-    for v in &block.voxels {
-        occupied[v.morton as usize / 64] |= 1 << (v.morton % 64);
+    for v in voxels.iter_mut() {
+        let m = v.build_voxel().morton;
+        occupied[m as usize / 64] |= 1 << (m % 64);
     }
     let is_set = |p: [u32; 3]| {
         let m = morton3(p[0], p[1], p[2]);
         occupied[m as usize / 64] & (1 << (m % 64)) != 0
     };
-    for v in &mut block.voxels {
+    for v in voxels {
+        let v = v.build_voxel();
         let p = demorton3(v.morton);
         let mut mask = 0u8;
         for f in Face::ALL {
@@ -162,6 +189,160 @@ pub fn merge_children(key: BlockKey, children: &[&LodBlock]) -> Option<LodBlock>
         })
         .collect();
     Some(LodBlock { key, voxels })
+}
+
+/// The streaming pyramid: level-0 blocks go in one at a time, in the Morton
+/// order of their block coordinates ([`block_morton`]), and every block of
+/// every level comes out as soon as it is complete, children before parents.
+///
+/// A child's voxels fall into one octant of its parent, and the 8 voxels of
+/// one parent voxel are 8 consecutive child Morton codes, so each child is
+/// downsampled into its parent in one linear pass as it arrives and then
+/// dropped. Children of one parent arrive in octant order, so the parent's
+/// voxels stay sorted. Sums run in the child's Morton order from zero, as in
+/// [`merge_children`], so results are bit-identical to [`build_levels`].
+///
+/// Memory: one partial block per level (the front), at most 64³ voxels each.
+pub struct Pyramid {
+    levels: u8,
+    /// `partial[l]`: the level-`l` block being filled (index 0 unused).
+    partial: Vec<Option<LodBlock>>,
+    last: Option<u64>,
+    reach: [f32; 256],
+}
+
+/// Bytes of a full 64³ block in pyramid form: the front's unit of account.
+pub const FULL_LOD_BLOCK_BYTES: usize = BLOCK_VOXELS * std::mem::size_of::<LodVoxel>();
+
+/// Interleaves block coordinates (21 bits each) into a Morton code, x lowest.
+pub fn block_morton(c: [u32; 3]) -> u64 {
+    fn spread(v: u32) -> u64 {
+        let mut x = v as u64 & 0x1f_ffff;
+        x = (x | x << 32) & 0x1f_0000_0000_ffff;
+        x = (x | x << 16) & 0x1f_0000_ff00_00ff;
+        x = (x | x << 8) & 0x100f_00f0_0f00_f00f;
+        x = (x | x << 4) & 0x10c3_0c30_c30c_30c3;
+        (x | x << 2) & 0x1249_2492_4924_9249
+    }
+    spread(c[0]) | spread(c[1]) << 1 | spread(c[2]) << 2
+}
+
+/// The inverse of [`block_morton`].
+pub fn block_coord(m: u64) -> [u32; 3] {
+    fn squash(v: u64) -> u32 {
+        let mut x = v & 0x1249_2492_4924_9249;
+        x = (x | x >> 2) & 0x10c3_0c30_c30c_30c3;
+        x = (x | x >> 4) & 0x100f_00f0_0f00_f00f;
+        x = (x | x >> 8) & 0x1f_0000_ff00_00ff;
+        x = (x | x >> 16) & 0x1f_0000_0000_ffff;
+        ((x | x >> 32) & 0x1f_ffff) as u32
+    }
+    [squash(m), squash(m >> 1), squash(m >> 2)]
+}
+
+impl Pyramid {
+    pub fn new(resolution: u32) -> Self {
+        let levels = level_count(resolution);
+        Self {
+            levels,
+            partial: (0..levels).map(|_| None).collect(),
+            last: None,
+            reach: std::array::from_fn(|m| empty_octant_reach(m as u8)),
+        }
+    }
+
+    /// Heap bytes held by the front (the partial blocks).
+    pub fn front_bytes(&self) -> usize {
+        self.partial.iter().flatten().map(|b| b.voxels.capacity() * std::mem::size_of::<LodVoxel>()).sum()
+    }
+
+    /// Adds the next level-0 block (faces marked, buried voxels still in),
+    /// after every block of smaller [`block_morton`]. Calls `emit` with each
+    /// block that is now complete (buried voxels dropped; empty blocks skipped),
+    /// this one included.
+    pub fn push<E>(
+        &mut self,
+        block: LodBlock,
+        emit: &mut impl FnMut(LodBlock) -> Result<(), E>,
+    ) -> Result<(), E> {
+        assert_eq!(block.key.level, 0, "the pyramid takes level-0 blocks");
+        let m = block_morton(block.key.coord());
+        assert!(self.last.is_none_or(|last| last < m), "level-0 blocks must come in increasing Morton order");
+        self.last = Some(m);
+        self.close(Some(block.key), emit)?;
+        if self.levels > 1 {
+            let parent = self.partial[1]
+                .get_or_insert_with(|| LodBlock { key: block.key.parent(), voxels: Vec::new() });
+            downsample(&block, parent, &self.reach);
+        }
+        emit_drawn(block, emit)
+    }
+
+    /// Completes and emits every block still in the front, finest first.
+    pub fn finish<E>(mut self, emit: &mut impl FnMut(LodBlock) -> Result<(), E>) -> Result<(), E> {
+        self.close(None, emit)
+    }
+
+    /// Completes the partial blocks that are not ancestors of `next`.
+    fn close<E>(
+        &mut self,
+        next: Option<BlockKey>,
+        emit: &mut impl FnMut(LodBlock) -> Result<(), E>,
+    ) -> Result<(), E> {
+        for l in 1..self.levels as usize {
+            let Some(p) = &self.partial[l] else { break };
+            if let Some(k) = next
+                && BlockKey::new(l as u8, k.x >> l, k.y >> l, k.z >> l) == p.key
+            {
+                break;
+            }
+            let done = self.partial[l].take().expect("checked above");
+            if l + 1 < self.levels as usize {
+                let parent = self.partial[l + 1]
+                    .get_or_insert_with(|| LodBlock { key: done.key.parent(), voxels: Vec::new() });
+                downsample(&done, parent, &self.reach);
+            }
+            emit_drawn(done, emit)?;
+        }
+        Ok(())
+    }
+}
+
+/// Drops buried voxels (their part, coverage, is done) and emits the block if any voxel is left.
+fn emit_drawn<E>(mut block: LodBlock, emit: &mut impl FnMut(LodBlock) -> Result<(), E>) -> Result<(), E> {
+    block.voxels.retain(|v| v.voxel.faces != 0);
+    if block.voxels.is_empty() { Ok(()) } else { emit(block) }
+}
+
+/// Merges `child` into its octant of `parent` (the same arithmetic, in the
+/// same order, as [`merge_children`]).
+fn downsample(child: &LodBlock, parent: &mut LodBlock, reach: &[f32; 256]) {
+    debug_assert_eq!(child.key.parent(), parent.key);
+    let octant = (child.key.x & 1) | (child.key.y & 1) << 1 | (child.key.z & 1) << 2;
+    let child_edge = (1u64 << child.key.level) as f32;
+    let diagonal = 2.0 * child_edge * 3f32.sqrt();
+    let same = |a: &LodVoxel, b: &LodVoxel| a.voxel.morton >> 3 == b.voxel.morton >> 3;
+    // Exact growth: the front is accounted by capacity.
+    let count = child.voxels.windows(2).filter(|w| !same(&w[0], &w[1])).count() + 1;
+    parent.voxels.reserve_exact(count);
+    for group in child.voxels.chunk_by(same) {
+        let mut acc = LodVoxel { voxel: BuildVoxel::EMPTY, solid: 0, error: 0.0 };
+        let mut mask = 0u8;
+        for v in group {
+            acc.voxel.faces |= v.voxel.faces;
+            for a in 0..3 {
+                acc.voxel.normal_sum[a] += v.voxel.normal_sum[a];
+                acc.voxel.color_sum[a] += v.voxel.color_sum[a];
+            }
+            acc.voxel.color_weight += v.voxel.color_weight;
+            acc.solid += v.solid;
+            acc.error = acc.error.max(v.error);
+            mask |= 1 << (v.voxel.morton & 7);
+        }
+        acc.voxel.morton = octant << 15 | group[0].voxel.morton >> 3;
+        acc.error = (acc.error + child_edge * reach[mask as usize]).min(diagonal);
+        parent.voxels.push(acc);
+    }
 }
 
 /// Number of levels for a grid: enough that the coarsest is one block.

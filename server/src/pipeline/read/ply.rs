@@ -18,7 +18,7 @@ use ply_rs_bw::ply::{
 };
 
 use super::{IngestError, MeshFormat, ReadOptions, SRGB_TO_LINEAR, TICK_EVERY, TriangleSink, check_polygon};
-use crate::tristream::RecordLayout;
+use crate::pipeline::stream::RecordLayout;
 
 /// One vertex as read: position and colour channels in [0, 1] (NaN = absent).
 struct VertexRecord {
@@ -517,13 +517,11 @@ fn read_vertices<R: BufRead>(
     Ok(VertexTable { positions, colors })
 }
 
-/// Fans a polygon into the sink.
-fn emit_polygon(
-    poly: &[u32],
-    table: &VertexTable,
-    face: usize,
-    sink: &mut dyn TriangleSink,
-) -> Result<(), IngestError> {
+/// One triangle for the sink: positions and linear colour.
+type Tri = ([[f64; 3]; 3], [f32; 3]);
+
+/// Fans a polygon into `out`.
+fn fan(poly: &[u32], table: &VertexTable, face: usize, out: &mut Vec<Tri>) -> Result<(), IngestError> {
     check_polygon(poly, table.len(), face)?;
     for k in 1..poly.len().saturating_sub(1) {
         let idx = [poly[0], poly[k], poly[k + 1]];
@@ -534,7 +532,36 @@ fn emit_polygon(
         } else {
             [0.0; 3]
         };
-        sink.triangle(tri, color)?;
+        out.push((tri, color));
+    }
+    Ok(())
+}
+
+/// Fans a batch of faces (the first is face `start`) on all cores and hands
+/// the triangles to the sink in file order; the first bad face in file order
+/// is the error.
+fn emit_faces(
+    faces: &[FaceRecord],
+    start: usize,
+    table: &VertexTable,
+    sink: &mut dyn TriangleSink,
+) -> Result<(), IngestError> {
+    use rayon::prelude::*;
+    const PIECE: usize = 1024;
+    let pieces: Vec<Result<Vec<Tri>, IngestError>> = faces
+        .par_chunks(PIECE)
+        .enumerate()
+        .map(|(p, piece)| {
+            let mut scratch = Vec::new();
+            let mut out = Vec::with_capacity(piece.len());
+            for (k, f) in piece.iter().enumerate() {
+                fan(f.indices(&mut scratch), table, start + p * PIECE + k, &mut out)?;
+            }
+            Ok(out)
+        })
+        .collect();
+    for piece in pieces {
+        sink.triangles(&piece?)?;
     }
     Ok(())
 }
@@ -589,26 +616,26 @@ pub(super) fn stream<R: BufRead>(
                 let mut batch = Vec::new();
                 for start in (0..def.count).step_by(BATCH) {
                     input.read_batch(&parser, def, start, BATCH.min(def.count - start), &mut batch)?;
+                    if let Some(t) = &table {
+                        emit_faces(&batch, start, t, sink)?;
+                        sink.tick()?;
+                        continue;
+                    }
                     for (k, f) in batch.iter().enumerate() {
                         let i = start + k;
                         let poly = f.indices(&mut scratch);
-                        match &table {
-                            Some(t) => emit_polygon(poly, t, i, sink)?,
-                            None => {
-                                if poly.iter().any(|&v| v as usize >= vertex_def.count) {
-                                    check_polygon(poly, vertex_def.count, i)?;
-                                }
-                                for k in 1..poly.len().saturating_sub(1) {
-                                    early.push([poly[0], poly[k], poly[k + 1]]);
-                                }
-                                if early.len() as u64 * 12 > opts.memory_budget / 4 {
-                                    return Err(IngestError::TooLarge(
-                                        "the PLY's faces come before its vertices and do not fit a quarter of \
-                                         the memory budget: raise --memory-budget"
-                                            .into(),
-                                    ));
-                                }
-                            }
+                        if poly.iter().any(|&v| v as usize >= vertex_def.count) {
+                            check_polygon(poly, vertex_def.count, i)?;
+                        }
+                        for k in 1..poly.len().saturating_sub(1) {
+                            early.push([poly[0], poly[k], poly[k + 1]]);
+                        }
+                        if early.len() as u64 * 12 > opts.memory_budget / 4 {
+                            return Err(IngestError::TooLarge(
+                                "the PLY's faces come before its vertices and do not fit a quarter of \
+                                 the memory budget: raise --memory-budget"
+                                    .into(),
+                            ));
                         }
                     }
                     sink.tick()?;
@@ -627,8 +654,13 @@ pub(super) fn stream<R: BufRead>(
         }
     }
     if let Some(t) = &table {
-        for (i, tri) in early.iter().enumerate() {
-            emit_polygon(tri, t, i, sink)?;
+        let mut out = Vec::new();
+        for (c, tris) in early.chunks(BATCH).enumerate() {
+            out.clear();
+            for (k, tri) in tris.iter().enumerate() {
+                fan(tri, t, c * BATCH + k, &mut out)?;
+            }
+            sink.triangles(&out)?;
         }
     }
     Ok(())

@@ -338,6 +338,12 @@ impl ChunkStore {
         self.chunks.is_empty()
     }
 
+    /// Bytes of bookkeeping per chunk (locations), apart from the chunks' bytes.
+    pub fn index_bytes(&self) -> usize {
+        self.chunks.capacity() * std::mem::size_of::<Location>()
+            + self.resident.capacity() * std::mem::size_of::<Vec<u8>>()
+    }
+
     /// Bytes written to the spill file so far.
     pub fn spilled_bytes(&self) -> u64 {
         self.spill_len

@@ -12,9 +12,9 @@ use std::collections::BTreeMap;
 use rayon::prelude::*;
 use voxstream_format::{BLOCK_SIZE, BLOCK_VOXELS, BlockKey, GridFrame, morton3};
 
-use crate::ingest::TriangleMesh;
-use crate::progress::{ProgressSink, Stage, StageCounter};
-use crate::tristream::Bounds;
+use crate::pipeline::progress::{ProgressSink, Stage, StageCounter};
+use crate::pipeline::read::TriangleMesh;
+use crate::pipeline::stream::Bounds;
 
 /// A voxel while the store is being built.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -52,14 +52,17 @@ pub struct VoxelizeStats {
 
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum VoxelizeError {
-    #[error("grid resolution {0} must be a power of two between 1 and 16384")]
+    #[error("grid resolution {0} must be a power of two between 1 and {MAX_RESOLUTION}")]
     BadResolution(u32),
     #[error("the mesh has no valid triangle ({skipped} degenerate or non-finite)")]
     NoValidTriangle { skipped: u64 },
+    #[error("{0}")]
+    BadVoxelSize(String),
 }
 
-/// Largest grid we accept: Morton keys and u32 block coordinates stay far from overflow.
-pub const MAX_RESOLUTION: u32 = 16384;
+/// Largest grid we accept: 1024 blocks an edge, so block Morton codes take
+/// 30 bits (the bin index packs them with segment ids into a u64).
+pub const MAX_RESOLUTION: u32 = 65536;
 
 pub fn check_resolution(resolution: u32) -> Result<(), VoxelizeError> {
     if resolution.is_power_of_two() && resolution <= MAX_RESOLUTION {
@@ -80,7 +83,7 @@ pub(crate) fn to_grid_unchecked(tri: [[f64; 3]; 3], frame: &GridFrame) -> [[f64;
     tri.map(|p| std::array::from_fn(|a| (p[a] - frame.origin[a]) / frame.voxel_size))
 }
 
-pub(crate) fn valid_triangle(tri: &[[f64; 3]; 3]) -> bool {
+pub fn valid_triangle(tri: &[[f64; 3]; 3]) -> bool {
     tri.iter().flatten().all(|c| c.is_finite()) && {
         let n = cross(sub(tri[1], tri[0]), sub(tri[2], tri[0]));
         dot(n, n) > 0.0
@@ -124,8 +127,246 @@ pub fn frame_from_bounds(bounds: &Bounds, resolution: u32, skipped: u64) -> Resu
     Ok(GridFrame { origin: lo, voxel_size, resolution, units: None })
 }
 
+/// How the grid's resolution is chosen (`--resolution auto|N`, `--voxel-size`).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub enum Resolution {
+    /// The power of two whose voxel edge is closest, in log2, to the scan's
+    /// median triangle edge (its own sampling), within [64, 65536].
+    #[default]
+    Auto,
+    /// Voxels of this edge in source units: the grid is the next power of two
+    /// that covers the extent, and the cube grows beyond the bounds.
+    VoxelSize(f64),
+    /// This many voxels an edge (a power of two).
+    Explicit(u32),
+}
+
+impl std::str::FromStr for Resolution {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        if s.eq_ignore_ascii_case("auto") {
+            return Ok(Resolution::Auto);
+        }
+        s.parse::<u32>()
+            .map(Resolution::Explicit)
+            .map_err(|_| format!("{s:?} is neither auto nor a power of two such as 1024"))
+    }
+}
+
+impl std::fmt::Display for Resolution {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Resolution::Auto => f.write_str("auto"),
+            Resolution::VoxelSize(v) => write!(f, "voxel size {v}"),
+            Resolution::Explicit(r) => write!(f, "{r}"),
+        }
+    }
+}
+
+/// What resolution a build used and why (the manifest's, the report's and
+/// the catalog's).
+pub use voxstream_format::ResolutionChoice;
+
+/// The smallest grid `auto` picks.
+pub const MIN_AUTO_RESOLUTION: u32 = 64;
+
+const EDGE_EXP_MIN: i64 = -256;
+const EDGE_EXP_MAX: i64 = 255;
+/// Mantissa bits of a squared length kept per bin: 32 bins per octave of the
+/// square, 64 per octave of the length.
+const EDGE_MANTISSA_BITS: u32 = 5;
+const EDGE_BINS: usize = ((EDGE_EXP_MAX - EDGE_EXP_MIN + 1) as usize) << EDGE_MANTISSA_BITS;
+const _: () = assert!(EDGE_BINS <= 1 << 16, "bins are u16");
+
+/// A histogram of triangle edge lengths (bins of 1/32 to 1/64 octave, from
+/// the bits of the squared length: no logarithm per edge), for the median
+/// edge. Deterministic: counts do not depend on the order edges come in.
+#[derive(Clone)]
+pub struct EdgeHistogram {
+    counts: Vec<u64>,
+}
+
+impl Default for EdgeHistogram {
+    fn default() -> Self {
+        Self { counts: vec![0; EDGE_BINS] }
+    }
+}
+
+impl EdgeHistogram {
+    fn bin(len2: f64) -> Option<usize> {
+        if !(len2 > 0.0 && len2.is_finite()) {
+            return None;
+        }
+        let bits = len2.to_bits();
+        // Subnormals fall into the lowest bin.
+        let exp = (((bits >> 52) & 0x7ff) as i64 - 1023).clamp(EDGE_EXP_MIN, EDGE_EXP_MAX);
+        let mant = (bits >> (52 - EDGE_MANTISSA_BITS)) as usize & ((1 << EDGE_MANTISSA_BITS) - 1);
+        Some(((exp - EDGE_EXP_MIN) as usize) << EDGE_MANTISSA_BITS | mant)
+    }
+
+    /// Counts the three edges of a triangle.
+    pub fn add_triangle(&mut self, t: &[[f64; 3]; 3]) {
+        let mut bins = Vec::with_capacity(3);
+        Self::bins(t, &mut bins);
+        self.count(&bins);
+    }
+
+    /// Appends the bins of a triangle's three edges (to count later, maybe on another thread).
+    pub fn bins(t: &[[f64; 3]; 3], out: &mut Vec<u16>) {
+        for (a, b) in [(0, 1), (1, 2), (2, 0)] {
+            let d = sub(t[a], t[b]);
+            if let Some(i) = Self::bin(dot(d, d)) {
+                out.push(i as u16);
+            }
+        }
+    }
+
+    /// Counts bins from [`Self::bins`].
+    pub fn count(&mut self, bins: &[u16]) {
+        for &i in bins {
+            self.counts[i as usize] += 1;
+        }
+    }
+
+    pub fn merge(&mut self, other: &EdgeHistogram) {
+        for (a, b) in self.counts.iter_mut().zip(&other.counts) {
+            *a += b;
+        }
+    }
+
+    pub fn edges(&self) -> u64 {
+        self.counts.iter().sum()
+    }
+
+    /// The median edge length (the middle of its bin), or `None` without edges.
+    pub fn median(&self) -> Option<f64> {
+        let total = self.edges();
+        if total == 0 {
+            return None;
+        }
+        let mut seen = 0;
+        let i = self.counts.iter().position(|&c| {
+            seen += c;
+            2 * seen >= total
+        })?;
+        let exp = (i >> EDGE_MANTISSA_BITS) as i64 + EDGE_EXP_MIN;
+        let mant = (i & ((1 << EDGE_MANTISSA_BITS) - 1)) as f64 + 0.5;
+        let len2 = 2f64.powi(exp as i32) * (1.0 + mant / (1 << EDGE_MANTISSA_BITS) as f64);
+        Some(len2.sqrt())
+    }
+}
+
+/// The frame for `mode` over the bounds of the valid triangles: the
+/// resolution, the grid and the reason. `max_auto` caps what `auto` picks
+/// (the memory budget's or the server's limit); `median_edge` comes from an
+/// [`EdgeHistogram`] of the same triangles.
+pub fn choose_resolution(
+    bounds: &Bounds,
+    mode: Resolution,
+    median_edge: Option<f64>,
+    max_auto: u32,
+    skipped: u64,
+) -> Result<(GridFrame, ResolutionChoice), VoxelizeError> {
+    if bounds.is_empty() {
+        return Err(VoxelizeError::NoValidTriangle { skipped });
+    }
+    let extent = (0..3).map(|a| bounds.max[a] - bounds.min[a]).fold(0.0, f64::max);
+    let median_note = |vs: f64| match median_edge {
+        Some(m) => format!("; the scan's median triangle edge is {m:.4} units ({:.2} voxels)", m / vs),
+        None => String::new(),
+    };
+    match mode {
+        Resolution::Explicit(r) => {
+            let frame = frame_from_bounds(bounds, r, skipped)?;
+            let reason = format!(
+                "resolution {r} was asked for: voxels of {:.4} units{}",
+                frame.voxel_size,
+                median_note(frame.voxel_size)
+            );
+            let choice = ResolutionChoice {
+                mode: "explicit".into(),
+                resolution: r,
+                voxel_size: frame.voxel_size,
+                median_edge,
+                reason,
+            };
+            Ok((frame, choice))
+        }
+        Resolution::VoxelSize(len) => {
+            if !(len > 0.0 && len.is_finite()) {
+                return Err(VoxelizeError::BadVoxelSize(format!(
+                    "voxel size {len} must be a positive number"
+                )));
+            }
+            // The same hair as `frame_from_bounds`, so no vertex lands on the far faces.
+            let cells = (extent * (1.0 + 1e-6) / len).ceil().max(1.0);
+            if cells > MAX_RESOLUTION as f64 {
+                return Err(VoxelizeError::BadVoxelSize(format!(
+                    "voxel size {len} needs {cells} voxels across the {extent:.4}-unit extent, more than \
+                     {MAX_RESOLUTION}: choose a voxel size of at least {:.6}",
+                    extent * (1.0 + 1e-6) / MAX_RESOLUTION as f64
+                )));
+            }
+            let r = (cells as u32).next_power_of_two();
+            let frame = GridFrame { origin: bounds.min, voxel_size: len, resolution: r, units: None };
+            let reason = format!(
+                "voxel size {len} was asked for: {r} voxels an edge, the next power of two covering the \
+                 {extent:.4}-unit extent{}",
+                median_note(len)
+            );
+            let choice = ResolutionChoice {
+                mode: "voxel-size".into(),
+                resolution: r,
+                voxel_size: len,
+                median_edge,
+                reason,
+            };
+            Ok((frame, choice))
+        }
+        Resolution::Auto => {
+            let cube = extent * (1.0 + 1e-6);
+            let max = max_auto.clamp(MIN_AUTO_RESOLUTION, MAX_RESOLUTION);
+            let (r, why) = match median_edge {
+                Some(m) if m > 0.0 => {
+                    let k = (cube / m).log2().round().clamp(0.0, 31.0) as u32;
+                    let ideal = 1u64 << k;
+                    let r = ideal.clamp(MIN_AUTO_RESOLUTION as u64, max as u64) as u32;
+                    let capped = if ideal > max as u64 {
+                        format!(" (the closest, {ideal}, is above the limit {max})")
+                    } else if ideal < MIN_AUTO_RESOLUTION as u64 {
+                        format!(" (the closest, {ideal}, is below the smallest, {MIN_AUTO_RESOLUTION})")
+                    } else {
+                        String::new()
+                    };
+                    (
+                        r,
+                        format!(
+                            "the power of two whose voxel is closest to the scan's median triangle edge{capped}"
+                        ),
+                    )
+                }
+                _ => (MIN_AUTO_RESOLUTION, "no edge lengths were measured".to_string()),
+            };
+            let frame = frame_from_bounds(bounds, r, skipped)?;
+            let reason = format!(
+                "auto: {r} voxels an edge, voxels of {:.4} units, {why}{}",
+                frame.voxel_size,
+                median_note(frame.voxel_size)
+            );
+            let choice = ResolutionChoice {
+                mode: "auto".into(),
+                resolution: r,
+                voxel_size: frame.voxel_size,
+                median_edge,
+                reason,
+            };
+            Ok((frame, choice))
+        }
+    }
+}
+
 /// Voxelizes every valid triangle into level-0 blocks, sorted by key, all in
-/// memory. The build goes through `bin_spill` instead (same per-block kernel,
+/// memory. The build goes through `pipeline::bin` instead (same per-block kernel,
 /// bounded memory); this form is the reference the tests compare it with.
 pub fn voxelize(
     mesh: &TriangleMesh,
@@ -309,7 +550,15 @@ impl BlockVoxelizer {
 
     /// The block's voxels in Morton order (`None` when empty); leaves the brick clear.
     pub(crate) fn finish(&mut self, key: BlockKey) -> Option<SparseBlock> {
-        let mut out = Vec::new();
+        let voxels = self.finish_map(|v| v);
+        (!voxels.is_empty()).then_some(SparseBlock { key, voxels })
+    }
+
+    /// The block's voxels in Morton order, each passed through `f`, in a vector
+    /// of exact capacity (the build counts its bytes); leaves the brick clear.
+    pub(crate) fn finish_map<T>(&mut self, f: impl Fn(BuildVoxel) -> T) -> Vec<T> {
+        let count = self.bits.iter().map(|w| w.count_ones() as usize).sum();
+        let mut out = Vec::with_capacity(count);
         for w in 0..self.bits.len() {
             let mut bits = std::mem::take(&mut self.bits[w]);
             while bits != 0 {
@@ -318,16 +567,16 @@ impl BlockVoxelizer {
                 let normal_sum = std::mem::take(&mut self.normals[m as usize]);
                 let [r, g, b, weight] =
                     self.colors.get_mut(m as usize).map(std::mem::take).unwrap_or_default();
-                out.push(BuildVoxel {
+                out.push(f(BuildVoxel {
                     morton: m,
                     normal_sum,
                     color_sum: [r, g, b],
                     color_weight: weight,
                     faces: 0,
-                });
+                }));
             }
         }
-        (!out.is_empty()).then_some(SparseBlock { key, voxels: out })
+        out
     }
 }
 

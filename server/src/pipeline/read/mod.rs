@@ -2,7 +2,7 @@
 //!
 //! Every reader pushes triangles, in file order, into a [`TriangleSink`]:
 //! the build's sink writes them into the chunked triangle stream
-//! ([`crate::tristream`]) so a huge scan never sits in memory; the
+//! ([`crate::pipeline::stream`]) so a huge scan never sits in memory; the
 //! in-memory [`read_mesh`] / [`read_mesh_bytes`] (tests, fuzzing) collect a
 //! [`TriangleMesh`].
 //!
@@ -32,7 +32,7 @@ use std::sync::Arc;
 use std::sync::LazyLock;
 use std::sync::atomic::{AtomicU64, Ordering};
 
-pub use crate::tristream::RecordLayout;
+pub use crate::pipeline::stream::RecordLayout;
 
 /// An indexed triangle mesh in the source file's own coordinates and units.
 #[derive(Debug, Default, Clone, PartialEq)]
@@ -70,13 +70,16 @@ impl TriangleMesh {
     pub fn stream_into(&self, sink: &mut dyn TriangleSink) -> Result<(), IngestError> {
         let color = self.colors.len() == self.positions.len() && !self.colors.is_empty();
         sink.begin(RecordLayout { f64_positions: true, color })?;
+        let mut batch = Vec::with_capacity(TICK_EVERY.min(self.triangles.len()));
         for t in 0..self.triangles.len() {
-            sink.triangle(self.triangle(t), self.triangle_color(t).unwrap_or_default())?;
-            if t % TICK_EVERY == TICK_EVERY - 1 {
+            batch.push((self.triangle(t), self.triangle_color(t).unwrap_or_default()));
+            if batch.len() == TICK_EVERY {
+                sink.triangles(&batch)?;
+                batch.clear();
                 sink.tick()?;
             }
         }
-        Ok(())
+        sink.triangles(&batch)
     }
 }
 
@@ -98,6 +101,13 @@ pub trait TriangleSink {
     fn begin(&mut self, layout: RecordLayout) -> Result<(), IngestError>;
     /// One triangle in source coordinates, with its linear colour (zeros without colours).
     fn triangle(&mut self, tri: [[f64; 3]; 3], color: [f32; 3]) -> Result<(), IngestError>;
+    /// Many triangles, in order (readers that parse in batches hand them over whole).
+    fn triangles(&mut self, tris: &[([[f64; 3]; 3], [f32; 3])]) -> Result<(), IngestError> {
+        for &(tri, color) in tris {
+            self.triangle(tri, color)?;
+        }
+        Ok(())
+    }
     /// Called now and then during long reads: report progress, stop when cancelled.
     fn tick(&mut self) -> Result<(), IngestError> {
         Ok(())

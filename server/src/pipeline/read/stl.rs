@@ -9,7 +9,7 @@
 use std::io::{self, Read, Seek, SeekFrom};
 
 use super::{IngestError, MeshFormat, ReadOptions, TICK_EVERY, TriangleSink};
-use crate::tristream::RecordLayout;
+use crate::pipeline::stream::RecordLayout;
 
 const HEADER_LEN: usize = 80;
 /// Header plus the little-endian u32 triangle count.

@@ -1,0 +1,411 @@
+//! Out-of-core voxelization: the build's three passes over the chunked
+//! triangle stream ([`crate::pipeline::stream`]), each within the memory budget.
+//!
+//! 1. **Stream** ([`StreamSink`]): the reader pushes triangles; valid ones
+//!    (finite, non-zero area) are packed into chunks whose headers carry
+//!    their bounds, invalid ones are counted and dropped. The union of the
+//!    chunk bounds gives the grid frame.
+//! 2. **Bin** ([`bin_triangles`]): chunks are read back in order and every
+//!    triangle's record is appended to the buffer of each 64³ block its
+//!    bounds overlap. A full buffer (one chunk's worth) becomes a segment in
+//!    the bin store; when all buffers together pass their share of the
+//!    budget, every buffer is flushed. Segments of one block stay in input
+//!    order.
+//! 3. **Voxelize** ([`voxelize_bin`]): one block's segments, read one at a
+//!    time into a reused dense brick, so a block costs one brick and one
+//!    segment however many triangles it has. The pipeline runs blocks in the
+//!    Morton order of [`Bins::blocks`], in parallel batches.
+//!
+//! Determinism: passes 1 and 2 are sequential, and in pass 3 each block is
+//! one thread's work over its triangles in input order, so the output does
+//! not depend on the thread count or on where buffers were flushed.
+//!
+//! Memory (shares from [`crate::pipeline::MemoryPlan`]): stream and bin
+//! stores keep their resident share of encoded chunks and spill the rest to
+//! files in the build's temp dir; bin buffers, with their per-block
+//! bookkeeping, stay within their share (all are flushed when they pass it,
+//! and the per-block state is dropped with them). What stays is the bin
+//! index: 8 bytes a segment here plus the store's location table, counted by
+//! [`Bins::index_bytes`].
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use rayon::prelude::*;
+use voxstream_format::{BlockKey, GridFrame};
+
+use crate::pipeline::progress::{ProgressSink, Stage};
+use crate::pipeline::pyramid::{LodBlock, LodVoxel, block_coord, block_morton};
+use crate::pipeline::read::{IngestError, TriangleSink};
+use crate::pipeline::stream::{Bounds, ChunkStore, MAX_CHUNK_TRIANGLES, RecordLayout};
+use crate::pipeline::voxelize::{
+    EdgeHistogram, Topology, block_range, to_grid, to_grid_unchecked, valid_triangle, with_block_voxelizer,
+};
+use crate::pipeline::{BuildError, BuildOptions};
+
+/// Chunks encoded (lz4 when spilled) together on all cores.
+const PENDING_CHUNKS: usize = 8;
+
+/// Triangles checked, encoded and measured together on all cores.
+const SINK_BATCH: usize = 1 << 14;
+
+/// One triangle as readers hand it over: source positions and linear colour.
+pub type SourceTriangle = ([[f64; 3]; 3], [f32; 3]);
+
+/// Pass 1: packs valid triangles into chunks. Triangles come in batches
+/// (readers' own, or gathered here from single ones); each batch is checked,
+/// encoded and measured on all cores, then appended in file order, so the
+/// chunks are the same as one triangle at a time would give.
+pub struct StreamSink<'a> {
+    pub store: ChunkStore,
+    pub layout: RecordLayout,
+    /// Bounds of every valid triangle (the union of the chunks' bounds).
+    pub bounds: Bounds,
+    pub triangles: u64,
+    pub skipped: u64,
+    /// Edge lengths of the valid triangles, for `--resolution auto`.
+    pub edges: EdgeHistogram,
+    raw: Vec<u8>,
+    /// Single triangles gathered into a batch.
+    gathered: Vec<SourceTriangle>,
+    /// Full chunks waiting to be encoded together.
+    pending: Vec<Vec<u8>>,
+    begun: bool,
+    on_tick: &'a mut dyn FnMut() -> Result<(), IngestError>,
+}
+
+impl<'a> StreamSink<'a> {
+    pub fn new(store: ChunkStore, on_tick: &'a mut dyn FnMut() -> Result<(), IngestError>) -> Self {
+        Self {
+            store,
+            layout: RecordLayout { f64_positions: true, color: false },
+            bounds: Bounds::EMPTY,
+            triangles: 0,
+            skipped: 0,
+            edges: EdgeHistogram::default(),
+            raw: Vec::new(),
+            gathered: Vec::new(),
+            pending: Vec::new(),
+            begun: false,
+            on_tick,
+        }
+    }
+
+    /// Queues the current chunk; every [`PENDING_CHUNKS`] (and at the end) they
+    /// get their bounds and are encoded together, on all cores.
+    fn flush(&mut self, last: bool) -> Result<(), IngestError> {
+        if !self.raw.is_empty() {
+            let raw = std::mem::replace(
+                &mut self.raw,
+                Vec::with_capacity(MAX_CHUNK_TRIANGLES * self.layout.size()),
+            );
+            self.pending.push(raw);
+        }
+        if self.pending.len() >= PENDING_CHUNKS || (last && !self.pending.is_empty()) {
+            let layout = self.layout;
+            // From the records: they hold the source values exactly (f32 only for f32 sources).
+            let items: Vec<(Vec<u8>, Bounds)> = std::mem::take(&mut self.pending)
+                .into_par_iter()
+                .map(|raw| {
+                    let mut b = Bounds::EMPTY;
+                    for r in raw.chunks_exact(layout.size()) {
+                        b.add_triangle(&layout.decode(r).0);
+                    }
+                    (raw, b)
+                })
+                .collect();
+            for (_, b) in &items {
+                self.bounds.union(b);
+            }
+            self.store
+                .push_many(layout, &items)
+                .map_err(|e| IngestError::Invalid(format!("temporary triangle stream: {e}")))?;
+        }
+        (self.on_tick)()
+    }
+
+    /// Checks, encodes and measures a batch on all cores and appends it in order.
+    fn push_batch(&mut self, tris: &[SourceTriangle]) -> Result<(), IngestError> {
+        let layout = self.layout;
+        let pieces: Vec<(Vec<u8>, Vec<u16>, u64, u64)> = tris
+            .par_chunks(1024)
+            .map(|piece| {
+                let mut bytes = Vec::with_capacity(piece.len() * layout.size());
+                let mut bins = Vec::with_capacity(piece.len() * 3);
+                let mut valid = 0;
+                for (tri, color) in piece {
+                    if valid_triangle(tri) {
+                        layout.encode(&mut bytes, tri, *color);
+                        EdgeHistogram::bins(tri, &mut bins);
+                        valid += 1;
+                    }
+                }
+                (bytes, bins, valid, piece.len() as u64 - valid)
+            })
+            .collect();
+        let chunk_bytes = MAX_CHUNK_TRIANGLES * layout.size();
+        for (bytes, bins, valid, invalid) in pieces {
+            self.edges.count(&bins);
+            self.triangles += valid;
+            self.skipped += invalid;
+            let mut at = 0;
+            while at < bytes.len() {
+                let take = (chunk_bytes - self.raw.len()).min(bytes.len() - at);
+                self.raw.extend_from_slice(&bytes[at..at + take]);
+                at += take;
+                if self.raw.len() == chunk_bytes {
+                    self.flush(false)?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Writes the last partial chunk.
+    pub fn finish(&mut self) -> Result<(), IngestError> {
+        let gathered = std::mem::take(&mut self.gathered);
+        self.push_batch(&gathered)?;
+        self.flush(true)
+    }
+}
+
+impl TriangleSink for StreamSink<'_> {
+    fn begin(&mut self, layout: RecordLayout) -> Result<(), IngestError> {
+        if self.begun {
+            return Err(IngestError::Invalid("reader began twice".into()));
+        }
+        self.begun = true;
+        self.layout = layout;
+        self.raw.reserve(MAX_CHUNK_TRIANGLES * layout.size());
+        Ok(())
+    }
+
+    fn triangle(&mut self, tri: [[f64; 3]; 3], color: [f32; 3]) -> Result<(), IngestError> {
+        self.gathered.push((tri, color));
+        if self.gathered.len() >= SINK_BATCH {
+            let gathered = std::mem::take(&mut self.gathered);
+            self.push_batch(&gathered)?;
+            self.gathered = gathered;
+            self.gathered.clear();
+        }
+        Ok(())
+    }
+
+    fn triangles(&mut self, tris: &[SourceTriangle]) -> Result<(), IngestError> {
+        // Earlier single triangles first: file order.
+        if !self.gathered.is_empty() {
+            let gathered = std::mem::take(&mut self.gathered);
+            self.push_batch(&gathered)?;
+        }
+        self.push_batch(tris)
+    }
+
+    fn tick(&mut self) -> Result<(), IngestError> {
+        (self.on_tick)()
+    }
+}
+
+/// One block's records not yet stored as a segment.
+struct BinBuffer {
+    morton: u64,
+    raw: Vec<u8>,
+    bounds: Bounds,
+}
+
+/// Bookkeeping bytes of one active buffer (entry, map slot), counted against the buffer share.
+const BUFFER_ENTRY_BYTES: usize = std::mem::size_of::<BinBuffer>() + 32;
+
+/// Segment ids take the low bits of an index entry, the block's Morton code the rest.
+const SEGMENT_BITS: u32 = 34;
+
+/// The bins: for each non-empty block, its segments in the bin store, in input order.
+pub struct Bins {
+    pub store: ChunkStore,
+    pub layout: RecordLayout,
+    /// `block_morton << SEGMENT_BITS | segment`, sorted: blocks in Morton
+    /// order, each block's segments in input order.
+    index: Vec<u64>,
+    /// Triangles that became degenerate or non-finite in grid units.
+    pub skipped: u64,
+    pub triangles: u64,
+}
+
+impl Bins {
+    /// The non-empty level-0 blocks in Morton order, each with its index entries.
+    pub fn blocks(&self) -> impl Iterator<Item = (BlockKey, &[u64])> {
+        self.index.chunk_by(|a, b| a >> SEGMENT_BITS == b >> SEGMENT_BITS).map(|segs| {
+            let c = block_coord(segs[0] >> SEGMENT_BITS);
+            (BlockKey::new(0, c[0], c[1], c[2]), segs)
+        })
+    }
+
+    pub fn block_count(&self) -> usize {
+        self.blocks().count()
+    }
+
+    /// Memory the index holds while the blocks are voxelized (it grows with the input).
+    pub fn index_bytes(&self) -> usize {
+        self.index.capacity() * 8 + self.store.index_bytes()
+    }
+}
+
+fn temp_err(e: crate::pipeline::stream::ChunkError) -> BuildError {
+    BuildError::Temp(e.to_string())
+}
+
+/// A triangle's block range (closed) and its source-space bounds.
+type Placement = ([u32; 3], [u32; 3], Bounds);
+
+/// Pass 2: bins the stream's triangles by the 64³ blocks they overlap.
+/// `resident` bytes of segments stay in memory; buffers and their
+/// bookkeeping are flushed when they pass `buffer_limit` bytes (counted by
+/// length; capacities reach at most twice that).
+pub fn bin_triangles(
+    stream: &ChunkStore,
+    layout: RecordLayout,
+    frame: &GridFrame,
+    spill_path: &Path,
+    (resident, buffer_limit): (usize, usize),
+    opts: &BuildOptions,
+    progress: &ProgressSink,
+) -> Result<Bins, BuildError> {
+    let res = frame.resolution as i64;
+    let rec = layout.size();
+    let mut store = ChunkStore::new(spill_path, resident);
+    // Buffers in first-hit order, found through a map and a one-entry cache
+    // (consecutive triangles mostly share a block).
+    let mut buffers: Vec<BinBuffer> = Vec::new();
+    let mut lookup: HashMap<u64, usize> = HashMap::new();
+    let mut last: Option<(u64, usize)> = None;
+    let mut buffered = 0usize;
+    let mut index: Vec<u64> = Vec::new();
+    let (mut skipped, mut triangles) = (0u64, 0u64);
+    // Full buffers wait here (block, records, bounds) and are encoded together.
+    let mut pending: Vec<(u64, Vec<u8>, Bounds)> = Vec::new();
+    let take = |b: &mut BinBuffer, pending: &mut Vec<(u64, Vec<u8>, Bounds)>| {
+        if !b.raw.is_empty() {
+            // Moved out, not cleared: idle blocks must not keep their high-water capacity.
+            pending.push((b.morton, std::mem::take(&mut b.raw), std::mem::take(&mut b.bounds)));
+        }
+    };
+    let drain = |store: &mut ChunkStore,
+                 index: &mut Vec<u64>,
+                 pending: &mut Vec<(u64, Vec<u8>, Bounds)>|
+     -> Result<(), BuildError> {
+        let items: Vec<(Vec<u8>, Bounds)> =
+            pending.iter_mut().map(|(_, r, b)| (std::mem::take(r), *b)).collect();
+        let ids = store.push_many(layout, &items).map_err(temp_err)?;
+        for ((m, _, _), id) in pending.drain(..).zip(ids) {
+            if id as u64 >= 1 << SEGMENT_BITS {
+                return Err(BuildError::Temp(format!("more than 2^{SEGMENT_BITS} bin segments")));
+            }
+            index.push(m << SEGMENT_BITS | id as u64);
+        }
+        Ok(())
+    };
+    for id in 0..stream.len() {
+        opts.check_cancelled()?;
+        let (_, raw) = stream.read(id).map_err(temp_err)?;
+        // Where each triangle goes, computed on all cores; appended below in input order.
+        let placed: Vec<Option<Placement>> = raw
+            .par_chunks_exact(rec)
+            .with_min_len(1024)
+            .map(|record| {
+                let (tri, _) = layout.decode(record);
+                let g = to_grid(tri, frame)?;
+                let (lo, hi) = block_range(&g, res);
+                let mut bounds = Bounds::EMPTY;
+                bounds.add_triangle(&tri);
+                Some((lo, hi, bounds))
+            })
+            .collect();
+        for (record, place) in raw.chunks_exact(rec).zip(placed) {
+            let Some((blo, bhi, bounds)) = place else {
+                skipped += 1;
+                continue;
+            };
+            triangles += 1;
+            for bz in blo[2]..=bhi[2] {
+                for by in blo[1]..=bhi[1] {
+                    for bx in blo[0]..=bhi[0] {
+                        let m = block_morton([bx, by, bz]);
+                        let i = match last {
+                            Some((k, i)) if k == m => i,
+                            _ => {
+                                let i = *lookup.entry(m).or_insert_with(|| {
+                                    buffers.push(BinBuffer {
+                                        morton: m,
+                                        raw: Vec::new(),
+                                        bounds: Bounds::EMPTY,
+                                    });
+                                    buffered += BUFFER_ENTRY_BYTES;
+                                    buffers.len() - 1
+                                });
+                                last = Some((m, i));
+                                i
+                            }
+                        };
+                        let buf = &mut buffers[i];
+                        buf.raw.extend_from_slice(record);
+                        buf.bounds.union(&bounds);
+                        buffered += rec;
+                        if buf.raw.len() >= MAX_CHUNK_TRIANGLES * rec {
+                            buffered -= buf.raw.len();
+                            take(buf, &mut pending);
+                            if pending.len() >= PENDING_CHUNKS {
+                                drain(&mut store, &mut index, &mut pending)?;
+                            }
+                        }
+                    }
+                }
+            }
+            if buffered > buffer_limit {
+                // Everything goes, bookkeeping included, so many blocks cost no more than few.
+                for buf in &mut buffers {
+                    take(buf, &mut pending);
+                }
+                drain(&mut store, &mut index, &mut pending)?;
+                buffers = Vec::new();
+                lookup = HashMap::new();
+                last = None;
+                buffered = 0;
+            }
+        }
+        progress.stage(Stage::Voxelize, 0.3 * (id + 1) as f64 / stream.len() as f64);
+    }
+    for buf in &mut buffers {
+        take(buf, &mut pending);
+    }
+    drain(&mut store, &mut index, &mut pending)?;
+    drop((buffers, lookup));
+    index.sort_unstable();
+    index.shrink_to_fit();
+    Ok(Bins { store, layout, index, skipped, triangles })
+}
+
+/// Pass 3 for one block: voxelizes its segments (in input order) into a
+/// level-0 block in pyramid form, faces not yet marked; `None` when empty.
+pub fn voxelize_bin(
+    bins: &Bins,
+    key: BlockKey,
+    index: &[u64],
+    frame: &GridFrame,
+    topology: Topology,
+) -> Result<Option<LodBlock>, BuildError> {
+    let res = frame.resolution as i64;
+    let rec = bins.layout.size();
+    with_block_voxelizer(|vox| -> Result<_, BuildError> {
+        for &entry in index {
+            let (_, raw) = bins.store.read((entry & ((1 << SEGMENT_BITS) - 1)) as usize).map_err(temp_err)?;
+            for record in raw.chunks_exact(rec) {
+                let (tri, color) = bins.layout.decode(record);
+                // Valid: pass 2 binned only triangles that `to_grid` accepted,
+                // and the same arithmetic gives the same grid triangle here.
+                let g = to_grid_unchecked(tri, frame);
+                vox.add(key, &g, bins.layout.color.then_some(color), res, topology);
+            }
+        }
+        let voxels = vox.finish_map(|voxel| LodVoxel { voxel, solid: 1, error: 0.0 });
+        Ok((!voxels.is_empty()).then_some(LodBlock { key, voxels }))
+    })
+}

@@ -1,0 +1,501 @@
+//! The build pipeline, one stage a module, in data-flow order:
+//! [`read`] (mesh files) → [`stream`] (chunked triangle stream) → [`bin`]
+//! (triangles binned by 64³ block, out of core) → [`voxelize`] (one brick a
+//! block) → [`pyramid`] (faces, coarser levels) → [`write`] (pack, encode,
+//! publish). [`build_scene`] runs them as one call, reporting [`progress`].
+
+pub mod bin;
+pub mod progress;
+pub mod pyramid;
+pub mod read;
+pub mod stream;
+pub mod voxelize;
+pub mod write;
+
+pub use voxelize::{Resolution, ResolutionChoice};
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use voxstream_format::SourceInfo;
+
+use crate::pipeline::bin::StreamSink;
+use crate::pipeline::progress::{Progress, ProgressSink, Stage};
+use crate::pipeline::pyramid::{
+    FULL_LOD_BLOCK_BYTES, LodBlock, Pyramid, level_count, mark_exposed_faces_lod,
+};
+use crate::pipeline::read::{IngestError, ReadOptions};
+use crate::pipeline::stream::ChunkStore;
+use crate::pipeline::stream::MAX_CHUNK_TRIANGLES;
+use crate::pipeline::voxelize::BLOCK_VOXELIZER_BYTES;
+use crate::pipeline::voxelize::{Topology, VoxelizeError};
+use crate::pipeline::write::{BlockWriter, ENCODE_BYTES_PER_VOXEL};
+use crate::store::{self, StoreError};
+
+#[derive(Debug, Clone)]
+pub struct BuildOptions {
+    /// How many level-0 voxels an edge of the grid has: matched to the scan
+    /// (auto), from a voxel size, or a given power of two.
+    pub resolution: Resolution,
+    /// The most `auto` picks (the server's `--max-resolution`).
+    pub max_resolution: u32,
+    /// Scene id; derived from the input's file name when `None`.
+    pub name: Option<String>,
+    /// Which voxels a triangle sets.
+    pub topology: Topology,
+    /// Set to true from another thread to stop the build; it then returns
+    /// [`BuildError::Cancelled`] and publishes nothing.
+    pub cancel: Option<Arc<AtomicBool>>,
+    /// Bytes the build may hold in memory (reader tables, resident chunks,
+    /// bins, in-flight bricks, level 0); the rest goes to temporary files.
+    pub memory_budget: u64,
+    /// Where the build's temporary directory goes; the store directory when `None`.
+    pub temp_dir: Option<PathBuf>,
+}
+
+impl BuildOptions {
+    pub fn check_cancelled(&self) -> Result<(), BuildError> {
+        match &self.cancel {
+            Some(flag) if flag.load(Ordering::Relaxed) => Err(BuildError::Cancelled),
+            _ => Ok(()),
+        }
+    }
+}
+
+/// 1 GiB.
+pub const DEFAULT_MEMORY_BUDGET: u64 = 1 << 30;
+
+/// Parses a byte count: plain bytes or a K/M/G/T suffix (powers of 1024;
+/// `KiB`, `KB`, `K` and `k` all mean 1024), e.g. `1GiB`, `512M`, `1048576`.
+pub fn parse_byte_size(text: &str) -> Result<u64, String> {
+    let t = text.trim();
+    let split = t.find(|c: char| !(c.is_ascii_digit() || c == '.')).unwrap_or(t.len());
+    let (number, unit) = t.split_at(split);
+    let shift = match unit.trim().to_ascii_lowercase().as_str() {
+        "" | "b" => 0,
+        "k" | "kb" | "kib" => 10,
+        "m" | "mb" | "mib" => 20,
+        "g" | "gb" | "gib" => 30,
+        "t" | "tb" | "tib" => 40,
+        other => return Err(format!("unknown size unit {other:?} in {text:?}: use bytes or K, M, G, T")),
+    };
+    let value: f64 = number.parse().map_err(|_| format!("{text:?} is not a size such as 1GiB or 512M"))?;
+    let bytes = value * (1u64 << shift) as f64;
+    if !(1.0..1.8e19).contains(&bytes) {
+        return Err(format!("size {text:?} is out of range"));
+    }
+    Ok(bytes as u64)
+}
+
+impl Default for BuildOptions {
+    fn default() -> Self {
+        Self {
+            resolution: Resolution::Auto,
+            max_resolution: voxelize::MAX_RESOLUTION,
+            name: None,
+            topology: Topology::Conservative,
+            cancel: None,
+            memory_budget: DEFAULT_MEMORY_BUDGET,
+            temp_dir: None,
+        }
+    }
+}
+
+#[derive(Debug, Clone)]
+pub struct BuildReport {
+    pub id: String,
+    pub scene_dir: PathBuf,
+    pub triangles: u64,
+    pub skipped_triangles: u64,
+    /// Level-0 voxels written (buried voxels are not stored).
+    pub voxels: u64,
+    pub blocks: u32,
+    pub levels: u8,
+    /// The grid's resolution and why it was chosen.
+    pub resolution_choice: ResolutionChoice,
+    /// Encoded bytes of all blocks on all levels.
+    pub bytes: u64,
+    pub seconds: f64,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum BuildError {
+    #[error(transparent)]
+    Ingest(#[from] IngestError),
+    #[error(transparent)]
+    Voxelize(#[from] VoxelizeError),
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    #[error("the build was cancelled")]
+    Cancelled,
+    #[error("temporary build files: {0}")]
+    Temp(String),
+    #[error(
+        "the memory budget {} is too small for resolution {resolution}: at least {} is needed ({detail}); \
+         raise --memory-budget or lower --resolution",
+        mib(*budget),
+        mib(*needed)
+    )]
+    BudgetTooSmall { budget: u64, resolution: u32, needed: u64, detail: String },
+}
+
+/// Bytes as whole MiB, rounded up (a budget named in a message must suffice).
+fn mib(bytes: u64) -> String {
+    format!("{} MiB", bytes.div_ceil(1 << 20))
+}
+
+/// The largest triangle record: f64 positions and a colour.
+const MAX_RECORD_BYTES: usize = 72 + 12;
+
+/// One voxelizing worker: its brick, its block's output until the block's
+/// real size is known, and one segment read back (encoded and decoded).
+pub const WORKER_BYTES: usize =
+    BLOCK_VOXELIZER_BYTES + FULL_LOD_BLOCK_BYTES + 2 * MAX_CHUNK_TRIANGLES * MAX_RECORD_BYTES;
+
+/// The writer's queue (one full block) and what encoding it takes.
+pub const WRITER_BYTES: usize =
+    FULL_LOD_BLOCK_BYTES + voxstream_format::BLOCK_VOXELS * ENCODE_BYTES_PER_VOXEL;
+
+/// The least the triangle stores and bin buffers of passes 1 and 2 get.
+const SPARE_MIN: u64 = 4 << 20;
+
+/// How a build splits its memory budget B (ARCHITECTURE.md, "Memory").
+///
+/// The pyramid stage reserves its worst case up front: the front (one
+/// partial 64³ block per level above 0, plus one growing), the writer's queue
+/// and one worker. What is left, the spare S = B − reserve, must be at least
+/// [`SPARE_MIN`]: the stream and bin stores keep S/4 each resident, the bin
+/// buffers S/8 (S/4 with capacity slack). During pass 3 the bin index and
+/// the resident bins come out of S, and the rest of S buys more workers and
+/// finished level-0 blocks waiting for their turn in Morton order.
+#[derive(Debug, Clone, Copy)]
+pub struct MemoryPlan {
+    pub budget: u64,
+    pub resolution: u32,
+    pub reserve: u64,
+}
+
+impl MemoryPlan {
+    fn front(levels: u8) -> u64 {
+        if levels > 1 { levels as u64 * FULL_LOD_BLOCK_BYTES as u64 } else { 0 }
+    }
+
+    /// What the pyramid stage holds at worst besides the bins.
+    pub fn reserve(resolution: u32) -> u64 {
+        Self::front(level_count(resolution)) + (WRITER_BYTES + WORKER_BYTES) as u64
+    }
+
+    /// The smallest budget a build at `resolution` can run in, whatever the input.
+    pub fn minimum_budget(resolution: u32) -> u64 {
+        Self::reserve(resolution) + SPARE_MIN
+    }
+
+    /// Checks the resolution and that the budget holds a build at it.
+    pub fn new(budget: u64, resolution: u32) -> Result<Self, BuildError> {
+        voxelize::check_resolution(resolution)?;
+        let needed = Self::minimum_budget(resolution);
+        if budget < needed {
+            let levels = level_count(resolution);
+            return Err(BuildError::BudgetTooSmall {
+                budget,
+                resolution,
+                needed,
+                detail: format!(
+                    "{} levels: a front of {} blocks of 64³ voxels at {} each, the writer's queue, \
+                     one voxelizer and {} for the triangle stores",
+                    levels,
+                    if levels > 1 { levels } else { 0 },
+                    mib(FULL_LOD_BLOCK_BYTES as u64),
+                    mib(SPARE_MIN)
+                ),
+            });
+        }
+        Ok(Self { budget, resolution, reserve: Self::reserve(resolution) })
+    }
+
+    fn spare(&self) -> u64 {
+        self.budget - self.reserve
+    }
+
+    pub fn stream_resident(&self) -> usize {
+        (self.spare() / 4) as usize
+    }
+
+    pub fn bin_resident(&self) -> usize {
+        (self.spare() / 4) as usize
+    }
+
+    pub fn bin_buffers(&self) -> usize {
+        (self.spare() / 8) as usize
+    }
+
+    pub fn writer_pending(&self) -> usize {
+        FULL_LOD_BLOCK_BYTES
+    }
+
+    /// Bytes pass 3 has for workers and waiting level-0 blocks, once the
+    /// bins hold `index_bytes` of index; an error when not even one worker fits.
+    pub fn pass3_pool(&self, index_bytes: u64) -> Result<u64, BuildError> {
+        let fixed = Self::front(level_count(self.resolution))
+            + WRITER_BYTES as u64
+            + self.bin_resident() as u64
+            + index_bytes;
+        let needed = fixed + WORKER_BYTES as u64;
+        if self.budget < needed {
+            return Err(BuildError::BudgetTooSmall {
+                budget: self.budget,
+                resolution: self.resolution,
+                needed: needed + (self.bin_resident() as u64).max(SPARE_MIN),
+                detail: format!("this input's bin index takes {}", mib(index_bytes)),
+            });
+        }
+        Ok(self.budget - fixed)
+    }
+}
+
+/// Pass 3: voxelizes the bins' blocks in Morton order, in parallel batches
+/// within the plan's pool, and feeds them in order through the streaming
+/// pyramid into `writer`.
+fn voxelize_pyramid(
+    bins: &bin::Bins,
+    frame: &voxstream_format::GridFrame,
+    opts: &BuildOptions,
+    plan: &MemoryPlan,
+    progress: &ProgressSink,
+    writer: &mut BlockWriter,
+) -> Result<(), BuildError> {
+    use std::sync::atomic::AtomicUsize;
+
+    use rayon::prelude::*;
+
+    struct Slot<'b> {
+        key: voxstream_format::BlockKey,
+        index: &'b [u64],
+        done: Option<Result<Option<LodBlock>, BuildError>>,
+    }
+    let held = |s: &Slot| match &s.done {
+        Some(Ok(Some(b))) => write::block_bytes(b),
+        _ => 0,
+    };
+    let pool = plan.pass3_pool(bins.index_bytes() as u64)? as usize;
+    let workers = (pool / WORKER_BYTES).clamp(1, rayon::current_num_threads());
+    // Finished level-0 blocks wait here; each block in flight reserves a full
+    // block until its real size is known, and the head of the window always
+    // finds its reservation free, so the window always moves.
+    let limit = pool - workers * (WORKER_BYTES - FULL_LOD_BLOCK_BYTES);
+    let window_len = 32 * workers;
+    let total = bins.block_count().max(1);
+    let mut blocks = bins.blocks();
+    let mut window: Vec<Slot> = Vec::with_capacity(window_len);
+    let mut pyramid = Pyramid::new(frame.resolution);
+    let mut fed = 0usize;
+    let thread_pool = if workers < rayon::current_num_threads() {
+        Some(
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(workers)
+                .build()
+                .map_err(|e| BuildError::Temp(format!("thread pool: {e}")))?,
+        )
+    } else {
+        None
+    };
+    loop {
+        opts.check_cancelled()?;
+        window.extend(blocks.by_ref().take(window_len - window.len()).map(|(key, index)| Slot {
+            key,
+            index,
+            done: None,
+        }));
+        if window.is_empty() {
+            break;
+        }
+        let committed = AtomicUsize::new(window.iter().map(held).sum());
+        let mut run = || {
+            window.par_iter_mut().enumerate().filter(|(_, s)| s.done.is_none()).for_each(|(i, slot)| {
+                let cap = if i == 0 { limit } else { limit - FULL_LOD_BLOCK_BYTES };
+                let reserved = committed
+                    .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |c| {
+                        (c + FULL_LOD_BLOCK_BYTES <= cap).then_some(c + FULL_LOD_BLOCK_BYTES)
+                    })
+                    .is_ok();
+                if !reserved {
+                    return; // its turn comes in a later round
+                }
+                let result = opts.check_cancelled().and_then(|()| {
+                    let mut block = bin::voxelize_bin(bins, slot.key, slot.index, frame, opts.topology)?;
+                    block.iter_mut().for_each(mark_exposed_faces_lod);
+                    Ok(block)
+                });
+                let real = match &result {
+                    Ok(Some(b)) => write::block_bytes(b),
+                    _ => 0,
+                };
+                committed.fetch_sub(FULL_LOD_BLOCK_BYTES - real, Ordering::Relaxed);
+                slot.done = Some(result);
+            })
+        };
+        match &thread_pool {
+            Some(p) => p.install(run),
+            None => run(),
+        }
+        let ready = window.iter().take_while(|s| s.done.is_some()).count();
+        for slot in window.drain(..ready) {
+            if let Some(block) = slot.done.expect("counted as done")? {
+                pyramid.push(block, &mut |b| writer.add(b))?;
+            }
+            fed += 1;
+        }
+        progress.stage(Stage::Voxelize, 0.3 + 0.7 * fed as f64 / total as f64);
+    }
+    pyramid.finish(&mut |b| writer.add(b))?;
+    Ok(())
+}
+
+pub fn build_scene(input: &Path, store_dir: &Path, opts: &BuildOptions) -> Result<BuildReport, BuildError> {
+    build_scene_reporting(input, store_dir, opts, &|_| {})
+}
+
+/// [`build_scene`], calling `report` as the build moves through its stages.
+pub fn build_scene_reporting(
+    input: &Path,
+    store_dir: &Path,
+    opts: &BuildOptions,
+    report: &(dyn Fn(Progress) + Sync),
+) -> Result<BuildReport, BuildError> {
+    let start = Instant::now();
+    let progress = ProgressSink::new(report);
+    let id = match &opts.name {
+        Some(n) => {
+            store::validate_id(n)?;
+            n.clone()
+        }
+        None => store::id_from_file_stem(input),
+    };
+    // Before reading a large file: the resolution and whether the budget holds
+    // it (for auto and a voxel size, at least the smallest grid).
+    let first_plan = MemoryPlan::new(
+        opts.memory_budget,
+        match opts.resolution {
+            Resolution::Explicit(r) => r,
+            _ => voxelize::MIN_AUTO_RESOLUTION,
+        },
+    )?;
+    let temp_parent = opts.temp_dir.as_deref().unwrap_or(store_dir);
+    std::fs::create_dir_all(temp_parent)
+        .map_err(|e| BuildError::Temp(format!("create {}: {e}", temp_parent.display())))?;
+    // Dot-named, so a store never lists it; removed when dropped: on success, error and cancellation.
+    // The pid lets a restarted server tell a killed build's leftovers from a live build's.
+    let prefix = format!(".build-{}-", std::process::id());
+    let temp = tempfile::Builder::new()
+        .prefix(&prefix)
+        .tempdir_in(temp_parent)
+        .map_err(|e| BuildError::Temp(format!("create a directory in {}: {e}", temp_parent.display())))?;
+
+    // Pass 1: read, streaming valid triangles into chunks.
+    progress.stage(Stage::Read, 0.0);
+    let input_len = std::fs::metadata(input).map(|m| m.len()).unwrap_or(0).max(1);
+    let read_opts = ReadOptions { memory_budget: opts.memory_budget, ..Default::default() };
+    let bytes_read = read_opts.bytes_read.clone();
+    let mut on_tick = || {
+        if opts.check_cancelled().is_err() {
+            return Err(IngestError::Cancelled);
+        }
+        progress.stage(Stage::Read, bytes_read.load(Ordering::Relaxed) as f64 / input_len as f64);
+        Ok(())
+    };
+    let stream_store = ChunkStore::new(&temp.path().join("stream.vxt"), first_plan.stream_resident());
+    let mut sink = StreamSink::new(stream_store, &mut on_tick);
+    let format = read::stream_mesh(input, &mut sink, &read_opts).and_then(|f| sink.finish().map(|()| f));
+    let format = match format {
+        Err(IngestError::Cancelled) => return Err(BuildError::Cancelled),
+        r => r?,
+    };
+    let StreamSink {
+        store: stream_store,
+        layout,
+        bounds,
+        triangles: read_triangles,
+        skipped: read_skipped,
+        edges,
+        ..
+    } = sink;
+    if read_triangles + read_skipped == 0 {
+        return Err(IngestError::Invalid("the file holds no triangles".into()).into());
+    }
+    tracing::debug!(seconds = start.elapsed().as_secs_f64(), "build: read done");
+    progress.set_triangles(read_triangles + read_skipped);
+    progress.stage(Stage::Read, 1.0);
+    opts.check_cancelled()?;
+
+    // The grid, now that the bounds and the edge lengths are known.
+    let max_auto = (voxelize::MIN_AUTO_RESOLUTION.trailing_zeros()
+        ..=voxelize::MAX_RESOLUTION.trailing_zeros())
+        .map(|k| 1u32 << k)
+        .filter(|&r| MemoryPlan::minimum_budget(r) <= opts.memory_budget)
+        .max()
+        .unwrap_or(voxelize::MIN_AUTO_RESOLUTION)
+        .min(opts.max_resolution);
+    let (frame, resolution_choice) =
+        voxelize::choose_resolution(&bounds, opts.resolution, edges.median(), max_auto, read_skipped)?;
+    drop(edges);
+    let plan = MemoryPlan::new(opts.memory_budget, frame.resolution)?;
+    tracing::debug!(reason = %resolution_choice.reason, "build: resolution");
+
+    // Pass 2: bin by block.
+    progress.stage(Stage::Voxelize, 0.0);
+    let bins = bin::bin_triangles(
+        &stream_store,
+        layout,
+        &frame,
+        &temp.path().join("bins.vxt"),
+        (plan.bin_resident(), plan.bin_buffers()),
+        opts,
+        &progress,
+    )?;
+    tracing::debug!(
+        seconds = start.elapsed().as_secs_f64(),
+        stream_chunks = stream_store.len(),
+        stream_spilled_bytes = stream_store.spilled_bytes(),
+        bin_segments = bins.store.len(),
+        bin_spilled_bytes = bins.store.spilled_bytes(),
+        bin_index_bytes = bins.index_bytes(),
+        "build: bin done"
+    );
+    drop(stream_store);
+    if bins.triangles == 0 {
+        return Err(VoxelizeError::NoValidTriangle { skipped: bins.skipped + read_skipped }.into());
+    }
+
+    // Pass 3: voxelize, build the pyramid and write, streaming.
+    let mut writer = BlockWriter::create(store_dir, &id, frame.resolution, plan.writer_pending())?;
+    voxelize_pyramid(&bins, &frame, opts, &plan, &progress, &mut writer)?;
+    let skipped = bins.skipped + read_skipped;
+    let triangles = bins.triangles + skipped;
+    drop(bins);
+    tracing::debug!(seconds = start.elapsed().as_secs_f64(), "build: pyramid done");
+    opts.check_cancelled()?;
+    progress.stage(Stage::Write, 0.0);
+    let source = SourceInfo {
+        file: input.file_name().and_then(|f| f.to_str()).unwrap_or("").to_string(),
+        format: format.to_string(),
+        triangles,
+        skipped_triangles: skipped,
+    };
+    let manifest = writer.finish(id.clone(), source, frame, resolution_choice.clone())?;
+    progress.stage(Stage::Write, 1.0);
+    drop(temp);
+    Ok(BuildReport {
+        scene_dir: store_dir.join(&id),
+        id,
+        triangles: manifest.source.triangles,
+        skipped_triangles: skipped,
+        voxels: manifest.levels[0].voxels,
+        blocks: manifest.block_count() as u32,
+        levels: manifest.levels.len() as u8,
+        resolution_choice,
+        bytes: manifest.levels.iter().map(|l| l.bytes).sum(),
+        seconds: start.elapsed().as_secs_f64(),
+    })
+}

@@ -1,0 +1,441 @@
+//! `voxstream ao-bench`: run time against error of the cone-traced AO over a
+//! sweep of settings, on the analytic scenes (generated in code) and the named
+//! real views present in the data directory. Each view is built once, its
+//! reference (BVH, cosine-weighted rays at the render's own points) computed
+//! once per image size, and every setting rendered with timing (median of
+//! three frames with AO, three without, on whatever Vulkan adapter is there).
+//! Writes `ao-benchmark.md` and `ao-pareto.png` (mean frame time against mean
+//! RMSE over the views, Pareto front joined) and prints the JSON.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use serde::Serialize;
+use voxstream_viewer::ao::AoSettings;
+
+use crate::reference::analytic::{self, exact_error, exact_image};
+use crate::reference::metrics::compare;
+use crate::reference::{AoParams, EPSILON_VOXELS, MeshBvh, reference_at};
+use crate::render::{CameraSpec, RenderRequest, render_view};
+
+#[derive(Debug, Clone, clap::Args)]
+pub struct AoBenchArgs {
+    /// Where ao-benchmark.md and ao-pareto.png go.
+    #[arg(long, default_value = "docs")]
+    pub out_dir: PathBuf,
+    /// Reduced image size (the sweep); one point is also rendered at twice this.
+    #[arg(long, default_value_t = 96)]
+    pub width: u32,
+    #[arg(long, default_value_t = 64)]
+    pub height: u32,
+    /// Reference rays per pixel.
+    #[arg(long, default_value_t = 512)]
+    pub rays: u32,
+    /// Where the real meshes are (views whose mesh is absent are skipped and listed).
+    #[arg(long, default_value = "../shared/data")]
+    pub data_dir: PathBuf,
+    /// Scene resolution the views are built at.
+    #[arg(long, default_value_t = 256)]
+    pub resolution: u32,
+}
+
+/// One setting of the sweep.
+#[derive(Debug, Clone, Serialize)]
+pub struct Point {
+    pub label: String,
+    pub settings: AoSettings,
+    /// Image scale relative to --width/--height.
+    pub scale: u32,
+}
+
+fn sweep() -> Vec<Point> {
+    let d = AoSettings::default();
+    let mut points = Vec::new();
+    for cones in [3, 5, 6, 8, 16] {
+        points.push(Point { label: format!("{cones} cones"), settings: AoSettings { cones, ..d }, scale: 1 });
+    }
+    for cones in [6, 16] {
+        points.push(Point {
+            label: format!("{cones} cones, step 0.5"),
+            settings: AoSettings { cones, step: 0.5, ..d },
+            scale: 1,
+        });
+    }
+    points.push(Point {
+        label: "6 cones, aperture x1.5".into(),
+        settings: AoSettings { aperture_deg: Some(d.aperture() * 1.5), ..d },
+        scale: 1,
+    });
+    points.push(Point {
+        label: "6 cones, empty skip".into(),
+        settings: AoSettings { empty_skip: true, ..d },
+        scale: 1,
+    });
+    points.push(Point { label: "6 cones, 2x resolution".into(), settings: d, scale: 2 });
+    points
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Row {
+    pub view: String,
+    pub point: String,
+    pub width: u32,
+    pub height: u32,
+    pub frame_ms: f64,
+    pub frame_no_ao_ms: f64,
+    pub ao_over_frame: f64,
+    pub rmse: f64,
+    pub bias: f64,
+    pub ssim: f64,
+    pub equal_error_rays: Option<f64>,
+    /// Analytic views: mean |V − exact|.
+    pub exact_mae: Option<f64>,
+    /// Against the ray-traced view of the mesh (voxelization included).
+    pub primary_rmse: f64,
+    pub primary_bias: f64,
+}
+
+/// One image scale's reference: scale, the points, V, one-ray variance, exact V
+/// (analytic views) and V of the ray-traced view.
+struct ScaleReference {
+    scale: u32,
+    positions: Vec<[f64; 3]>,
+    v: Vec<f32>,
+    variance: Vec<f32>,
+    exact: Option<Vec<f32>>,
+    primary: Vec<f32>,
+}
+
+struct View {
+    name: String,
+    mesh: PathBuf,
+    camera: CameraSpec,
+    shapes: Option<Vec<analytic::Shape>>,
+}
+
+fn camera_around(mesh: &crate::pipeline::read::TriangleMesh, inside: bool) -> CameraSpec {
+    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for p in &mesh.positions {
+        for a in 0..3 {
+            lo[a] = lo[a].min(p[a]);
+            hi[a] = hi[a].max(p[a]);
+        }
+    }
+    let c: [f64; 3] = std::array::from_fn(|a| 0.5 * (lo[a] + hi[a]));
+    let e: [f64; 3] = std::array::from_fn(|a| hi[a] - lo[a]);
+    let r = (e[0] * e[0] + e[1] * e[1] + e[2] * e[2]).sqrt() * 0.5;
+    if inside {
+        // Along the longest horizontal axis, a quarter in from one end, a fifth up.
+        let long = if e[0] >= e[2] { 0 } else { 2 };
+        let mut eye = c;
+        eye[long] = lo[long] + 0.2 * e[long];
+        eye[1] = lo[1] + 0.25 * e[1];
+        let mut target = c;
+        target[long] = hi[long] - 0.2 * e[long];
+        target[1] = lo[1] + 0.3 * e[1];
+        CameraSpec { eye, target, up: [0.0, 1.0, 0.0], fov_y_deg: 60.0, near: r * 1e-3, far: r * 4.0 }
+    } else {
+        let eye = [c[0] + 0.9 * r, c[1] + 0.6 * r, c[2] + 1.9 * r];
+        CameraSpec { eye, target: c, up: [0.0, 1.0, 0.0], fov_y_deg: 40.0, near: r * 1e-2, far: r * 10.0 }
+    }
+}
+
+pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
+    let work = tempfile::tempdir().context("temporary directory")?;
+    let store = work.path().join("store");
+    let mut views = Vec::new();
+    for s in analytic::scenes() {
+        let mesh = work.path().join(format!("{}.obj", s.name));
+        s.write_obj(&mesh)?;
+        views.push(View { name: s.name.to_string(), mesh, camera: s.camera, shapes: Some(s.shapes) });
+    }
+    let mut skipped = Vec::new();
+    for (name, file, inside) in [
+        ("cornell_box", "CornellBox-Original.obj", None),
+        ("dragon", "dragon_vrip_res4.ply", Some(false)),
+        ("sponza_inside", "sponza.obj", Some(true)),
+        ("conference_inside", "conference.obj", Some(true)),
+        ("cedar_creek_inside", "matterport_cedar_creek.ply", Some(true)),
+    ] {
+        let mesh = args.data_dir.join(file);
+        if !mesh.is_file() {
+            skipped.push(format!("{name}: {} absent", mesh.display()));
+            continue;
+        }
+        let camera = match inside {
+            None => CameraSpec {
+                eye: [0.0, 1.0, 3.0],
+                target: [0.0, 1.0, 0.0],
+                up: [0.0, 1.0, 0.0],
+                fov_y_deg: 40.0,
+                near: 0.05,
+                far: 20.0,
+            },
+            Some(inside) => camera_around(&crate::pipeline::read::read_mesh(&mesh)?.0, inside),
+        };
+        views.push(View { name: name.to_string(), mesh, camera, shapes: None });
+    }
+    let points = sweep();
+    let mut rows = Vec::new();
+    for view in &views {
+        eprintln!("ao-bench: {} ...", view.name);
+        let options = crate::pipeline::BuildOptions {
+            resolution: crate::pipeline::Resolution::Explicit(args.resolution),
+            name: Some(view.name.replace('_', "-")),
+            ..Default::default()
+        };
+        let scene_dir = crate::pipeline::build_scene(&view.mesh, &store, &options)
+            .with_context(|| format!("building {}", view.mesh.display()))?
+            .scene_dir;
+        let (mesh, _) = crate::pipeline::read::read_mesh(&view.mesh)?;
+        let mut bvh: Option<MeshBvh> = None;
+        // Reference per image scale, at the default render's points.
+        let mut references: Vec<ScaleReference> = Vec::new();
+        for point in &points {
+            let (w, h) = (args.width * point.scale, args.height * point.scale);
+            let out = render_view(&RenderRequest {
+                scene_dir: scene_dir.clone(),
+                camera: view.camera,
+                width: w,
+                height: h,
+                ao: point.settings,
+                max_distance: None,
+                timing_runs: 3,
+            })?;
+            let bvh = bvh.get_or_insert_with(|| MeshBvh::new(&mesh, out.info.grid_origin));
+            if !references.iter().any(|r| r.scale == point.scale) {
+                let params = AoParams {
+                    max_distance: out.info.ao.max_distance,
+                    falloff: out.info.ao.falloff,
+                    epsilon: EPSILON_VOXELS * out.info.voxel_size,
+                };
+                let reference = reference_at(bvh, &out.position, &out.normal, &params, args.rays);
+                let exact = view.shapes.as_ref().map(|s| exact_image(s, &out, 32));
+                let (pp, pn) = crate::reference::primary_hits(bvh, &out.info);
+                let primary = reference_at(bvh, &pp, &pn, &params, args.rays / 4);
+                references.push(ScaleReference {
+                    scale: point.scale,
+                    positions: out.position.clone(),
+                    v: reference.v,
+                    variance: reference.variance,
+                    exact,
+                    primary: primary.v,
+                });
+            }
+            let ScaleReference { positions, v: reference, variance, exact, primary, .. } =
+                references.iter().find(|r| r.scale == point.scale).expect("just made");
+            anyhow::ensure!(
+                positions.iter().zip(&out.position).all(|(a, b)| a == b || (a[0].is_nan() && b[0].is_nan())),
+                "{}: the render's points changed with the AO setting",
+                view.name
+            );
+            let c = compare(&out.ao, reference, variance, args.rays, w, h);
+            let p = compare(&out.ao, primary, variance, args.rays / 4, w, h);
+            let t = &out.info.timings;
+            rows.push(Row {
+                view: view.name.clone(),
+                point: point.label.clone(),
+                width: w,
+                height: h,
+                frame_ms: t.frame_ms.unwrap_or(f64::NAN),
+                frame_no_ao_ms: t.frame_no_ao_ms.unwrap_or(f64::NAN),
+                ao_over_frame: t.ao_over_frame.unwrap_or(f64::NAN),
+                rmse: c.rmse,
+                bias: c.bias,
+                ssim: c.ssim,
+                equal_error_rays: c.equal_error_rays,
+                exact_mae: exact.as_ref().map(|e| exact_error(&out.ao, e).mae),
+                primary_rmse: p.rmse,
+                primary_bias: p.bias,
+            });
+            eprintln!("  {:28} {:8.1} ms  RMSE {:.4}", point.label, rows.last().unwrap().frame_ms, c.rmse);
+        }
+    }
+    std::fs::create_dir_all(&args.out_dir)?;
+    let summary = summarize(&points, &rows);
+    write_markdown(&args.out_dir.join("ao-benchmark.md"), args, &rows, &summary, &skipped)?;
+    write_pareto_png(&args.out_dir.join("ao-pareto.png"), &summary)?;
+    let adapter = voxstream_viewer::offscreen::Gpu::new().map(|g| g.adapter_name()).unwrap_or_default();
+    println!(
+        "{}",
+        serde_json::to_string_pretty(&serde_json::json!({
+            "adapter": adapter,
+            "rays": args.rays,
+            "resolution": args.resolution,
+            "skipped": skipped,
+            "rows": rows,
+            "summary": summary,
+        }))?
+    );
+    Ok(())
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Summary {
+    pub point: String,
+    pub mean_frame_ms: f64,
+    pub mean_ao_over_frame: f64,
+    pub mean_rmse: f64,
+    pub mean_abs_bias: f64,
+    pub mean_ssim: f64,
+    pub pareto: bool,
+}
+
+fn summarize(points: &[Point], rows: &[Row]) -> Vec<Summary> {
+    let mut out: Vec<Summary> = points
+        .iter()
+        .map(|p| {
+            let r: Vec<&Row> = rows.iter().filter(|r| r.point == p.label).collect();
+            let n = r.len().max(1) as f64;
+            let mean = |f: &dyn Fn(&Row) -> f64| r.iter().map(|x| f(x)).sum::<f64>() / n;
+            Summary {
+                point: p.label.clone(),
+                mean_frame_ms: mean(&|x| x.frame_ms),
+                mean_ao_over_frame: mean(&|x| x.ao_over_frame),
+                mean_rmse: mean(&|x| x.rmse),
+                mean_abs_bias: mean(&|x| x.bias.abs()),
+                mean_ssim: mean(&|x| x.ssim),
+                pareto: false,
+            }
+        })
+        .collect();
+    let snapshot = out.clone();
+    for s in &mut out {
+        s.pareto = !snapshot.iter().any(|o| {
+            o.mean_frame_ms <= s.mean_frame_ms
+                && o.mean_rmse <= s.mean_rmse
+                && (o.mean_frame_ms < s.mean_frame_ms || o.mean_rmse < s.mean_rmse)
+        });
+    }
+    out
+}
+
+fn fmt_opt(v: Option<f64>, digits: usize) -> String {
+    v.map_or("—".to_string(), |v| format!("{v:.digits$}"))
+}
+
+fn write_markdown(
+    path: &Path,
+    args: &AoBenchArgs,
+    rows: &[Row],
+    summary: &[Summary],
+    skipped: &[String],
+) -> anyhow::Result<()> {
+    use std::fmt::Write;
+    let adapter = voxstream_viewer::offscreen::Gpu::new().map(|g| g.adapter_name()).unwrap_or_default();
+    let mut s = String::new();
+    writeln!(s, "# Cone-traced AO: run time against error\n")?;
+    writeln!(
+        s,
+        "Written by `voxstream ao-bench` (server/src/reference/bench.rs) on {adapter}: scenes built at {}³, images {}×{} (2× for one point), reference {} cosine-weighted rays per pixel at the render's own points (obvhs BVH over the original triangles), the ray-traced view of the mesh with {} rays. Times are medians of three frames, with AO and without (the AO is traced in the fragment shader; `AO/frame` = (with − without) / without). Equal-error rays: k with mean σ²/k = the renderer's MSE (— where the error is below what the reference resolves). Exact MAE: analytic scenes only, against the exact geometry's quadrature.\n",
+        args.resolution,
+        args.width,
+        args.height,
+        args.rays,
+        args.rays / 4
+    )?;
+    if !skipped.is_empty() {
+        writeln!(s, "Views skipped: {}.\n", skipped.join("; "))?;
+    }
+    writeln!(s, "## Summary (means over the views; * = on the Pareto front of time against RMSE)\n")?;
+    writeln!(s, "| setting | frame ms | AO/frame | RMSE | abs bias | SSIM |")?;
+    writeln!(s, "|---|---:|---:|---:|---:|---:|")?;
+    for x in summary {
+        writeln!(
+            s,
+            "| {}{} | {:.1} | {:.2} | {:.4} | {:.4} | {:.3} |",
+            x.point,
+            if x.pareto { " *" } else { "" },
+            x.mean_frame_ms,
+            x.mean_ao_over_frame,
+            x.mean_rmse,
+            x.mean_abs_bias,
+            x.mean_ssim
+        )?;
+    }
+    writeln!(s, "\n## Every view and setting\n")?;
+    writeln!(
+        s,
+        "| view | setting | size | frame ms | no-AO ms | AO/frame | RMSE | bias | SSIM | eq. rays | exact MAE | RMSE vs ray-traced view | bias vs ray-traced view |"
+    )?;
+    writeln!(s, "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")?;
+    for r in rows {
+        writeln!(
+            s,
+            "| {} | {} | {}×{} | {:.1} | {:.1} | {:.2} | {:.4} | {:+.4} | {:.3} | {} | {} | {:.4} | {:+.4} |",
+            r.view,
+            r.point,
+            r.width,
+            r.height,
+            r.frame_ms,
+            r.frame_no_ao_ms,
+            r.ao_over_frame,
+            r.rmse,
+            r.bias,
+            r.ssim,
+            fmt_opt(r.equal_error_rays, 1),
+            fmt_opt(r.exact_mae, 4),
+            r.primary_rmse,
+            r.primary_bias
+        )?;
+    }
+    std::fs::write(path, s).with_context(|| format!("writing {}", path.display()))
+}
+
+/// A 640×480 scatter of mean frame time (x, log scale) against mean RMSE (y,
+/// linear from 0), points as squares (filled red on the Pareto front, grey
+/// otherwise), the front joined by a line; no text (the table has the numbers).
+fn write_pareto_png(path: &Path, summary: &[Summary]) -> anyhow::Result<()> {
+    let (w, h) = (640usize, 480usize);
+    let mut img = vec![255u8; w * h * 3];
+    let (l, r, t, b) = (60.0, 620.0, 20.0, 440.0);
+    let finite: Vec<&Summary> =
+        summary.iter().filter(|s| s.mean_frame_ms > 0.0 && s.mean_rmse.is_finite()).collect();
+    let tmin = finite.iter().map(|s| s.mean_frame_ms).fold(f64::INFINITY, f64::min).ln();
+    let tmax = finite.iter().map(|s| s.mean_frame_ms).fold(0.0, f64::max).ln();
+    let emax = finite.iter().map(|s| s.mean_rmse).fold(0.0, f64::max) * 1.1;
+    let px = |ms: f64| l + (ms.ln() - tmin) / (tmax - tmin).max(1e-9) * (r - l);
+    let py = |e: f64| b - e / emax.max(1e-9) * (b - t);
+    let mut put = |x: i64, y: i64, c: [u8; 3]| {
+        if (0..w as i64).contains(&x) && (0..h as i64).contains(&y) {
+            let i = (y as usize * w + x as usize) * 3;
+            img[i..i + 3].copy_from_slice(&c);
+        }
+    };
+    for x in l as i64..=r as i64 {
+        put(x, b as i64, [0, 0, 0]);
+    }
+    for y in t as i64..=b as i64 {
+        put(l as i64, y, [0, 0, 0]);
+    }
+    let mut front: Vec<&&Summary> = finite.iter().filter(|s| s.pareto).collect();
+    front.sort_by(|a, b| a.mean_frame_ms.total_cmp(&b.mean_frame_ms));
+    for pair in front.windows(2) {
+        let (x0, y0, x1, y1) = (
+            px(pair[0].mean_frame_ms),
+            py(pair[0].mean_rmse),
+            px(pair[1].mean_frame_ms),
+            py(pair[1].mean_rmse),
+        );
+        let n = ((x1 - x0).abs().max((y1 - y0).abs()) as usize).max(1);
+        for k in 0..=n {
+            let f = k as f64 / n as f64;
+            put((x0 + (x1 - x0) * f) as i64, (y0 + (y1 - y0) * f) as i64, [200, 40, 40]);
+        }
+    }
+    for s in &finite {
+        let (x, y) = (px(s.mean_frame_ms) as i64, py(s.mean_rmse) as i64);
+        let c = if s.pareto { [200, 40, 40] } else { [120, 120, 120] };
+        for dy in -3..=3 {
+            for dx in -3..=3 {
+                put(x + dx, y + dy, c);
+            }
+        }
+    }
+    let file = std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
+    let mut enc = png::Encoder::new(std::io::BufWriter::new(file), w as u32, h as u32);
+    enc.set_color(png::ColorType::Rgb);
+    enc.set_depth(png::BitDepth::Eight);
+    enc.write_header()?.write_image_data(&img)?;
+    Ok(())
+}

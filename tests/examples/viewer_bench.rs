@@ -1,0 +1,172 @@
+//! Streaming bench for the viewer, native (lavapipe or a GPU): streams a
+//! stored scene frame by frame as the browser would (pages, then blocks by
+//! projected error, 6 requests started per frame as in the browser, whose
+//! answers arrive before the next frame: a fast network) and prints one JSON line
+//! per measurement. Numbers go to docs/streaming.md; nothing here asserts.
+//!
+//!   cargo run -p voxstream-e2e --example viewer_bench -- <store>/<scene> [default|inside|close] [WxH]
+//!
+//! - converge: bytes fetched, frames and wall time to the first image and to
+//!   a converged view (nothing left to fetch or upload), at 1 px, with
+//!   occlusion culling and without (the savings: bytes and faces drawn).
+//! - `--bytes-only`: the bytes the view needs by frustum and error alone
+//!   (no frames drawn, so fast at any size).
+//! - `--budget-only`: just the budget path.
+//! - budget: a scripted orbit-and-zoom path with a 64 MiB budget: the most
+//!   resident bytes ÷ budget.
+
+use std::path::Path;
+use std::time::Instant;
+
+use voxstream_viewer::OrbitCamera;
+use voxstream_viewer::offscreen::{Offscreen, RenderOptions};
+
+struct Converged {
+    bytes: u64,
+    faces: u64,
+    blocks: u32,
+    frames: usize,
+    first_image_ms: f64,
+    converged_ms: f64,
+    peak: u64,
+    budget: u64,
+    culled_occlusion: u32,
+}
+
+fn view(offscreen: &Offscreen, kind: &str) -> OrbitCamera {
+    let mut c = offscreen.scene.camera;
+    match kind {
+        // Eye near the middle of the scene, looking along the default direction.
+        "inside" => {
+            c.distance = c.scene_radius * 0.02;
+        }
+        "close" => {
+            c.distance *= 0.3;
+        }
+        _ => {}
+    }
+    c
+}
+
+fn stream(offscreen: &mut Offscreen, max_frames: usize) -> Converged {
+    let start = Instant::now();
+    let mut first_image_ms = None;
+    let mut frames = 0;
+    let mut last = None;
+    for _ in 0..max_frames {
+        frames += 1;
+        let requests = offscreen.scene.start_requests();
+        offscreen.fetch(&requests);
+        let frame = offscreen.draw_frame().expect("frame");
+        if first_image_ms.is_none() && !frame.drawn.is_empty() {
+            first_image_ms = Some(start.elapsed().as_secs_f64() * 1e3);
+        }
+        let done = requests.is_empty() && frame.complete && !offscreen.scene.needs_another_frame();
+        last = Some(frame);
+        if done {
+            break;
+        }
+    }
+    let s = &offscreen.scene.stats;
+    let _ = last;
+    Converged {
+        bytes: s.bytes_fetched,
+        faces: s.faces_drawn,
+        blocks: s.blocks_drawn,
+        frames,
+        first_image_ms: first_image_ms.unwrap_or(f64::NAN),
+        converged_ms: start.elapsed().as_secs_f64() * 1e3,
+        peak: s.peak_resident_bytes,
+        budget: s.budget_bytes,
+        culled_occlusion: s.culled_occlusion,
+    }
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let scene =
+        Path::new(args.first().expect("usage: viewer_bench <scene dir> [default|inside|close] [WxH]"));
+    let kind = args.get(1).map_or("default", String::as_str);
+    let skip_budget = args.iter().any(|a| a == "--no-budget-path");
+    let (w, h) = args
+        .get(2)
+        .and_then(|s| s.split_once('x'))
+        .map(|(w, h)| (w.parse().unwrap(), h.parse().unwrap()))
+        .unwrap_or((1920, 1080));
+    let manifest_bytes = std::fs::metadata(scene.join("manifest.json")).map_or(0, |m| m.len());
+    if args.iter().any(|a| a == "--bytes-only") {
+        // Frustum and 1 px error alone, no frames: the bytes the view needs
+        // (blocks wanted, their ancestors, the pages that lead to them).
+        let mut o = Offscreen::open(scene, &RenderOptions::new(w, h)).expect("open scene");
+        o.scene.camera = view(&o, kind);
+        o.load_pages();
+        let coarsest = o.scene.manifest.coarsest_level();
+        let mut needed = std::collections::BTreeSet::new();
+        for k in o.scene.wanted().to_vec() {
+            let mut a = k;
+            while needed.insert(a) && a.level < coarsest {
+                a = a.parent();
+            }
+        }
+        let block_bytes: u64 =
+            needed.iter().filter_map(|k| o.scene.index.block(k)).map(|e| e.bytes as u64).sum();
+        let page_bytes = o.scene.index.page_bytes_loaded();
+        println!(
+            "{{\"measure\":\"bytes_to_converge\",\"scene\":{:?},\"view\":{kind:?},\"size\":\"{w}x{h}\",\"resolution\":{},\"blocks\":{},\"block_bytes\":{block_bytes},\"page_bytes\":{page_bytes},\"manifest_bytes\":{manifest_bytes},\"total\":{}}}",
+            scene.display().to_string(),
+            o.scene.manifest.grid.resolution,
+            needed.len(),
+            block_bytes + page_bytes + manifest_bytes
+        );
+        return;
+    }
+    let budget_only = args.iter().any(|a| a == "--budget-only");
+    for occlusion in [true, false].into_iter().filter(|_| !budget_only) {
+        let mut o = Offscreen::open(scene, &RenderOptions::new(w, h)).expect("open scene");
+        o.scene.camera = view(&o, kind);
+        o.scene.occlusion_culling = occlusion;
+        // As many in flight per frame as the browser: feedback needs frames to act.
+        o.scene.set_max_in_flight(6);
+        o.scene.record_bytes_fetched(manifest_bytes);
+        let c = stream(&mut o, 400);
+        println!(
+            "{{\"measure\":\"converge\",\"scene\":{:?},\"view\":{kind:?},\"size\":\"{w}x{h}\",\"occlusion\":{occlusion},\
+             \"bytes\":{},\"faces\":{},\"blocks\":{},\"frames\":{},\"first_image_ms\":{:.0},\"converged_ms\":{:.0},\
+             \"peak_resident\":{},\"budget\":{},\"culled_occlusion\":{},\"adapter\":{:?}}}",
+            scene.display().to_string(),
+            c.bytes,
+            c.faces,
+            c.blocks,
+            c.frames,
+            c.first_image_ms,
+            c.converged_ms,
+            c.peak,
+            c.budget,
+            c.culled_occlusion,
+            o.adapter_name()
+        );
+    }
+    if skip_budget {
+        return;
+    }
+    // The budget path: orbit around and zoom in, 64 MiB.
+    let mut o = Offscreen::open(scene, &RenderOptions::new(w, h)).expect("open scene");
+    o.scene.set_budget_bytes(64 << 20);
+    o.scene.set_max_in_flight(32);
+    let start = o.scene.camera;
+    let mut worst: f64 = 0.0;
+    for i in 0..12 {
+        let mut c = start;
+        c.orbit(90.0 * i as f32, 15.0 * (i % 4) as f32);
+        c.zoom(1.0 - 0.07 * i as f32);
+        o.scene.camera = c;
+        let r = stream(&mut o, 60);
+        worst = worst.max(r.peak as f64 / r.budget as f64);
+    }
+    println!(
+        "{{\"measure\":\"budget_path\",\"scene\":{:?},\"budget\":{},\"max_resident_over_budget\":{worst:.3},\"uploads_refused\":{}}}",
+        scene.display().to_string(),
+        64u64 << 20,
+        o.scene.stats.uploads_refused
+    );
+}

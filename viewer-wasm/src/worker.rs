@@ -1,0 +1,138 @@
+//! Decoding off the main thread: a pool of module Web Workers
+//! (web/decode-worker.js) that load this same wasm, fetch a block and decode
+//! and check it ([`decode_block_for_worker`]); the main thread receives the
+//! voxels as a transferred buffer and only copies them into the upload batch.
+
+use std::cell::RefCell;
+use std::collections::HashMap;
+
+use voxstream_format::{Block, BlockKey, PackedVoxel};
+use wasm_bindgen::JsCast;
+use wasm_bindgen::prelude::*;
+
+use crate::decode::decode_checked;
+
+/// Workers in the pool: decoding is short next to a fetch, two keep up.
+const WORKERS: usize = 2;
+
+/// Runs in a worker: the voxels of the block `key` in `bytes` as raw
+/// PackedVoxel bytes, after the same checks as the main-thread path
+/// (`voxels` < 0: no manifest count to check).
+#[wasm_bindgen]
+pub fn decode_block_for_worker(key: &str, bytes: &[u8], voxels: i32) -> Result<Vec<u8>, JsValue> {
+    let key: BlockKey = key.parse().map_err(|e| JsValue::from_str(&format!("block key {key}: {e}")))?;
+    let expected = u32::try_from(voxels).ok();
+    let block = decode_checked(key, expected, bytes).map_err(|e| JsValue::from_str(&e.to_string()))?;
+    Ok(bytemuck::cast_slice(&block.voxels).to_vec())
+}
+
+/// What a worker answered.
+pub struct WorkerResult {
+    pub key: BlockKey,
+    /// Bytes of the response body.
+    pub fetched: u64,
+    pub block: Result<Block, String>,
+}
+
+pub struct DecodePool {
+    workers: Vec<web_sys::Worker>,
+    next_id: u32,
+    next_worker: usize,
+    /// Request id → worker index, to route aborts.
+    owner: HashMap<u32, usize>,
+    ids: HashMap<BlockKey, u32>,
+}
+
+thread_local! {
+    static ON_RESULT: RefCell<Option<Box<dyn Fn(WorkerResult)>>> = const { RefCell::new(None) };
+}
+
+fn parse_message(data: &JsValue) -> Option<(u32, WorkerResult)> {
+    let get = |name: &str| js_sys::Reflect::get(data, &JsValue::from_str(name)).ok();
+    let id = get("id")?.as_f64()? as u32;
+    let key: BlockKey = get("key")?.as_string()?.parse().ok()?;
+    let fetched = get("fetched").and_then(|v| v.as_f64()).unwrap_or(0.0) as u64;
+    let block = if get("ok")?.as_bool()? {
+        let buffer: js_sys::ArrayBuffer = get("voxels")?.dyn_into().ok()?;
+        let bytes = js_sys::Uint8Array::new(&buffer).to_vec();
+        if bytes.len() % size_of::<PackedVoxel>() != 0 {
+            Err(format!("block {key}: worker returned {} bytes", bytes.len()))
+        } else {
+            let voxels: Vec<PackedVoxel> =
+                bytes.chunks_exact(size_of::<PackedVoxel>()).map(bytemuck::pod_read_unaligned).collect();
+            Ok(Block { key, voxels })
+        }
+    } else {
+        Err(get("error").and_then(|e| e.as_string()).unwrap_or_else(|| format!("block {key}: worker failed")))
+    };
+    Some((id, WorkerResult { key, fetched, block }))
+}
+
+impl DecodePool {
+    /// Starts the workers; `on_result` runs on the main thread for each answer.
+    pub fn new(on_result: impl Fn(WorkerResult) + 'static) -> Result<Self, String> {
+        ON_RESULT.with(|r| *r.borrow_mut() = Some(Box::new(on_result)));
+        let options = web_sys::WorkerOptions::new();
+        options.set_type(web_sys::WorkerType::Module);
+        let mut workers = Vec::new();
+        for _ in 0..WORKERS {
+            let worker = web_sys::Worker::new_with_options("./decode-worker.js", &options)
+                .map_err(|e| format!("decode worker: {e:?}"))?;
+            let onmessage = Closure::<dyn FnMut(web_sys::MessageEvent)>::new(|e: web_sys::MessageEvent| {
+                if let Some((_, result)) = parse_message(&e.data()) {
+                    ON_RESULT.with(|r| {
+                        if let Some(f) = r.borrow().as_ref() {
+                            f(result);
+                        }
+                    });
+                }
+            });
+            worker.set_onmessage(Some(onmessage.as_ref().unchecked_ref()));
+            // The workers live as long as the page.
+            onmessage.forget();
+            workers.push(worker);
+        }
+        Ok(Self { workers, next_id: 0, next_worker: 0, owner: HashMap::new(), ids: HashMap::new() })
+    }
+
+    /// Asks a worker to fetch `url` and decode block `key`.
+    pub fn submit(&mut self, key: BlockKey, url: &str, voxels: Option<u32>) {
+        let id = self.next_id;
+        self.next_id = self.next_id.wrapping_add(1);
+        let w = self.next_worker;
+        self.next_worker = (self.next_worker + 1) % self.workers.len();
+        let msg = js_sys::Object::new();
+        let set = |k: &str, v: JsValue| {
+            let _ = js_sys::Reflect::set(&msg, &JsValue::from_str(k), &v);
+        };
+        set("id", JsValue::from(id));
+        set("url", JsValue::from_str(url));
+        set("key", JsValue::from_str(&key.to_string()));
+        set("voxels", JsValue::from(voxels.map_or(-1, |v| v as i32)));
+        if self.workers[w].post_message(&msg).is_ok() {
+            self.owner.insert(id, w);
+            self.ids.insert(key, id);
+        }
+    }
+
+    /// The view no longer needs `key`: its worker aborts the fetch.
+    pub fn abort(&mut self, key: &BlockKey) {
+        let Some(id) = self.ids.remove(key) else { return };
+        if let Some(w) = self.owner.remove(&id) {
+            let msg = js_sys::Object::new();
+            let _ = js_sys::Reflect::set(&msg, &JsValue::from_str("abort"), &JsValue::from(id));
+            let _ = self.workers[w].post_message(&msg);
+        }
+    }
+
+    /// A result for `key` arrived; false when it was aborted meanwhile (ignore it).
+    pub fn done(&mut self, key: &BlockKey) -> bool {
+        match self.ids.remove(key) {
+            Some(id) => {
+                self.owner.remove(&id);
+                true
+            }
+            None => false,
+        }
+    }
+}
