@@ -75,7 +75,7 @@ pub async fn patch_scene(
         }
     }
     if let Some(name) = &update.name
-        && (name.trim().is_empty() || name.len() > 200 || name.chars().any(char::is_control))
+        && (name.trim().is_empty() || name.chars().count() > 200 || name.chars().any(char::is_control))
     {
         return Err(ApiError::bad_request("name must be 1–200 characters without control characters"));
     }

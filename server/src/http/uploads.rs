@@ -76,7 +76,7 @@ fn plan_upload(
         }
     }
     if let Some(name) = &opts.filename
-        && (name.is_empty() || name.len() > 255 || name.chars().any(char::is_control))
+        && (name.is_empty() || name.chars().count() > 255 || name.chars().any(char::is_control))
     {
         return Err(ApiError::bad_request("filename must be 1–255 characters without control characters"));
     }
