@@ -112,6 +112,8 @@ const METHODS: [&str; 8] = ["get", "put", "post", "delete", "options", "head", "
 pub fn document(config: &ServerConfig) -> Value {
     let mut doc = serde_json::to_value(ApiDoc::openapi()).expect("the OpenAPI document serialises");
     add_aliases(&mut doc);
+    add_links(&mut doc);
+    add_response_headers(&mut doc);
     let schemas = doc.pointer_mut("/components/schemas").and_then(Value::as_object_mut).expect("schemas");
     schemas.insert(
         "Error".into(),
@@ -199,6 +201,94 @@ fn add_aliases(doc: &mut Value) {
     cancel["operationId"] = json!("cancel_job_post");
     cancel["description"] = json!("The same as DELETE /api/jobs/{id}, for clients that cannot send DELETE.");
     paths.insert("/api/jobs/{id}/cancel".into(), json!({ "post": cancel }));
+}
+
+/// OpenAPI links: how one response names what the next request uses (a client's
+/// walk from the catalog to blocks, and from an upload to its job); schemathesis'
+/// stateful phase follows them.
+fn add_links(doc: &mut Value) {
+    let link = |op: &str, params: Value| json!({ "operationId": op, "parameters": params });
+    let upload_id = json!({ "id": "$response.header.Location#regex:/api/uploads/([0-9a-f]+)" });
+    let job_from_body = json!({ "id": "$response.body#/id" });
+    let first_scene = json!({ "id": "$response.body#/0/id" });
+    let this_id = json!({ "id": "$request.path.id" });
+    let links = [
+        ("/api/scenes", "get", "200", json!({
+            "GetScene": link("get_scene", first_scene.clone()),
+            "GetManifest": link("get_manifest", first_scene.clone()),
+            "GetThumbnail": link("get_thumbnail", first_scene),
+        })),
+        ("/api/scenes/{id}", "get", "200", json!({
+            "GetManifest": link("get_manifest", this_id.clone()),
+            "RenameScene": link("patch_scene", this_id.clone()),
+        })),
+        ("/api/scenes/{id}", "patch", "200", json!({
+            "GetScene": link("get_scene", json!({ "id": "$response.body#/id" })),
+        })),
+        ("/api/scenes/{id}/manifest", "get", "200", json!({
+            "GetRootBlock": link("get_block", json!({ "id": "$request.path.id", "block": "$response.body#/root/key" })),
+        })),
+        ("/api/scenes", "post", "202", json!({
+            "GetJob": link("get_job", job_from_body.clone()),
+            "JobEvents": link("job_events", job_from_body.clone()),
+            "CancelJob": link("cancel_job", job_from_body),
+        })),
+        ("/api/uploads", "post", "201", json!({
+            "UploadOffset": link("tus_head", upload_id.clone()),
+            "AppendChunk": link("tus_patch", upload_id.clone()),
+            "AbandonUpload": link("tus_delete", upload_id),
+        })),
+        ("/api/uploads/{id}", "patch", "204", json!({
+            "UploadOffset": link("tus_head", this_id),
+        })),
+    ];
+    for (path, method, status, l) in links {
+        let response = doc
+            .pointer_mut(&format!("/paths/{}/{method}/responses/{status}", path.replace('/', "~1")))
+            .unwrap_or_else(|| panic!("no {status} response for {method} {path}"));
+        response["links"] = l;
+    }
+}
+
+/// Headers a response always carries (schemathesis checks that they are there).
+fn add_response_headers(doc: &mut Value) {
+    let text = |d: &str| json!({ "required": true, "description": d, "schema": { "type": "string" } });
+    let digits = |d: &str| json!({ "required": true, "description": d, "schema": { "type": "string", "pattern": "^[0-9]+$" } });
+    let tus = || text("1.0.0");
+    let etag = || text("The blake3 hash in quotes (strong)");
+    let cache = || text("Cache-Control: a year and immutable for content-addressed URLs, no-cache for key-only ones");
+    let headers = [
+        ("/api/scenes", "post", "202", json!({ "Location": text("/api/jobs/{id}: the build's job") })),
+        ("/api/uploads", "options", "204", json!({
+            "Tus-Resumable": tus(), "Tus-Version": text("1.0.0"),
+            "Tus-Extension": text("creation,termination"), "Tus-Max-Size": digits("--max-upload-bytes"),
+        })),
+        ("/api/uploads/{id}", "options", "204", json!({
+            "Tus-Resumable": tus(), "Tus-Version": text("1.0.0"),
+            "Tus-Extension": text("creation,termination"), "Tus-Max-Size": digits("--max-upload-bytes"),
+        })),
+        ("/api/uploads", "post", "201", json!({
+            "Location": text("/api/uploads/{id}: where to PATCH, HEAD and DELETE"), "Tus-Resumable": tus(),
+        })),
+        ("/api/uploads/{id}", "head", "200", json!({
+            "Upload-Offset": digits("Bytes stored: where to resume"), "Upload-Length": digits("Total bytes"),
+            "Tus-Resumable": tus(),
+        })),
+        ("/api/uploads/{id}", "patch", "204", json!({
+            "Upload-Offset": digits("The new offset"), "Upload-Length": digits("Total bytes"), "Tus-Resumable": tus(),
+        })),
+        ("/api/uploads/{id}", "delete", "204", json!({ "Tus-Resumable": tus() })),
+        ("/api/scenes/{id}/blocks/{block}", "get", "200", json!({ "ETag": etag(), "Cache-Control": cache() })),
+        ("/api/scenes/{id}/blocks/{block}", "get", "304", json!({ "ETag": etag(), "Cache-Control": cache() })),
+        ("/api/scenes/{id}/pages/{page}", "get", "200", json!({ "ETag": etag(), "Cache-Control": cache() })),
+        ("/api/scenes/{id}/pages/{page}", "get", "304", json!({ "ETag": etag(), "Cache-Control": cache() })),
+    ];
+    for (path, method, status, h) in headers {
+        let response = doc
+            .pointer_mut(&format!("/paths/{}/{method}/responses/{status}", path.replace('/', "~1")))
+            .unwrap_or_else(|| panic!("no {status} response for {method} {path}"));
+        response["headers"] = h;
+    }
 }
 
 fn add_response(op: &mut Map<String, Value>, status: &str, description: &str) {
@@ -418,6 +508,26 @@ mod tests {
                             "#/components/schemas/Error",
                             "{method} {path} {status}"
                         );
+                    }
+                }
+            }
+        }
+        let ids: Vec<&str> = doc["paths"]
+            .as_object()
+            .unwrap()
+            .values()
+            .flat_map(|item| item.as_object().unwrap().values())
+            .filter_map(|op| op["operationId"].as_str())
+            .collect();
+        let mut unique = ids.clone();
+        unique.sort();
+        unique.dedup();
+        assert_eq!(unique.len(), ids.len(), "operationIds are unique: {ids:?}");
+        for item in doc["paths"].as_object().unwrap().values() {
+            for op in item.as_object().unwrap().values() {
+                for r in op["responses"].as_object().unwrap().values() {
+                    for l in r["links"].as_object().into_iter().flat_map(|l| l.values()) {
+                        assert!(ids.contains(&l["operationId"].as_str().unwrap()), "{l}");
                     }
                 }
             }
