@@ -2,16 +2,17 @@
 # Check the HTTP API against its own OpenAPI document (/api/openapi.json) with schemathesis (PyPI),
 # a tool nobody here wrote:
 #
-#   bash scripts/schemathesis.sh              install if needed, build, run every phase (about a minute)
+#   bash scripts/schemathesis.sh              install if needed, build, run every phase (about 40 s warm)
 #   bash scripts/schemathesis.sh --install    only make sure the tools venv exists (scripts/setup.sh)
 #   bash scripts/schemathesis.sh --venv       print the venv's path (installing it if needed)
+#   bash scripts/schemathesis.sh --check      print the venv's path if it is complete, else exit 1
 #
 # What it does:
 #   1. a Python virtualenv with the pinned tools of scripts/schemathesis/requirements.txt (schemathesis,
 #      and tuspy for the tus client test) in a tools folder outside the clone, named after the
 #      requirements' hash, so a warm machine skips the install (well under a second) and a changed pin
 #      gets a fresh venv. Made in place and marked complete only when pip succeeded.
-#   2. `voxstream` (dev profile, CARGO_TARGET_DIR honoured; VOXSTREAM_BIN=<path> uses a given binary),
+#   2. `voxstream` (the profile of VOXSTREAM_TEST_PROFILE, CARGO_TARGET_DIR honoured; VOXSTREAM_BIN=<path> uses a given binary),
 #      and the default scan (data/koala.obj) built once into a temp dir.
 #   3. negative control: schemathesis must FAIL against a deliberately wrong copy of the document (the
 #      scene id pattern of GET /api/scenes/{id} removed, so ids the server rejects look valid). If it
@@ -28,10 +29,11 @@
 #
 # Environment:
 #   VOXSTREAM_TOOLS_DIR     where tools are kept (default ${XDG_CACHE_HOME:-$HOME/.cache}/voxstream-tools)
-#   SCHEMATHESIS_EXAMPLES   examples per operation in the fuzzing phase (default 30)
+#   SCHEMATHESIS_EXAMPLES   examples per operation in the fuzzing phase (default 100)
 #   SCHEMATHESIS_SEED       the seed (default 1, so CI is reproducible; `random` for a new one each run)
 #   SCHEMATHESIS_KEEP=1     keep the work dir (store, server logs, reports) even when everything passed
 #   VOXSTREAM_BIN           a voxstream binary to test instead of building one
+#   VOXSTREAM_TEST_PROFILE  dev (default) or release: which profile's binary is built and tested
 #   PYTHON                  the interpreter for the venv (default python3; 3.10 or newer)
 set -euo pipefail
 
@@ -79,6 +81,11 @@ case "${1:-}" in
     ensure_venv
     exit 0
     ;;
+  --check)
+    [ -f "$STAMP" ] && "$VENV/bin/st" --version >/dev/null 2>&1 || exit 1
+    printf '%s\n' "$VENV"
+    exit 0
+    ;;
   --venv)
     ensure_venv
     printf '%s\n' "$VENV"
@@ -96,11 +103,18 @@ if [ -n "${VOXSTREAM_BIN:-}" ]; then
   BIN="$VOXSTREAM_BIN"
 else
   TARGET_DIR="${CARGO_TARGET_DIR:-$ROOT/target}"
-  BIN="$TARGET_DIR/debug/voxstream"
-  LOCKED=()
-  [ "${CI:-}" = "true" ] && LOCKED=(--locked)
-  log "cargo build -p voxstream --bin voxstream"
-  cargo build -q -p voxstream --bin voxstream "${LOCKED[@]}" >&2 || die "building voxstream failed"
+  BUILD_ARGS=()
+  [ "${CI:-}" = "true" ] && BUILD_ARGS+=(--locked)
+  case "${VOXSTREAM_TEST_PROFILE:-dev}" in
+    dev) BIN="$TARGET_DIR/debug/voxstream" ;;
+    release)
+      BIN="$TARGET_DIR/release/voxstream"
+      BUILD_ARGS+=(--release)
+      ;;
+    *) die "VOXSTREAM_TEST_PROFILE must be dev or release" ;;
+  esac
+  log "cargo build -p voxstream --bin voxstream ${BUILD_ARGS[*]}"
+  cargo build -q -p voxstream --bin voxstream "${BUILD_ARGS[@]}" >&2 || die "building voxstream failed"
 fi
 [ -x "$BIN" ] || die "$BIN is not an executable"
 
@@ -138,8 +152,8 @@ start_server() {
   "$BIN" serve --store "$WORK/store-$name" --addr 127.0.0.1:0 --token "$TOKEN" --uploads-per-minute 0 \
     --upload-idle-secs 5 --shutdown-secs 2 "$@" >"$WORK/serve-$name.out" 2>"$WORK/serve-$name.log" &
   SERVER_PID=$!
-  local i line
-  for i in $(seq 1 100); do
+  local line
+  for _ in $(seq 1 100); do
     line="$(head -1 "$WORK/serve-$name.out" 2>/dev/null || true)"
     if [ -n "$line" ]; then
       BASE="${line#listening on }"
@@ -158,11 +172,12 @@ run_st() {
   local name="$1" schema="$2"
   shift 2
   local rc=0
-  PYTHONPATH="$HERE${PYTHONPATH:+:$PYTHONPATH}" SCHEMATHESIS_HOOKS=hooks \
+  # From the work dir: schemathesis keeps a .schemathesis/ cache in its working directory.
+  (cd "$WORK" && PYTHONPATH="$HERE${PYTHONPATH:+:$PYTHONPATH}" SCHEMATHESIS_HOOKS=hooks \
     "$ST" --config-file "$HERE/schemathesis.toml" run "$schema" \
     -H "Authorization: Bearer $TOKEN" --workers 2 --request-timeout 10 --no-color \
-    --max-examples "${SCHEMATHESIS_EXAMPLES:-30}" "${SEED_ARGS[@]}" \
-    --report junit --report-dir "$WORK/report-$name" "$@" >"$WORK/st-$name.log" 2>&1 || rc=$?
+    --max-examples "${SCHEMATHESIS_EXAMPLES:-100}" "${SEED_ARGS[@]}" \
+    --report junit --report-dir "$WORK/report-$name" "$@") >"$WORK/st-$name.log" 2>&1 || rc=$?
   return $rc
 }
 

@@ -15,6 +15,8 @@
 #   - chromium + chromium-driver (headless WebGPU on SwiftShader for the browser test)
 #   - mesa-vulkan-drivers (lavapipe: Vulkan on the CPU for the native render test)
 #   - node + npm, and tests/browser/node_modules (playwright-core, from package-lock.json)
+#   - python3 + python3-venv, and the pinned Python tools venv of scripts/schemathesis.sh
+#     (schemathesis, tuspy) in ~/.cache/voxstream-tools (quick when it is there)
 #
 # Environment: VOXSTREAM_SETUP_NO_INSTALL=1 only checks (exit 1 listing what is missing).
 set -euo pipefail
@@ -132,6 +134,8 @@ fi
 if have_apt; then
   # ca-certificates: cargo/npm fetch over HTTPS; gcc + libc6-dev: the linker for host builds.
   WANT+=(ca-certificates gcc libc6-dev chromium chromium-driver mesa-vulkan-drivers)
+  # python3-venv: `python3 -m venv` for the schemathesis/tuspy tools venv (scripts/schemathesis.sh).
+  WANT+=(python3 python3-venv)
   if ! command -v node >/dev/null 2>&1; then
     WANT+=(nodejs)
     command -v npm >/dev/null 2>&1 || WANT+=(npm)
@@ -143,7 +147,7 @@ if have_apt; then
   mapfile -t MISSING < <(missing_pkgs "${WANT[@]}")
   apt_install "${MISSING[@]}"
 else
-  for tool in chromium node npm; do
+  for tool in chromium node npm python3; do
     command -v "$tool" >/dev/null 2>&1 || die "$tool is missing and this system has no apt; install it by hand"
   done
 fi
@@ -190,4 +194,13 @@ if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$lock_sum" ] ||
   printf '%s\n' "$lock_sum" >"$STAMP"
 fi
 
-log "ok ($(cargo --version), wasm route: $([ "$RUSTUP_WASM" -eq 1 ] && echo rustup || echo debian), wasm-bindgen $(wb_version), node $(node --version))"
+# --- 6. Python tools: schemathesis (API contract) and tuspy (tus client test) ---------------------
+if [ "$NO_INSTALL" = "1" ]; then
+  VOXSTREAM_TOOLS_VENV="$(bash "$ROOT/scripts/schemathesis.sh" --check 2>/dev/null)" ||
+    die "the Python tools venv of scripts/schemathesis.sh is missing (bash scripts/schemathesis.sh --install)"
+else
+  VOXSTREAM_TOOLS_VENV="$(bash "$ROOT/scripts/schemathesis.sh" --venv)" ||
+    die "installing the Python tools (scripts/schemathesis.sh --install) failed"
+fi
+
+log "ok ($(cargo --version), wasm route: $([ "$RUSTUP_WASM" -eq 1 ] && echo rustup || echo debian), wasm-bindgen $(wb_version), node $(node --version), python tools $VOXSTREAM_TOOLS_VENV)"

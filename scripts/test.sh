@@ -10,6 +10,9 @@
 #   4. scripts/build-web.sh      wasm viewer bundle into viewer-wasm/dist (the browser test serves it)
 #   5. cargo test --workspace    unit, property, server integration, native render on lavapipe,
 #                                browser end-to-end (headless Chromium, SwiftShader WebGPU)
+#   6. scripts/schemathesis.sh   the HTTP API against its OpenAPI document: schemathesis' coverage,
+#                                fuzzing and stateful phases on a fresh server, zero failures, plus a
+#                                negative control (a wrong document must fail); about 40 s
 #
 # Every step runs even when an earlier one failed (except setup), and the script exits non-zero
 # if any failed, listing which. Extra arguments go to `cargo test` (e.g. `-- --nocapture`).
@@ -104,6 +107,8 @@ step "clippy" cargo clippy --workspace --all-targets "${LOCKED[@]}" -- -D warnin
 # Not --locked: fuzz/Cargo.lock follows the server's dependencies, which change without it.
 step "fuzz targets compile" cargo check --manifest-path fuzz/Cargo.toml --no-default-features --bins
 step "cargo test" cargo test --workspace "${LOCKED[@]}" "${PROFILE_ARGS[@]}" "$@"
+# After cargo test, whose build it reuses (the same profile's voxstream binary).
+step "api contract (schemathesis)" bash scripts/schemathesis.sh
 
 echo >&2
 if [ "${#FAILED[@]}" -gt 0 ]; then
