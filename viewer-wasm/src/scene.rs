@@ -101,6 +101,7 @@ pub struct Scene {
     occupancy_for: Option<Vec<BlockKey>>,
     occupancy_built_ms: f64,
     frame_counter: u64,
+    picked: Option<Option<Vec3>>,
 }
 
 impl Scene {
@@ -136,6 +137,7 @@ impl Scene {
             occupancy_for: None,
             occupancy_built_ms: f64::NEG_INFINITY,
             frame_counter: 0,
+            picked: None,
         }
     }
 
@@ -509,7 +511,21 @@ impl Scene {
     /// blocks wait for the per-frame upload cap, or the feedback changed
     /// lately (the next frames' queries settle it).
     pub fn needs_another_frame(&mut self) -> bool {
-        self.has_pending_uploads() || self.frame_counter <= self.feedback_changed_frame + 2
+        self.has_pending_uploads()
+            || self.frame_counter <= self.feedback_changed_frame + 2
+            || self.occlusion.as_ref().is_some_and(Occlusion::pick_pending)
+    }
+
+    /// Double-click at `pixel` (viewport pixels, row 0 at the top): a frame or
+    /// two later the orbit centres on the surface there (none: nothing changes).
+    pub fn pick(&mut self, pixel: (f32, f32)) {
+        let frame = self.frame_counter + 1;
+        self.occlusion.get_or_insert_with(Occlusion::default).request_pick(pixel, frame);
+    }
+
+    /// The answer to the last [`Scene::pick`], once; it has already been applied to the camera.
+    pub fn take_picked(&mut self) -> Option<Option<Vec3>> {
+        self.picked.take()
     }
 
     /// Uploads until nothing needed waits (native loops; the browser uploads once per frame).
@@ -624,11 +640,24 @@ impl Scene {
 
     /// Takes the newest occlusion feedback, if any arrived.
     fn take_feedback(&mut self) {
-        let Some(v) = self.occlusion.as_mut().and_then(Occlusion::take_results) else { return };
+        let Some(v) = self.occlusion.as_mut().and_then(Occlusion::take_results) else {
+            self.take_pick_answer();
+            return;
+        };
+        self.take_pick_answer();
         if v.hidden != self.hidden {
             self.hidden = v.hidden;
             self.hidden_generation += 1;
             self.feedback_changed_frame = self.frame_counter;
+        }
+    }
+
+    fn take_pick_answer(&mut self) {
+        if let Some(answer) = self.occlusion.as_mut().and_then(Occlusion::take_picked) {
+            if let Some(point) = answer.filter(|_| self.fixed_view.is_none()) {
+                self.camera.recentre(point);
+            }
+            self.picked = Some(answer);
         }
     }
 
