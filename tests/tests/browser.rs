@@ -246,6 +246,14 @@ fn render_and_check(url: &str, out: &Path, scene_dir: &Path, interact: bool) {
     moved[12] += 0.1 * moved[15];
     let wrong = coverage::compare_masks(&silhouette, &coverage::coverage_mask(&blocks, &moved, w, h), w, h);
     assert!(!wrong.within_tolerance(), "a moved camera still matched the screenshot: {wrong:?}");
+    // The AO volume reached the GPU, built by the worker, not on the main thread.
+    let volumes = stats["aoVolumes"].as_u64().unwrap_or(0);
+    assert!(volumes > 0, "no AO volume was uploaded: {stats}");
+    assert_eq!(
+        stats["aoVolumesFromWorker"].as_u64(),
+        Some(volumes),
+        "the main thread built an AO volume: {stats}"
+    );
     if interact {
         check_interactions(&result, out, &silhouette, &view_proj, (w, h));
     }

@@ -15,7 +15,7 @@ use std::collections::{HashMap, HashSet};
 use glam::{Mat4, Vec3};
 use voxstream_format::{Block, BlockKey, HierarchyPage, Manifest, PageRef, SceneIndex};
 
-use crate::ao::OccupancyVolume;
+use crate::ao::{OccupancyVolume, encode_sources};
 use crate::camera::OrbitCamera;
 use crate::decode::decode_fetched;
 use crate::expand::{GpuBlock, UPLOAD_BYTES_PER_FRAME, UploadBatch, upload_buffer};
@@ -102,6 +102,11 @@ pub struct Scene {
     occupancy_built_ms: f64,
     frame_counter: u64,
     picked: Option<Option<Vec3>>,
+    /// Set where a worker builds the occupancy volume (the browser); native builds inline.
+    pub occupancy_offload: bool,
+    /// A payload waiting to be sent to the worker, and whether an answer is outstanding.
+    occupancy_job: Option<Vec<u8>>,
+    occupancy_job_in_flight: bool,
 }
 
 impl Scene {
@@ -138,6 +143,9 @@ impl Scene {
             occupancy_built_ms: f64::NEG_INFINITY,
             frame_counter: 0,
             picked: None,
+            occupancy_offload: false,
+            occupancy_job: None,
+            occupancy_job_in_flight: false,
         }
     }
 
@@ -618,7 +626,8 @@ impl Scene {
         self.enforce_budget();
         self.trim_decoded();
         self.note_residency();
-        DrawnFrame { view_proj: params.view_proj, drawn, complete: settled }
+        // The picture is complete once the AO volume the worker builds is in it too.
+        DrawnFrame { view_proj: params.view_proj, drawn, complete: settled && !self.occupancy_job_in_flight }
     }
 
     /// Blocks whose visibility decides refinement: every visited block whose
@@ -668,6 +677,30 @@ impl Scene {
         for victim in &room.evict {
             if let Some(g) = self.gpu.remove(victim) {
                 self.residency.release(victim, g.buffers);
+            }
+        }
+    }
+
+    /// The occupancy payload ([`encode_sources`]) to hand to the worker, once.
+    pub fn take_occupancy_job(&mut self) -> Option<Vec<u8>> {
+        self.occupancy_job.take()
+    }
+
+    /// The worker's answer to the last job: the volume's mips, uploaded; an
+    /// error is reported and the volume is built on the main thread from then on.
+    pub fn finish_occupancy_job(&mut self, renderer: &Renderer, mips: Result<Vec<u8>, String>) {
+        self.occupancy_job_in_flight = false;
+        match mips.and_then(|b| OccupancyVolume::from_bytes(self.manifest.grid.resolution, &b)) {
+            Ok(volume) if volume.cells == renderer.occupancy_cells() => {
+                renderer.upload_occupancy(&volume);
+                self.stats.ao_volumes += 1;
+                self.stats.ao_volumes_from_worker += 1;
+            }
+            Ok(_) => {}
+            Err(e) => {
+                self.stats.record_error(format!("AO volume worker: {e}; building on the main thread"));
+                self.occupancy_offload = false;
+                self.occupancy_for = None;
             }
         }
     }
@@ -729,14 +762,22 @@ impl Scene {
         {
             return;
         }
+        if self.occupancy_offload && self.occupancy_job_in_flight {
+            // One build at a time; the sources are compared again after its answer.
+            return;
+        }
         // Nothing drawn yet: the texture starts out empty, no need to splat nothing.
-        if !sources.is_empty() || self.occupancy_for.is_some() {
+        if self.occupancy_offload && (!sources.is_empty() || self.occupancy_for.is_some()) {
+            self.occupancy_job = Some(encode_sources(sources.iter().filter_map(|k| self.block(k))));
+            self.occupancy_job_in_flight = true;
+        } else if !sources.is_empty() || self.occupancy_for.is_some() {
             let volume = OccupancyVolume::build(
                 self.manifest.grid.resolution,
                 sources.iter().filter_map(|k| self.block(k)),
             );
             if volume.cells == renderer.occupancy_cells() {
                 renderer.upload_occupancy(&volume);
+                self.stats.ao_volumes += 1;
             }
         }
         self.occupancy_for = Some(sources);

@@ -35,6 +35,9 @@ pub struct Stats {
     /// The longest main-thread task of the viewer's own code so far (a frame's
     /// encoding, a worker result taken in), in ms: WebGPU's own work excluded.
     pub longest_main_task_ms: f64,
+    /// AO occupancy volumes uploaded so far, and how many of them a worker built.
+    pub ao_volumes: u32,
+    pub ao_volumes_from_worker: u32,
     /// From the page's start to the first frame with a block on screen, and
     /// to the first complete frame (the ready marker), in ms (browser only).
     pub first_image_ms: f64,

@@ -19,7 +19,7 @@ use crate::render::Renderer;
 use crate::request::Request;
 use crate::scene::Scene;
 use crate::select::Refinement;
-use crate::worker::{DecodePool, WorkerResult};
+use crate::worker::{DecodePool, OccupancyWorker, WorkerResult};
 
 const CANVAS_ID: &str = "voxstream-canvas";
 const STATS_ID: &str = "voxstream-stats";
@@ -53,6 +53,8 @@ struct App {
     last_view_proj: [f32; 16],
     /// Decode workers; `None` where workers could not start (then the main thread decodes).
     decoder: Option<DecodePool>,
+    /// Builds the AO volume; `None` where it could not start (then the main thread builds it).
+    occupancy_worker: Option<OccupancyWorker>,
     /// Abort handles of requests in flight, by [`request_id`].
     aborts: HashMap<String, web_sys::AbortController>,
     ready: bool,
@@ -269,6 +271,21 @@ async fn run() -> Result<(), String> {
             None
         }
     };
+    let occupancy_worker = match OccupancyWorker::new(|_, mips| {
+        let started = now_ms();
+        with_app(|app| {
+            app.scene.finish_occupancy_job(&app.renderer, mips);
+            app.scene.stats.note_main_thread_task(now_ms() - started);
+        });
+        request_frame();
+    }) {
+        Ok(worker) => Some(worker),
+        Err(e) => {
+            log(&format!("voxstream: building the AO volume on the main thread ({e})"));
+            None
+        }
+    };
+    scene.occupancy_offload = occupancy_worker.is_some();
     APP.with(|app| {
         *app.borrow_mut() = Some(App {
             renderer,
@@ -284,6 +301,7 @@ async fn run() -> Result<(), String> {
             screenshot_pending: false,
             aborts: HashMap::new(),
             decoder,
+            occupancy_worker,
             ready: false,
             fly_mode: false,
             home,
@@ -350,6 +368,12 @@ impl App {
             self.save_screenshot();
         }
         self.renderer.queue.present(texture);
+        if let Some(job) = self.scene.take_occupancy_job() {
+            let grid = self.scene.manifest.grid.resolution;
+            if let Some(Err(e)) = self.occupancy_worker.as_mut().map(|w| w.submit(grid, job)) {
+                self.scene.finish_occupancy_job(&self.renderer, Err(e));
+            }
+        }
         if let Some(answer) = self.scene.take_picked() {
             self.last_pick = Some(answer);
             self.picks_answered += 1;
