@@ -17,11 +17,12 @@ use voxstream_format::{Block, BlockKey, HierarchyPage, Manifest, PageRef, SceneI
 
 use crate::ao::{OccupancyVolume, encode_sources};
 use crate::camera::OrbitCamera;
+use crate::crossfade::{Crossfade, Fade};
 use crate::decode::decode_fetched;
 use crate::expand::{GpuBlock, UPLOAD_BYTES_PER_FRAME, UploadBatch, upload_buffer};
 use crate::fetch::FetchError;
 use crate::occlusion::{Occlusion, contains_eye, occlusion_gpu_bytes, proxy_bounds};
-use crate::render::{FrameParams, Renderer};
+use crate::render::{FADE_BUFFER_BYTES, FrameParams, Renderer};
 use crate::request::{DEFAULT_MAX_IN_FLIGHT, Request, RequestQueue};
 use crate::residency::{DEFAULT_BUDGET_BYTES, Residency, block_gpu_bytes};
 use crate::select::{SelectParams, ViewParams, block_bounds, resolve_draw_set_in, scene_bounds};
@@ -104,6 +105,8 @@ pub struct Scene {
     picked: Option<Option<Vec3>>,
     /// Set where a worker builds the occupancy volume (the browser); native builds inline.
     pub occupancy_offload: bool,
+    /// Level changes fade over `crossfade.duration_ms` (0: they pop, as native renders want).
+    pub crossfade: Crossfade,
     /// A payload waiting to be sent to the worker, and whether an answer is outstanding.
     occupancy_job: Option<Vec<u8>>,
     occupancy_job_in_flight: bool,
@@ -144,6 +147,7 @@ impl Scene {
             frame_counter: 0,
             picked: None,
             occupancy_offload: false,
+            crossfade: Crossfade::default(),
             occupancy_job: None,
             occupancy_job_in_flight: false,
         }
@@ -210,6 +214,7 @@ impl Scene {
             + 256
             + UPLOAD_BYTES_PER_FRAME
             + occlusion_gpu_bytes(self.viewport.0, self.viewport.1)
+            + FADE_BUFFER_BYTES
     }
 
     fn traverse_params(&self) -> TraverseParams {
@@ -522,6 +527,7 @@ impl Scene {
         self.has_pending_uploads()
             || self.frame_counter <= self.feedback_changed_frame + 2
             || self.occlusion.as_ref().is_some_and(Occlusion::pick_pending)
+            || self.crossfade.is_active()
     }
 
     /// Double-click at `pixel` (viewport pixels, row 0 at the top): a frame or
@@ -589,9 +595,13 @@ impl Scene {
 
         self.update_occupancy(renderer, &drawn, settled, now_ms);
 
+        let gpu = &self.gpu;
+        let draw_list = self.crossfade.update(&drawn, max_level, now_ms, |k| gpu.contains_key(k));
+        for (key, _) in &draw_list {
+            self.residency.mark_visible(key, self.frame_counter);
+        }
         let mut faces = 0u64;
         for key in &drawn {
-            self.residency.mark_visible(key, self.frame_counter);
             if let Some(g) = self.gpu.get(key) {
                 faces += g.faces as u64;
             }
@@ -601,7 +611,8 @@ impl Scene {
                 entry.1 = self.frame_counter;
             }
         }
-        let gpu_blocks: Vec<&GpuBlock> = drawn.iter().filter_map(|k| self.gpu.get(k)).collect();
+        let gpu_blocks: Vec<(&GpuBlock, Option<Fade>)> =
+            draw_list.iter().filter_map(|(k, fade)| Some((self.gpu.get(k)?, *fade))).collect();
         let params = FrameParams {
             view_proj: self.view_proj(),
             eye: self.eye(),
@@ -627,7 +638,11 @@ impl Scene {
         self.trim_decoded();
         self.note_residency();
         // The picture is complete once the AO volume the worker builds is in it too.
-        DrawnFrame { view_proj: params.view_proj, drawn, complete: settled && !self.occupancy_job_in_flight }
+        DrawnFrame {
+            view_proj: params.view_proj,
+            drawn,
+            complete: settled && !self.occupancy_job_in_flight && !self.crossfade.is_active(),
+        }
     }
 
     /// Blocks whose visibility decides refinement: every visited block whose

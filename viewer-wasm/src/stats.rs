@@ -94,7 +94,7 @@ mod tests {
         };
         let v: serde_json::Value = serde_json::to_value(&s).unwrap();
         let keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
-        assert_eq!(keys.len(), 19);
+        assert_eq!(keys.len(), 21);
         for k in [
             "frameMs",
             "blocksDrawn",
@@ -110,6 +110,8 @@ mod tests {
             "requestsInFlight",
             "requestsAborted",
             "blocksFailed",
+            "aoVolumes",
+            "aoVolumesFromWorker",
         ] {
             assert!(keys.contains(&k), "missing {k}");
         }

@@ -242,6 +242,9 @@ async fn run() -> Result<(), String> {
             log(&format!("voxstream: ignoring ?view={v}"));
         }
     }
+    // Level changes cross-fade over 250 ms; ?fade=0 makes them pop, ?fade=1000 slows them.
+    scene.crossfade =
+        crate::crossfade::Crossfade::new(url_number("fade", 0.0..=5000.0).map_or(250.0, f64::from));
     if url_param("refine").as_deref() == Some("holes") {
         scene.select_params.refinement = Refinement::HolesAllowed;
     }
