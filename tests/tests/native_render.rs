@@ -575,7 +575,7 @@ fn streaming_frames_on_a_path_have_no_holes() {
 /// The shader's dither threshold (voxel.wgsl `dither`), for predicting which level a pixel shows.
 fn dither(x: u32, y: u32) -> f32 {
     let d = 0.06711056f32 * x as f32 + 0.00583715 * y as f32;
-    (52.9829189f32 * d.fract()).fract()
+    (52.982_918_f32 * d.fract()).fract()
 }
 
 /// A level change cross-fades instead of popping: halfway through, every pixel shows exactly one
