@@ -106,7 +106,8 @@ async fn cut_and_resume_with(
 
     let done = head(&http, &url).await;
     assert_eq!(header_u64(&done, "upload-offset"), size);
-    let job_id = done.headers().get("voxstream-job").expect("the complete upload names its job").to_str().unwrap();
+    let job_id =
+        done.headers().get("voxstream-job").expect("the complete upload names its job").to_str().unwrap();
     let deadline = Instant::now() + Duration::from_secs(180);
     let job: Value = loop {
         let job: Value = http

@@ -177,9 +177,14 @@ pub fn document(config: &ServerConfig) -> Value {
                 add_response(op, "403", "This server is read-only (--read-only)");
             }
             if config.uploads_per_minute > 0
-                && ((path == "/api/scenes" && method == "post") || (path == "/api/uploads" && method == "post"))
+                && method == "post"
+                && matches!(path.as_str(), "/api/scenes" | "/api/uploads")
             {
-                add_response(op, "429", "Too many uploads from this client; Retry-After says when to try again");
+                add_response(
+                    op,
+                    "429",
+                    "Too many uploads from this client; Retry-After says when to try again",
+                );
             }
             add_response(op, "431", "Request line and headers are larger than --max-header-bytes");
             fix_parameters(path, method, op, config);
@@ -195,7 +200,8 @@ fn add_aliases(doc: &mut Value) {
     let paths = doc.get_mut("paths").and_then(Value::as_object_mut).expect("paths");
     let mut options = paths["/api/uploads"]["options"].clone();
     options["operationId"] = json!("tus_options_upload");
-    options["parameters"] = json!([{ "name": "id", "in": "path", "required": true, "schema": { "type": "string" } }]);
+    options["parameters"] =
+        json!([{ "name": "id", "in": "path", "required": true, "schema": { "type": "string" } }]);
     paths["/api/uploads/{id}"]["options"] = options;
     let mut cancel = paths["/api/jobs/{id}"]["delete"].clone();
     cancel["operationId"] = json!("cancel_job_post");
@@ -213,34 +219,69 @@ fn add_links(doc: &mut Value) {
     let first_scene = json!({ "id": "$response.body#/0/id" });
     let this_id = json!({ "id": "$request.path.id" });
     let links = [
-        ("/api/scenes", "get", "200", json!({
-            "GetScene": link("get_scene", first_scene.clone()),
-            "GetManifest": link("get_manifest", first_scene.clone()),
-            "GetThumbnail": link("get_thumbnail", first_scene),
-        })),
-        ("/api/scenes/{id}", "get", "200", json!({
-            "GetManifest": link("get_manifest", this_id.clone()),
-            "RenameScene": link("patch_scene", this_id.clone()),
-        })),
-        ("/api/scenes/{id}", "patch", "200", json!({
-            "GetScene": link("get_scene", json!({ "id": "$response.body#/id" })),
-        })),
-        ("/api/scenes/{id}/manifest", "get", "200", json!({
-            "GetRootBlock": link("get_block", json!({ "id": "$request.path.id", "block": "$response.body#/root/key" })),
-        })),
-        ("/api/scenes", "post", "202", json!({
-            "GetJob": link("get_job", job_from_body.clone()),
-            "JobEvents": link("job_events", job_from_body.clone()),
-            "CancelJob": link("cancel_job", job_from_body),
-        })),
-        ("/api/uploads", "post", "201", json!({
-            "UploadOffset": link("tus_head", upload_id.clone()),
-            "AppendChunk": link("tus_patch", upload_id.clone()),
-            "AbandonUpload": link("tus_delete", upload_id),
-        })),
-        ("/api/uploads/{id}", "patch", "204", json!({
-            "UploadOffset": link("tus_head", this_id),
-        })),
+        (
+            "/api/scenes",
+            "get",
+            "200",
+            json!({
+                "GetScene": link("get_scene", first_scene.clone()),
+                "GetManifest": link("get_manifest", first_scene.clone()),
+                "GetThumbnail": link("get_thumbnail", first_scene),
+            }),
+        ),
+        (
+            "/api/scenes/{id}",
+            "get",
+            "200",
+            json!({
+                "GetManifest": link("get_manifest", this_id.clone()),
+                "RenameScene": link("patch_scene", this_id.clone()),
+            }),
+        ),
+        (
+            "/api/scenes/{id}",
+            "patch",
+            "200",
+            json!({
+                "GetScene": link("get_scene", json!({ "id": "$response.body#/id" })),
+            }),
+        ),
+        (
+            "/api/scenes/{id}/manifest",
+            "get",
+            "200",
+            json!({
+                "GetRootBlock": link("get_block", json!({ "id": "$request.path.id", "block": "$response.body#/root/key" })),
+            }),
+        ),
+        (
+            "/api/scenes",
+            "post",
+            "202",
+            json!({
+                "GetJob": link("get_job", job_from_body.clone()),
+                "JobEvents": link("job_events", job_from_body.clone()),
+                "CancelJob": link("cancel_job", job_from_body),
+            }),
+        ),
+        (
+            "/api/uploads",
+            "post",
+            "201",
+            json!({
+                "UploadOffset": link("tus_head", upload_id.clone()),
+                "AppendChunk": link("tus_patch", upload_id.clone()),
+                "AbandonUpload": link("tus_delete", upload_id),
+            }),
+        ),
+        (
+            "/api/uploads/{id}",
+            "patch",
+            "204",
+            json!({
+                "UploadOffset": link("tus_head", this_id),
+            }),
+        ),
     ];
     for (path, method, status, l) in links {
         let response = doc
@@ -256,30 +297,66 @@ fn add_response_headers(doc: &mut Value) {
     let digits = |d: &str| json!({ "required": true, "description": d, "schema": { "type": "string", "pattern": "^[0-9]+$" } });
     let tus = || text("1.0.0");
     let etag = || text("The blake3 hash in quotes (strong)");
-    let cache = || text("Cache-Control: a year and immutable for content-addressed URLs, no-cache for key-only ones");
+    let cache =
+        || text("Cache-Control: a year and immutable for content-addressed URLs, no-cache for key-only ones");
     let headers = [
         ("/api/scenes", "post", "202", json!({ "Location": text("/api/jobs/{id}: the build's job") })),
-        ("/api/uploads", "options", "204", json!({
-            "Tus-Resumable": tus(), "Tus-Version": text("1.0.0"),
-            "Tus-Extension": text("creation,termination"), "Tus-Max-Size": digits("--max-upload-bytes"),
-        })),
-        ("/api/uploads/{id}", "options", "204", json!({
-            "Tus-Resumable": tus(), "Tus-Version": text("1.0.0"),
-            "Tus-Extension": text("creation,termination"), "Tus-Max-Size": digits("--max-upload-bytes"),
-        })),
-        ("/api/uploads", "post", "201", json!({
-            "Location": text("/api/uploads/{id}: where to PATCH, HEAD and DELETE"), "Tus-Resumable": tus(),
-        })),
-        ("/api/uploads/{id}", "head", "200", json!({
-            "Upload-Offset": digits("Bytes stored: where to resume"), "Upload-Length": digits("Total bytes"),
-            "Tus-Resumable": tus(),
-        })),
-        ("/api/uploads/{id}", "patch", "204", json!({
-            "Upload-Offset": digits("The new offset"), "Upload-Length": digits("Total bytes"), "Tus-Resumable": tus(),
-        })),
+        (
+            "/api/uploads",
+            "options",
+            "204",
+            json!({
+                "Tus-Resumable": tus(), "Tus-Version": text("1.0.0"),
+                "Tus-Extension": text("creation,termination"), "Tus-Max-Size": digits("--max-upload-bytes"),
+            }),
+        ),
+        (
+            "/api/uploads/{id}",
+            "options",
+            "204",
+            json!({
+                "Tus-Resumable": tus(), "Tus-Version": text("1.0.0"),
+                "Tus-Extension": text("creation,termination"), "Tus-Max-Size": digits("--max-upload-bytes"),
+            }),
+        ),
+        (
+            "/api/uploads",
+            "post",
+            "201",
+            json!({
+                "Location": text("/api/uploads/{id}: where to PATCH, HEAD and DELETE"), "Tus-Resumable": tus(),
+            }),
+        ),
+        (
+            "/api/uploads/{id}",
+            "head",
+            "200",
+            json!({
+                "Upload-Offset": digits("Bytes stored: where to resume"), "Upload-Length": digits("Total bytes"),
+                "Tus-Resumable": tus(),
+            }),
+        ),
+        (
+            "/api/uploads/{id}",
+            "patch",
+            "204",
+            json!({
+                "Upload-Offset": digits("The new offset"), "Upload-Length": digits("Total bytes"), "Tus-Resumable": tus(),
+            }),
+        ),
         ("/api/uploads/{id}", "delete", "204", json!({ "Tus-Resumable": tus() })),
-        ("/api/scenes/{id}/blocks/{block}", "get", "200", json!({ "ETag": etag(), "Cache-Control": cache() })),
-        ("/api/scenes/{id}/blocks/{block}", "get", "304", json!({ "ETag": etag(), "Cache-Control": cache() })),
+        (
+            "/api/scenes/{id}/blocks/{block}",
+            "get",
+            "200",
+            json!({ "ETag": etag(), "Cache-Control": cache() }),
+        ),
+        (
+            "/api/scenes/{id}/blocks/{block}",
+            "get",
+            "304",
+            json!({ "ETag": etag(), "Cache-Control": cache() }),
+        ),
         ("/api/scenes/{id}/pages/{page}", "get", "200", json!({ "ETag": etag(), "Cache-Control": cache() })),
         ("/api/scenes/{id}/pages/{page}", "get", "304", json!({ "ETag": etag(), "Cache-Control": cache() })),
     ];
@@ -341,7 +418,12 @@ fn header(name: &str, required: bool, schema: Value, description: &str) -> Value
 }
 
 fn tus_resumable() -> Value {
-    header("Tus-Resumable", true, json!({ "type": "string", "enum": ["1.0.0"] }), "The tus protocol version: 1.0.0")
+    header(
+        "Tus-Resumable",
+        true,
+        json!({ "type": "string", "enum": ["1.0.0"] }),
+        "The tus protocol version: 1.0.0",
+    )
 }
 
 fn if_none_match() -> Value {
@@ -397,13 +479,17 @@ fn fix_parameters(path: &str, method: &str, op: &mut Map<String, Value>, config:
         };
         p["schema"] = schema;
         if p["in"] == "header" && name != "Upload-Metadata" {
-            p["required"] = json!(name == "Tus-Resumable" || name == "Upload-Length" || name == "Upload-Offset");
+            p["required"] =
+                json!(name == "Tus-Resumable" || name == "Upload-Length" || name == "Upload-Offset");
         }
     }
     match (path, method) {
-        ("/api/scenes/{id}/blocks/{block}" | "/api/scenes/{id}/pages/{page}" | "/api/scenes/{id}/thumbnail.png", "get") => {
-            params.push(if_none_match())
-        }
+        (
+            "/api/scenes/{id}/blocks/{block}"
+            | "/api/scenes/{id}/pages/{page}"
+            | "/api/scenes/{id}/thumbnail.png",
+            "get",
+        ) => params.push(if_none_match()),
         ("/api/scenes", "post") => params.push(header(
             "X-Filename",
             false,
@@ -438,7 +524,8 @@ pub fn uint_pattern(min: u64, max: u64) -> String {
         let lo = if i == 0 { 1 } else { 0 };
         if digits[i] > lo {
             let prefix: String = digits[..i].iter().map(|d| char::from_digit(*d, 10).unwrap()).collect();
-            let range = if digits[i] - 1 == lo { lo.to_string() } else { format!("[{lo}-{}]", digits[i] - 1) };
+            let range =
+                if digits[i] - 1 == lo { lo.to_string() } else { format!("[{lo}-{}]", digits[i] - 1) };
             let rest = if k - i - 1 > 0 { format!("[0-9]{{{}}}", k - i - 1) } else { String::new() };
             alts.push(format!("{prefix}{range}{rest}"));
         }
@@ -504,8 +591,7 @@ mod tests {
                 for (status, r) in op["responses"].as_object().unwrap() {
                     if status.starts_with('4') && method != "head" {
                         assert_eq!(
-                            r["content"]["application/json"]["schema"]["$ref"],
-                            "#/components/schemas/Error",
+                            r["content"]["application/json"]["schema"]["$ref"], "#/components/schemas/Error",
                             "{method} {path} {status}"
                         );
                     }
