@@ -66,7 +66,7 @@ ensure_venv() {
   # A venv records its own absolute path, so it is made where it stays; the stamp, written last, says
   # that pip finished. A half-made one (killed install) is removed and made again.
   rm -rf "$VENV"
-  log "making $VENV with $(grep -v '^#' "$REQS" | xargs) (pip, about a minute)"
+  log "making $VENV: $(grep -v '^#' "$REQS" | head -2 | xargs) and their pinned dependencies (pip, about a minute)"
   "$PYTHON" -m venv "$VENV" >&2 ||
     die "$PYTHON -m venv failed (Debian: apt-get install python3-venv; scripts/setup.sh does)"
   "$VENV/bin/pip" install --quiet --disable-pip-version-check --no-input -r "$REQS" >&2 ||
