@@ -57,10 +57,12 @@ REQ_HASH="$(sha256sum "$REQS" | cut -c1-12)"
 VENV="$TOOLS/pytools-$REQ_HASH"
 STAMP="$VENV/.voxstream-complete"
 
+# Complete (the stamp is written after pip succeeded) and its interpreter still runs. Cheap: importing
+# schemathesis to ask `st --version` takes seconds on a busy machine.
+venv_ok() { [ -f "$STAMP" ] && [ -x "$VENV/bin/st" ] && "$VENV/bin/python" -c '' >/dev/null 2>&1; }
+
 ensure_venv() {
-  if [ -f "$STAMP" ] && "$VENV/bin/st" --version >/dev/null 2>&1; then
-    return 0
-  fi
+  venv_ok && return 0
   command -v "$PYTHON" >/dev/null 2>&1 || die "$PYTHON is missing (Debian: apt-get install python3 python3-venv)"
   mkdir -p "$TOOLS"
   # A venv records its own absolute path, so it is made where it stays; the stamp, written last, says
@@ -82,7 +84,7 @@ case "${1:-}" in
     exit 0
     ;;
   --check)
-    [ -f "$STAMP" ] && "$VENV/bin/st" --version >/dev/null 2>&1 || exit 1
+    venv_ok || exit 1
     printf '%s\n' "$VENV"
     exit 0
     ;;
