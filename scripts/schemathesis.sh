@@ -2,7 +2,7 @@
 # Check the HTTP API against its own OpenAPI document (/api/openapi.json) with schemathesis (PyPI),
 # a tool nobody here wrote:
 #
-#   bash scripts/schemathesis.sh              install if needed, build, run every phase (about 40 s warm)
+#   bash scripts/schemathesis.sh              install if needed, build, run every phase (about a minute)
 #   bash scripts/schemathesis.sh --install    only make sure the tools venv exists (scripts/setup.sh)
 #   bash scripts/schemathesis.sh --venv       print the venv's path (installing it if needed)
 #   bash scripts/schemathesis.sh --check      print the venv's path if it is complete, else exit 1
