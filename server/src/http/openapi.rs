@@ -167,19 +167,31 @@ pub fn document(config: &ServerConfig) -> Value {
             let read = !write
                 && method != "options"
                 && ((path.starts_with("/api/") && path != "/api/openapi.json") || path == "/metrics");
-            if (write || (read && config.protect_read)) && token {
+            // A --read-only server refuses writes (403) before it looks at a token.
+            let token_required = token && ((write && !config.read_only) || (read && config.protect_read));
+            let read_only_refusal = write && config.read_only;
+            let rate_limited = config.uploads_per_minute > 0
+                && method == "post"
+                && matches!(path.as_str(), "/api/scenes" | "/api/uploads");
+            // Only the statuses this server can answer with: the handlers' attributes list them all.
+            let responses = op.get_mut("responses").and_then(Value::as_object_mut).expect("responses");
+            for (status, applies) in
+                [("401", token_required), ("403", read_only_refusal), ("429", rate_limited)]
+            {
+                if !applies {
+                    responses.remove(status);
+                }
+            }
+            if token_required {
                 op.insert("security".into(), json!([{ "bearer": [] }]));
                 add_response(op, "401", "Authorization: Bearer <token> is missing or wrong");
             } else {
                 op.remove("security");
             }
-            if write && config.read_only {
+            if read_only_refusal {
                 add_response(op, "403", "This server is read-only (--read-only)");
             }
-            if config.uploads_per_minute > 0
-                && method == "post"
-                && matches!(path.as_str(), "/api/scenes" | "/api/uploads")
-            {
+            if rate_limited {
                 add_response(
                     op,
                     "429",
@@ -622,5 +634,14 @@ mod tests {
         assert!(doc["paths"]["/api/uploads/{id}"]["options"].is_object());
         assert!(doc["paths"]["/api/uploads"]["post"]["responses"]["401"].is_object());
         assert!(doc["paths"]["/api/scenes"]["get"]["responses"]["401"].is_null(), "reads are public");
+        assert!(doc["paths"]["/api/scenes"]["post"]["responses"]["403"].is_null(), "not read-only");
+
+        let mut config = ServerConfig::new(std::path::Path::new("/nonexistent"));
+        config.read_only = true;
+        config.uploads_per_minute = 0;
+        let doc = document(&config);
+        let upload = &doc["paths"]["/api/scenes"]["post"];
+        assert!(upload["responses"]["403"].is_object() && upload["responses"]["401"].is_null(), "{upload}");
+        assert!(upload["responses"]["429"].is_null() && upload["security"].is_null(), "{upload}");
     }
 }
