@@ -19,8 +19,9 @@
 #      passes, the harness cannot see contract failures and the step fails.
 #   4. `voxstream serve --token ... --uploads-per-minute 0` on a fresh copy of the store, then
 #      `st run --phases coverage,fuzzing`; a fresh store and server again for `--phases stateful` (the
-#      first run deletes and renames scenes, and the stateful walk starts from the catalog); and a
-#      `--protect-read` server for the coverage phase (its document requires the token for reading).
+#      first run deletes and renames scenes, and the stateful walk starts from the catalog); and the
+#      coverage phase on a `--protect-read` server (its document requires the token for reading) and
+#      on a `--read-only` one (its write routes answer 403 only).
 #      Every check schemathesis has runs (`--checks` left at its default: all), zero failures required.
 #
 # Configuration and the stated exclusions are in scripts/schemathesis/schemathesis.toml (why each one);
@@ -233,6 +234,7 @@ run_phase() {
 run_phase fuzz coverage,fuzzing
 run_phase stateful stateful
 run_phase protect-read coverage --protect-read
+run_phase read-only coverage --read-only
 
 if [ "${#FAILED[@]}" -gt 0 ]; then
   log "FAILED: ${FAILED[*]} ($((SECONDS - start)) s)"
