@@ -463,6 +463,88 @@ mod tests {
 
     use super::*;
 
+    /// One voxel a block, for every block of a tree over a diagonal of
+    /// level-0 blocks (`n` of them) up to the single root on `coarsest`.
+    fn diagonal_tree(n: u32, coarsest: u8) -> Vec<LodBlock> {
+        use crate::pipeline::pyramid::LodVoxel;
+        use crate::pipeline::voxelize::BuildVoxel;
+        let voxel = LodVoxel {
+            voxel: BuildVoxel {
+                morton: 0,
+                normal_sum: [0.0, 0.0, 1.0],
+                color_sum: [0.0; 3],
+                color_weight: 0.0,
+                faces: 1,
+            },
+            solid: 1,
+            error: 0.0,
+        };
+        let mut keys = std::collections::BTreeSet::new();
+        for i in 0..n {
+            let mut k = BlockKey::new(0, i, i, i);
+            keys.insert(k);
+            while k.level < coarsest {
+                k = k.parent();
+                keys.insert(k);
+            }
+        }
+        keys.into_iter().map(|key| LodBlock { key, voxels: vec![voxel.clone()] }).collect()
+    }
+
+    fn most_open_packs(blocks: &[LodBlock], store: &Path, resolution: u32) -> (usize, Manifest) {
+        let mut w = BlockWriter::create(store, "t", resolution, 1).unwrap();
+        let mut most = 0;
+        for b in blocks {
+            w.add(b.clone()).unwrap();
+            w.flush().unwrap();
+            most = most.max(w.open_packs());
+        }
+        let m = w
+            .finish(
+                "t".into(),
+                SourceInfo { file: "t".into(), format: "obj".into(), triangles: 1, skipped_triangles: 0 },
+                GridFrame { origin: [0.0; 3], voxel_size: 1.0, resolution, units: None },
+                ResolutionChoice {
+                    mode: "explicit".into(),
+                    resolution,
+                    voxel_size: 1.0,
+                    median_edge: None,
+                    reason: "test".into(),
+                },
+            )
+            .unwrap();
+        (most, m)
+    }
+
+    /// Fails if the writer holds more packs open than one per page layer when
+    /// blocks come in post order (the build's order), i.e. if its files or
+    /// buffers grow with the scene; the control shows level order would.
+    #[test]
+    fn post_order_keeps_one_pack_open_per_page_layer() {
+        let (resolution, coarsest) = (4096, 6);
+        let mut blocks = diagonal_tree(64, coarsest);
+        blocks.sort_by_key(|b| post_order_key(&b.key));
+        let dir = tempfile::tempdir().unwrap();
+        let (most, manifest) = most_open_packs(&blocks, dir.path(), resolution);
+        let bound = open_packs(level_count(resolution));
+        assert!(most <= bound, "{most} packs open at once, bound {bound}");
+        let scene = crate::store::open_scene(dir.path(), "t").unwrap();
+        assert_eq!(scene.manifest, manifest);
+        assert_eq!(scene.blocks().len(), blocks.len());
+        let pages = std::fs::read_dir(dir.path().join("t/pages")).unwrap().count();
+        let packs = std::fs::read_dir(dir.path().join("t/packs")).unwrap().count();
+        assert_eq!((pages, packs), (9, 9), "the root page and 8 level-3 pages, a pack each");
+        for e in scene.blocks() {
+            let bytes = scene.read_block(e).unwrap();
+            assert_eq!(voxstream_format::decode_block(&bytes).unwrap().key, e.key);
+        }
+        // Control: level order (finest first) keeps every level-3 page's pack open at once.
+        blocks.sort_by_key(|b| (b.key.level, b.key));
+        let dir = tempfile::tempdir().unwrap();
+        let (level_order, _) = most_open_packs(&blocks, dir.path(), resolution);
+        assert!(level_order > bound, "level order opened only {level_order} packs");
+    }
+
     #[test]
     fn srgb_conversion() {
         assert_eq!(linear_to_srgb8(0.0), 0);
