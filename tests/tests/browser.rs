@@ -159,7 +159,7 @@ fn browser_renders_koala_matching_cpu_coverage() {
     let url = format!("http://{addr}/?scene={}", report.id);
 
     // 3. Headless Chromium, with the checks below.
-    render_and_check(&url, &artifacts_dir(), &report.scene_dir);
+    render_and_check(&url, &artifacts_dir(), &report.scene_dir, true);
     assert!(!server.is_finished(), "the server stopped during the browser run: {:?}", rt.block_on(server));
     server.abort();
 }
@@ -167,7 +167,9 @@ fn browser_renders_koala_matching_cpu_coverage() {
 /// Opens `url` in headless Chromium (tests/browser/e2e.mjs), waits for the ready marker and checks
 /// the screenshot's silhouette against the CPU coverage of the blocks the page says it drew, read
 /// from `scene_dir` (the store's scene folder). Artifacts go to `out`.
-fn render_and_check(url: &str, out: &Path, scene_dir: &Path) {
+/// With `interact`, the harness then presses the screenshot button and double-clicks a background
+/// corner and the canvas centre; [`check_interactions`] judges what came of it.
+fn render_and_check(url: &str, out: &Path, scene_dir: &Path, interact: bool) {
     let root = workspace_root();
     let script = root.join("tests/browser/e2e.mjs");
     std::fs::create_dir_all(out).unwrap();
@@ -176,6 +178,9 @@ fn render_and_check(url: &str, out: &Path, scene_dir: &Path) {
     }
     let mut cmd = Command::new("node");
     cmd.arg(&script).arg(url).arg(out).current_dir(&root);
+    if interact {
+        cmd.env("VOXSTREAM_E2E_INTERACT", "1");
+    }
     let (ok, log) = run_with_timeout(cmd, HARNESS_TIMEOUT);
     assert!(ok, "browser harness failed for {url}; its output (page console included):\n{log}");
 
@@ -245,6 +250,69 @@ fn render_and_check(url: &str, out: &Path, scene_dir: &Path) {
     moved[12] += 0.1 * moved[15];
     let wrong = coverage::compare_masks(&silhouette, &coverage::coverage_mask(&blocks, &moved, w, h), w, h);
     assert!(!wrong.within_tolerance(), "a moved camera still matched the screenshot: {wrong:?}");
+    // The AO volume reached the GPU, built by the worker, not on the main thread.
+    let volumes = stats["aoVolumes"].as_u64().unwrap_or(0);
+    assert!(volumes > 0, "no AO volume was uploaded: {stats}");
+    assert_eq!(
+        stats["aoVolumesFromWorker"].as_u64(),
+        Some(volumes),
+        "the main thread built an AO volume: {stats}"
+    );
+    if interact {
+        check_interactions(&result, out, &silhouette, &view_proj, (w, h));
+    }
+}
+
+/// The screenshot button saved the canvas as drawn, a double-click on the background changed
+/// nothing, and one on the scan put the orbit centre on the surface under the cursor.
+fn check_interactions(
+    result: &Value,
+    out: &Path,
+    silhouette: &[bool],
+    view_proj: &[f32; 16],
+    size: (u32, u32),
+) {
+    let interact = &result["interact"];
+    assert!(interact.is_object(), "the harness reported no interactions: {result}");
+    let (dw, dh, rgb) = read_png_rgb(&out.join("download.png"));
+    assert_eq!((dw, dh), size, "the screenshot button's PNG is not the canvas size");
+    let saved: Vec<bool> = rgb.chunks_exact(3).map(|p| p != &BACKGROUND_RGBA8[..3]).collect();
+    let cmp = coverage::compare_masks(&saved, silhouette, size.0, size.1);
+    println!("screenshot button vs page screenshot: {cmp:?}");
+    assert!(cmp.within_tolerance() && saved.iter().any(|&s| s), "the saved PNG is not the view: {cmp:?}");
+
+    let target = |v: &Value| -> Vec<f64> {
+        v.as_array()
+            .unwrap_or_else(|| panic!("camera target: {v}"))
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect()
+    };
+    let before = target(&result["view"]["camera"]["target"]);
+    assert_eq!(
+        interact["cornerPick"], "none",
+        "a double-click on the background found a surface: {interact}"
+    );
+    assert_eq!(
+        target(&interact["cornerTarget"]),
+        before,
+        "a double-click on the background moved the orbit centre"
+    );
+    let picked = target(&interact["centrePick"]);
+    assert_eq!(target(&interact["centreTarget"]), picked, "the orbit centre is not the picked point");
+    assert_ne!(picked, before, "the orbit centre did not move");
+    // The picked point lies on the clicked pixel's ray: it projects back onto the canvas centre.
+    let m = glam::Mat4::from_cols_array(view_proj);
+    let c = m * glam::Vec4::new(picked[0] as f32, picked[1] as f32, picked[2] as f32, 1.0);
+    let ndc = c.truncate() / c.w;
+    let px = ((ndc.x * 0.5 + 0.5) * size.0 as f32, (0.5 - ndc.y * 0.5) * size.1 as f32);
+    let centre = (size.0 as f32 / 2.0, size.1 as f32 / 2.0);
+    let off = ((px.0 - centre.0).powi(2) + (px.1 - centre.1).powi(2)).sqrt();
+    assert!(off < 2.5, "the picked point projects to {px:?}, {off:.1} px from the clicked {centre:?}");
+    assert!((0.0..1.0).contains(&ndc.z), "the picked point is outside the depth range: {ndc}");
+    // And it is on the scan: some drawn pixel near the click.
+    let (cx, cy) = (centre.0 as usize, centre.1 as usize);
+    assert!(silhouette[cy * size.0 as usize + cx], "the clicked pixel shows no surface in the screenshot");
 }
 
 /// The upload page against the full server (jobs, tus, SSE, thumbnails) on an empty store:
@@ -451,7 +519,7 @@ fn static_publish_renders_in_chromium() {
     }
     let url = format!("http://127.0.0.1:{port}/scans/koala/");
     let result = std::panic::catch_unwind(|| {
-        render_and_check(&url, &artifacts_dir().join("publish"), &report.scene_dir)
+        render_and_check(&url, &artifacts_dir().join("publish"), &report.scene_dir, false)
     });
     let _ = server.kill();
     let _ = server.wait();
