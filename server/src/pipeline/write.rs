@@ -488,7 +488,7 @@ mod tests {
                 keys.insert(k);
             }
         }
-        keys.into_iter().map(|key| LodBlock { key, voxels: vec![voxel.clone()] }).collect()
+        keys.into_iter().map(|key| LodBlock { key, voxels: vec![voxel] }).collect()
     }
 
     fn most_open_packs(blocks: &[LodBlock], store: &Path, resolution: u32) -> (usize, Manifest) {
