@@ -111,6 +111,16 @@ fn main() {
         let block_bytes: u64 =
             needed.iter().filter_map(|k| o.scene.index.block(k)).map(|e| e.bytes as u64).sum();
         let page_bytes = o.scene.index.page_bytes_loaded();
+        // Per level: [blocks, bytes, of them wanted (the rest are ancestors)].
+        let wanted: std::collections::HashSet<_> = o.scene.wanted().iter().copied().collect();
+        let mut levels = std::collections::BTreeMap::<u8, [u64; 3]>::new();
+        for k in &needed {
+            let l = levels.entry(k.level).or_default();
+            l[0] += 1;
+            l[1] += o.scene.index.block(k).map_or(0, |e| e.bytes as u64);
+            l[2] += wanted.contains(k) as u64;
+        }
+        eprintln!("levels (level: [blocks, bytes, wanted]): {levels:?}");
         println!(
             "{{\"measure\":\"bytes_to_converge\",\"scene\":{:?},\"view\":{kind:?},\"size\":\"{w}x{h}\",\"resolution\":{},\"blocks\":{},\"block_bytes\":{block_bytes},\"page_bytes\":{page_bytes},\"manifest_bytes\":{manifest_bytes},\"total\":{}}}",
             scene.display().to_string(),
