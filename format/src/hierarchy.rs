@@ -12,16 +12,25 @@
 //! [`PageRef`] to it. Pages therefore form a Merkle tree: a page's hash covers
 //! its children's hashes, so they are written bottom-up ([`PageBuilder`]).
 //!
-//! Binary page layout (little endian):
+//! **Packs.** The encoded bytes of the blocks a page lists live in one pack,
+//! `packs/<blake3 of the pack>.vxp` in the scene directory: the blocks' bytes
+//! concatenated (in the order the writer finished them: post order). The
+//! page's header names the pack (hash and length), so the page's hash covers
+//! it and the Merkle chain reaches every block byte. An entry's
+//! `location.pack == 0` means "this page's pack", bytes
+//! `[offset, offset + bytes)`; [`NO_PACK`] means the block is its own file
+//! `blocks/<key>.vxb` (version-1 pages; no writer makes those any more).
+//!
+//! Binary page layout (little endian), version 2:
 //!
 //! ```text
 //! 0  magic "VXHP"
-//! 4  version u8 (1), page_levels u8, reserved 2 zero bytes
+//! 4  version u8 (2), page_levels u8, reserved 2 zero bytes
 //! 8  root: level u8, x, y, z u32
-//! 21 entry count u32, child page count u32, pack count u32
+//! 21 entry count u32, child page count u32, pack count u32 (0 or 1)
 //! 33 payload length u32 (decompressed; must equal what the counts imply)
-//! 37 lz4 block of the payload:
-//!    packs        count × 32-byte blake3
+//! 37 pack: blake3 32 bytes, length u64 (all zero when the pack count is 0)
+//! 77 lz4 block of the payload:
 //!    child pages  count × (level u8, x, y, z u32, bytes u32, blake3 32)        = 49 bytes
 //!    entries      count × (level u8, x, y, z u32, child_mask u8,
 //!                          bounds min 3 × u8, max 3 × u8 (block-local, 0..=64),
@@ -29,10 +38,15 @@
 //!                          blake3 32, pack u32, offset u64)                       = 80 bytes
 //! ```
 //!
+//! Version 1 (still decoded) had a 37-byte header and the pack hashes
+//! (32 bytes each, no lengths) at the start of the payload; its writers never
+//! named a pack, so a version-1 page with packs is refused.
+//!
 //! **Invariant:** [`HierarchyPage::decode`] never panics and never allocates
 //! more than the counts imply after checking them against a hard cap; a
-//! decoded page is exactly what [`HierarchyPage::encode`] would write, and
-//! every entry is a descendant of the root within `page_levels` levels.
+//! decoded version-2 page is exactly what [`HierarchyPage::encode`] would
+//! write, every entry is a descendant of the root within `page_levels`
+//! levels, and every packed entry's range lies inside the page's pack.
 
 use std::collections::{BTreeMap, HashMap};
 
@@ -43,9 +57,11 @@ use crate::{BLOCK_SIZE, BlockEntry, BlockKey, Manifest, VoxelBounds};
 /// Levels one page spans below its root.
 pub const PAGE_LEVELS: u8 = 3;
 pub const PAGE_MAGIC: [u8; 4] = *b"VXHP";
-const PAGE_VERSION: u8 = 1;
-pub const PAGE_HEADER_LEN: usize = 37;
-const PACK_LEN: usize = 32;
+const PAGE_VERSION: u8 = 2;
+/// The header of a version-2 page (the pack is named in it).
+pub const PAGE_HEADER_LEN: usize = 77;
+/// The header of a version-1 page, the shortest any page can be.
+const V1_HEADER_LEN: usize = 37;
 const CHILD_PAGE_LEN: usize = 49;
 const ENTRY_LEN: usize = 80;
 /// A page holds at most the full subtree of `page_levels ≤ 4` levels: 8 + 64 + 512 + 4096 blocks.
@@ -76,6 +92,46 @@ impl Default for BlockLocation {
     }
 }
 
+/// A pack as its page (or the manifest, for the root block) names it:
+/// content-addressed, `packs/<hash>.vxp`.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct PackRef {
+    /// blake3 of the pack bytes, hex.
+    pub hash: String,
+    /// Length of the pack in bytes.
+    pub bytes: u64,
+}
+
+/// The bytes of one block inside a pack.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PackRange {
+    pub pack: PackRef,
+    pub offset: u64,
+    pub bytes: u32,
+}
+
+impl PackRange {
+    /// One past the last byte.
+    pub fn end(&self) -> u64 {
+        self.offset.saturating_add(self.bytes as u64)
+    }
+}
+
+/// A pack's file in a scene directory.
+pub fn pack_path(hash: &str) -> String {
+    format!("packs/{hash}.vxp")
+}
+
+/// Whether `[offset, offset + bytes)` lies inside a pack of `pack_bytes`.
+pub fn range_in_pack(offset: u64, bytes: u32, pack_bytes: u64) -> bool {
+    offset.checked_add(bytes as u64).is_some_and(|end| end <= pack_bytes)
+}
+
+/// Whether `s` is 64 lowercase hex digits (a blake3 content address).
+pub fn is_content_hash(s: &str) -> bool {
+    unhex(s).is_some()
+}
+
 /// A page as its parent (or the manifest) names it: content-addressed.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct PageRef {
@@ -89,8 +145,8 @@ pub struct PageRef {
 pub struct HierarchyPage {
     pub root: BlockKey,
     pub page_levels: u8,
-    /// Pack hashes (hex) that entries' `location.pack` index.
-    pub packs: Vec<String>,
+    /// The pack holding the bytes of the entries whose `location.pack` is 0.
+    pub pack: Option<PackRef>,
     /// Pages rooted at this page's deepest entries, sorted by root.
     pub child_pages: Vec<PageRef>,
     /// Sorted by key.
@@ -99,7 +155,7 @@ pub struct HierarchyPage {
 
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
 pub enum PageError {
-    #[error("page is {0} bytes, shorter than its {PAGE_HEADER_LEN}-byte header")]
+    #[error("page is {0} bytes, shorter than its header")]
     Truncated(usize),
     #[error("page does not start with the VXHP magic")]
     BadMagic,
@@ -219,14 +275,8 @@ fn put_hash(out: &mut Vec<u8>, h: &str) {
 impl HierarchyPage {
     /// The binary page; deterministic for equal pages.
     pub fn encode(&self) -> Vec<u8> {
-        let mut raw = Vec::with_capacity(
-            self.packs.len() * PACK_LEN
-                + self.child_pages.len() * CHILD_PAGE_LEN
-                + self.entries.len() * ENTRY_LEN,
-        );
-        for p in &self.packs {
-            put_hash(&mut raw, p);
-        }
+        let mut raw =
+            Vec::with_capacity(self.child_pages.len() * CHILD_PAGE_LEN + self.entries.len() * ENTRY_LEN);
         for c in &self.child_pages {
             put_key(&mut raw, &c.root);
             raw.extend_from_slice(&c.bytes.to_le_bytes());
@@ -253,8 +303,15 @@ impl HierarchyPage {
         out.extend_from_slice(&PAGE_MAGIC);
         out.extend_from_slice(&[PAGE_VERSION, self.page_levels, 0, 0]);
         put_key(&mut out, &self.root);
-        for n in [self.entries.len(), self.child_pages.len(), self.packs.len(), raw.len()] {
+        for n in [self.entries.len(), self.child_pages.len(), self.pack.is_some() as usize, raw.len()] {
             out.extend_from_slice(&(n as u32).to_le_bytes());
+        }
+        match &self.pack {
+            Some(p) => {
+                put_hash(&mut out, &p.hash);
+                out.extend_from_slice(&p.bytes.to_le_bytes());
+            }
+            None => out.extend_from_slice(&[0; 40]),
         }
         out.extend_from_slice(&lz4_flex::block::compress(&raw));
         out
@@ -283,19 +340,24 @@ impl HierarchyPage {
 
     /// Decodes and validates a page without checking its content hash.
     pub fn decode_unverified(bytes: &[u8]) -> Result<Self, PageError> {
-        if bytes.len() < PAGE_HEADER_LEN {
+        if bytes.len() < V1_HEADER_LEN {
             return Err(PageError::Truncated(bytes.len()));
         }
         if bytes[..4] != PAGE_MAGIC {
             return Err(PageError::BadMagic);
         }
-        let mut h = Reader { bytes: &bytes[..PAGE_HEADER_LEN], at: 4 };
-        let version = h.u8();
+        let version = bytes[4];
+        let header_len = match version {
+            1 => V1_HEADER_LEN,
+            PAGE_VERSION => PAGE_HEADER_LEN,
+            _ => return Err(PageError::BadHeader(format!("version {version} is not 1 or {PAGE_VERSION}"))),
+        };
+        if bytes.len() < header_len {
+            return Err(PageError::Truncated(bytes.len()));
+        }
+        let mut h = Reader { bytes: &bytes[..header_len], at: 5 };
         let page_levels = h.u8();
         let reserved = h.take::<2>();
-        if version != PAGE_VERSION {
-            return Err(PageError::BadHeader(format!("version {version} is not {PAGE_VERSION}")));
-        }
         if !(1..=4).contains(&page_levels) || reserved != [0, 0] {
             return Err(PageError::BadHeader(format!("page levels {page_levels} or reserved bytes")));
         }
@@ -304,26 +366,38 @@ impl HierarchyPage {
         if root.level == 0 || root.level > crate::MAX_LEVEL {
             return Err(PageError::BadHeader(format!("root {root} cannot root a page")));
         }
-        if entries == 0 || entries > MAX_PAGE_ENTRIES || children > entries || packs > entries {
+        if entries == 0 || entries > MAX_PAGE_ENTRIES || children > entries || packs > 1 {
             return Err(PageError::BadHeader(format!(
                 "{entries} entries, {children} child pages, {packs} packs"
             )));
         }
-        let expected_len =
-            packs as usize * PACK_LEN + children as usize * CHILD_PAGE_LEN + entries as usize * ENTRY_LEN;
+        if version == 1 && packs != 0 {
+            return Err(PageError::BadHeader("a version-1 page cannot name packs".into()));
+        }
+        let pack = if version == PAGE_VERSION {
+            let hash = hex(&h.take::<32>());
+            let length = h.u64();
+            match packs {
+                1 => Some(PackRef { hash, bytes: length }),
+                _ if length == 0 && hash.bytes().all(|b| b == b'0') => None,
+                _ => return Err(PageError::BadHeader("a page without a pack names one".into())),
+            }
+        } else {
+            None
+        };
+        let expected_len = children as usize * CHILD_PAGE_LEN + entries as usize * ENTRY_LEN;
         if payload as usize != expected_len {
             return Err(PageError::BadHeader(format!(
                 "payload length {payload} does not match the counts ({expected_len})"
             )));
         }
         let mut raw = vec![0u8; expected_len];
-        let written = lz4_flex::block::decompress_into(&bytes[PAGE_HEADER_LEN..], &mut raw)
+        let written = lz4_flex::block::decompress_into(&bytes[header_len..], &mut raw)
             .map_err(|e| PageError::Corrupt(e.to_string()))?;
         if written != expected_len {
             return Err(PageError::Corrupt(format!("payload is {written} bytes, expected {expected_len}")));
         }
         let mut r = Reader { bytes: &raw, at: 0 };
-        let packs = (0..packs).map(|_| hex(&r.take::<32>())).collect();
         let child_pages = (0..children)
             .map(|_| {
                 let root = r.key();
@@ -363,7 +437,7 @@ impl HierarchyPage {
                 location,
             });
         }
-        let page = HierarchyPage { root, page_levels, packs, child_pages, entries: list };
+        let page = HierarchyPage { root, page_levels, pack, child_pages, entries: list };
         page.validate()?;
         Ok(page)
     }
@@ -423,13 +497,28 @@ impl HierarchyPage {
             if unhex(&e.hash).is_none() {
                 return bad(format!("block {} hash is not 64 hex digits", e.key));
             }
-            if !(e.location.is_file() || (e.location.pack as usize) < self.packs.len()) {
-                return bad(format!(
-                    "block {} names pack {} of {}",
-                    e.key,
-                    e.location.pack,
-                    self.packs.len()
-                ));
+            if !e.location.is_file() {
+                match &self.pack {
+                    Some(p) if e.location.pack == 0 => {
+                        if !range_in_pack(e.location.offset, e.bytes, p.bytes) {
+                            return bad(format!(
+                                "block {} lies at bytes {}..{} of a {}-byte pack",
+                                e.key,
+                                e.location.offset,
+                                e.location.offset as u128 + e.bytes as u128,
+                                p.bytes
+                            ));
+                        }
+                    }
+                    _ => {
+                        return bad(format!(
+                            "block {} names pack {} of {}",
+                            e.key,
+                            e.location.pack,
+                            self.pack.is_some() as u32
+                        ));
+                    }
+                }
             }
         }
         let deepest: Vec<BlockKey> = self
@@ -447,14 +536,14 @@ impl HierarchyPage {
             ));
         }
         for c in &self.child_pages {
-            if unhex(&c.hash).is_none() || c.bytes < PAGE_HEADER_LEN as u32 {
+            if unhex(&c.hash).is_none() || c.bytes < V1_HEADER_LEN as u32 {
                 return bad(format!("child page {} is malformed", c.root));
             }
         }
-        for p in &self.packs {
-            if unhex(p).is_none() {
-                return bad("pack hash is not 64 hex digits".into());
-            }
+        if let Some(p) = &self.pack
+            && unhex(&p.hash).is_none()
+        {
+            return bad("pack hash is not 64 hex digits".into());
         }
         Ok(())
     }
@@ -499,8 +588,18 @@ impl PageBuilder {
 
     /// Records a finished block; `entry.child_mask` is filled in here from the
     /// children added before it. Returns the page this block completes (when
-    /// it roots one).
-    pub fn add(&mut self, mut entry: BlockEntry) -> Result<Option<FinishedPage>, PageError> {
+    /// it roots one). Entries naming pack 0 need [`Self::add_packed`].
+    pub fn add(&mut self, entry: BlockEntry) -> Result<Option<FinishedPage>, PageError> {
+        self.add_packed(entry, None)
+    }
+
+    /// [`Self::add`] for a block that roots a page whose entries are in
+    /// `pack` (the page names it; `None` when its entries are own files).
+    pub fn add_packed(
+        &mut self,
+        mut entry: BlockEntry,
+        pack: Option<PackRef>,
+    ) -> Result<Option<FinishedPage>, PageError> {
         let key = entry.key;
         if key.level > self.coarsest || self.root.is_some() {
             return Err(PageError::Order(format!(
@@ -518,7 +617,11 @@ impl PageBuilder {
             }
             *m |= bit;
         }
-        let finished = if is_page_root_level(key.level, self.coarsest, self.page_levels) {
+        let roots_page = is_page_root_level(key.level, self.coarsest, self.page_levels);
+        if pack.is_some() && !roots_page {
+            return Err(PageError::Order(format!("block {key} roots no page, yet a pack was given for it")));
+        }
+        let finished = if roots_page {
             let open = self.open.remove(&key).unwrap_or_default();
             if open.entries.is_empty() {
                 return Err(PageError::Order(format!(
@@ -528,7 +631,7 @@ impl PageBuilder {
             let mut page = HierarchyPage {
                 root: key,
                 page_levels: self.page_levels,
-                packs: Vec::new(),
+                pack,
                 child_pages: open.child_pages,
                 entries: open.entries,
             };
@@ -567,6 +670,11 @@ impl PageBuilder {
 #[derive(Debug, Clone)]
 pub struct SceneIndex {
     page_levels: u8,
+    root: BlockKey,
+    /// The pack holding the root block (the manifest's `root_pack`).
+    root_pack: Option<PackRef>,
+    /// Each loaded page's pack, by page root.
+    packs: HashMap<BlockKey, PackRef>,
     entries: HashMap<BlockKey, BlockEntry>,
     /// Pages named by a loaded page (or the manifest) and not loaded yet, by root.
     pending: BTreeMap<BlockKey, PageRef>,
@@ -579,11 +687,42 @@ impl SceneIndex {
         let mut entries = HashMap::new();
         entries.insert(manifest.root.key, manifest.root.clone());
         let pending = manifest.root_page.iter().map(|r| (r.root, r.clone())).collect();
-        Self { page_levels: manifest.page_levels, entries, pending, pages_loaded: 0, page_bytes_loaded: 0 }
+        Self {
+            page_levels: manifest.page_levels,
+            root: manifest.root.key,
+            root_pack: manifest.root_pack.clone(),
+            packs: HashMap::new(),
+            entries,
+            pending,
+            pages_loaded: 0,
+            page_bytes_loaded: 0,
+        }
     }
 
     pub fn block(&self, key: &BlockKey) -> Option<&BlockEntry> {
         self.entries.get(key)
+    }
+
+    /// Where in a pack `key`'s bytes are: the pack its page names (the
+    /// manifest's `root_pack` for the root block). `None` when the block is
+    /// its own file (`blocks/<key>.vxb`) or not known.
+    pub fn pack_range(&self, key: &BlockKey) -> Option<PackRange> {
+        let e = self.entries.get(key)?;
+        if e.location.is_file() {
+            return None;
+        }
+        let pack = if *key == self.root {
+            self.root_pack.as_ref()?
+        } else {
+            self.packs.get(&page_root_of(key, self.root.level, self.page_levels)?)?
+        };
+        Some(PackRange { pack: pack.clone(), offset: e.location.offset, bytes: e.bytes })
+    }
+
+    /// Every pack named so far (each once), in no particular order.
+    pub fn packs(&self) -> impl Iterator<Item = &PackRef> {
+        let mut seen = std::collections::HashSet::new();
+        self.root_pack.iter().chain(self.packs.values()).filter(move |p| seen.insert(p.hash.as_str()))
     }
 
     /// Every known entry, in no particular order.
@@ -657,6 +796,9 @@ impl SceneIndex {
         }
         for c in page.child_pages {
             self.pending.insert(c.root, c);
+        }
+        if let Some(p) = page.pack {
+            self.packs.insert(page.root, p);
         }
         for e in page.entries {
             self.entries.insert(e.key, e);
@@ -737,6 +879,38 @@ mod tests {
         (pages, root, root_page)
     }
 
+    /// [`build`] as the store's writer does it: each block's bytes appended to
+    /// its page's pack (the root's to its own page's), each pack named by the
+    /// page it belongs to. Returns the pages, the root entry and page, and the
+    /// root's pack.
+    fn build_packed(
+        order: &[BlockKey],
+        coarsest: u8,
+    ) -> (Vec<FinishedPage>, BlockEntry, Option<PageRef>, PackRef) {
+        let mut b = PageBuilder::new(coarsest, PAGE_LEVELS);
+        let mut open: HashMap<BlockKey, u64> = HashMap::new();
+        let mut pages = Vec::new();
+        let mut root_pack = None;
+        for k in order {
+            let mut e = entry(*k);
+            let home = page_root_of(k, coarsest, PAGE_LEVELS).unwrap_or(*k);
+            let len = open.entry(home).or_default();
+            e.location = BlockLocation { pack: 0, offset: *len };
+            *len += e.bytes as u64;
+            let roots = is_page_root_level(k.level, coarsest, PAGE_LEVELS);
+            let pack = (roots || k.level == coarsest).then(|| PackRef {
+                hash: content_hash(format!("pack {k}").as_bytes()),
+                bytes: open.remove(k).unwrap_or(0),
+            });
+            if k.level == coarsest {
+                root_pack = pack.clone();
+            }
+            pages.extend(b.add_packed(e, if roots { pack } else { None }).unwrap());
+        }
+        let (root, root_page) = b.finish().unwrap();
+        (pages, root, root_page, root_pack.unwrap())
+    }
+
     /// Post-order by Morton code of the level-0 descendants: the out-of-core pyramid's order.
     fn morton_post_order(levels: &[Vec<BlockKey>]) -> Vec<BlockKey> {
         let mut all: Vec<BlockKey> = levels.iter().flatten().copied().collect();
@@ -771,6 +945,7 @@ mod tests {
             page_levels: PAGE_LEVELS,
             root,
             root_page,
+            root_pack: None,
         }
     }
 
@@ -880,6 +1055,95 @@ mod tests {
     }
 
     #[test]
+    fn packed_pages_name_their_pack_and_every_range_lies_inside_it() {
+        let levels = tree(&sample_level0());
+        let coarsest = (levels.len() - 1) as u8;
+        let order = morton_post_order(&levels);
+        let (pages, root, root_page, root_pack) = build_packed(&order, coarsest);
+        assert_eq!(root.location, BlockLocation { pack: 0, offset: root.location.offset });
+        let store: HashMap<String, Vec<u8>> =
+            pages.iter().map(|(r, b)| (r.hash.clone(), b.clone())).collect();
+        let mut manifest = manifest_for(root, root_page.clone(), coarsest);
+        manifest.root_pack = Some(root_pack.clone());
+        manifest.validate().unwrap();
+        let index = load_scene_index(&manifest, |r| {
+            store.get(&r.hash).cloned().ok_or_else(|| std::io::Error::other("missing"))
+        })
+        .unwrap();
+        // Every block resolves to a range of its page's pack; ranges of one pack tile it.
+        let mut by_pack: HashMap<String, Vec<(u64, u64)>> = HashMap::new();
+        for k in &order {
+            let r = index.pack_range(k).unwrap_or_else(|| panic!("{k} has no pack range"));
+            let e = index.block(k).unwrap();
+            assert_eq!((r.offset, r.bytes), (e.location.offset, e.bytes));
+            by_pack.entry(r.pack.hash.clone()).or_default().push((r.offset, r.end()));
+        }
+        assert_eq!(index.pack_range(&manifest.root.key).unwrap().pack, root_pack);
+        assert_eq!(by_pack.len(), pages.len(), "one pack a page (the root shares the root page's)");
+        assert_eq!(index.packs().count(), pages.len());
+        for p in index.packs() {
+            let mut ranges = by_pack[&p.hash].clone();
+            ranges.sort();
+            assert_eq!(ranges[0].0, 0);
+            assert!(ranges.windows(2).all(|w| w[0].1 == w[1].0), "contiguous");
+            assert_eq!(ranges.last().unwrap().1, p.bytes, "the pack ends at its last block");
+        }
+
+        // The page's hash covers its pack: another pack gives another page.
+        let (r, bytes) = pages.iter().find(|(r, _)| Some(r) == root_page.as_ref()).unwrap();
+        let page = HierarchyPage::decode(bytes, r).unwrap();
+        assert_eq!(&page.encode(), bytes);
+        let pack = page.pack.clone().unwrap();
+        let mut other = page.clone();
+        other.pack = Some(PackRef { hash: content_hash(b"another pack"), bytes: pack.bytes });
+        assert_ne!(content_hash(&other.encode()), r.hash);
+        // A range past the pack's end is refused, by validate and by decode.
+        let last = page.entries.iter().map(|e| e.location.offset + e.bytes as u64).max().unwrap();
+        assert_eq!(last, pack.bytes - manifest.root.bytes as u64, "the root comes last");
+        let mut short = page.clone();
+        short.pack = Some(PackRef { bytes: last - 1, ..pack.clone() });
+        assert!(short.validate().is_err(), "a range one byte past the pack");
+        assert!(HierarchyPage::decode_unverified(&short.encode()).is_err());
+        let mut far = page.clone();
+        far.entries[0].location.offset = u64::MAX - 1;
+        assert!(far.validate().is_err(), "an offset that overflows");
+        let mut no_pack = page.clone();
+        no_pack.pack = None;
+        assert!(no_pack.validate().is_err(), "pack 0 of a page without a pack");
+        let mut pack1 = page.clone();
+        pack1.entries[0].location.pack = 1;
+        assert!(pack1.validate().is_err(), "a page has one pack");
+        // Header damage in the pack fields: a truncated header, a pack count of 2.
+        assert!(HierarchyPage::decode_unverified(&bytes[..PAGE_HEADER_LEN - 1]).is_err());
+        let mut two = bytes.clone();
+        two[29] = 2;
+        assert!(HierarchyPage::decode_unverified(&two).is_err());
+        let mut zero = bytes.clone();
+        zero[29] = 0;
+        assert!(HierarchyPage::decode_unverified(&zero).is_err(), "no pack, yet one is named");
+    }
+
+    #[test]
+    fn version_1_pages_still_decode() {
+        let levels = tree(&sample_level0());
+        let coarsest = (levels.len() - 1) as u8;
+        let (pages, _, _) = build(&levels.iter().flatten().copied().collect::<Vec<_>>(), coarsest);
+        let (_, v2) = &pages[0];
+        let page = HierarchyPage::decode_unverified(v2).unwrap();
+        assert!(page.pack.is_none() && page.entries.iter().all(|e| e.location.is_file()));
+        // Version 1: the same fields in a 37-byte header, no pack slot.
+        let mut v1 = v2[..37].to_vec();
+        v1[4] = 1;
+        v1.extend_from_slice(&v2[PAGE_HEADER_LEN..]);
+        assert_eq!(HierarchyPage::decode_unverified(&v1).unwrap(), page);
+        let mut bad = v1.clone();
+        bad[29] = 1;
+        assert!(HierarchyPage::decode_unverified(&bad).is_err(), "version 1 named no packs");
+        bad[4] = 3;
+        assert!(matches!(HierarchyPage::decode_unverified(&bad), Err(PageError::BadHeader(_))));
+    }
+
+    #[test]
     fn a_builder_fed_out_of_order_refuses() {
         let levels = tree(&sample_level0());
         let coarsest = (levels.len() - 1) as u8;
@@ -892,6 +1156,9 @@ mod tests {
         let mut b = PageBuilder::new(coarsest, PAGE_LEVELS);
         b.add(entry(levels[0][0])).unwrap();
         assert!(b.finish().is_err(), "no root");
+        let mut b = PageBuilder::new(coarsest, PAGE_LEVELS);
+        let pack = PackRef { hash: content_hash(b"p"), bytes: 1 };
+        assert!(b.add_packed(entry(levels[0][0]), Some(pack)).is_err(), "a pack for a block rooting no page");
     }
 
     proptest! {
@@ -899,7 +1166,7 @@ mod tests {
         fn mutated_pages_never_panic(flips in proptest::collection::vec((0usize..4096, any::<u8>()), 1..8), cut in 0usize..4096) {
             let levels = tree(&sample_level0());
             let coarsest = (levels.len() - 1) as u8;
-            let (pages, _, _) = build(&levels.iter().flatten().copied().collect::<Vec<_>>(), coarsest);
+            let (pages, _, _, _) = build_packed(&morton_post_order(&levels), coarsest);
             let mut bytes = pages[0].1.clone();
             for (at, x) in flips {
                 let n = bytes.len();

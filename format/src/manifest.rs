@@ -1,6 +1,6 @@
 use serde::{Deserialize, Serialize};
 
-use crate::hierarchy::{BlockLocation, PageRef};
+use crate::hierarchy::{BlockLocation, PackRef, PageRef, is_content_hash, range_in_pack};
 use crate::{BLOCK_SIZE, BlockKey};
 
 /// Bumped whenever a reader of an older manifest would misread a newer one.
@@ -113,6 +113,11 @@ pub struct Manifest {
     pub root: BlockEntry,
     /// The page listing the blocks below the root; `None` when the root is on level 0.
     pub root_page: Option<PageRef>,
+    /// The pack holding the root block's bytes (`root.location.pack == 0`):
+    /// the root page's pack, or a pack of the root alone when the root is on
+    /// level 0. `None` when the root is its own file.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub root_pack: Option<PackRef>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -185,6 +190,15 @@ impl Manifest {
             (None, 0) => {}
             (Some(p), l) if l > 0 && p.root == root.key && root.child_mask != 0 => {}
             _ => return bad("the root page does not match the root block".into()),
+        }
+        if !root.location.is_file() {
+            match &self.root_pack {
+                Some(p)
+                    if root.location.pack == 0
+                        && is_content_hash(&p.hash)
+                        && range_in_pack(root.location.offset, root.bytes, p.bytes) => {}
+                _ => return bad("the root block's pack range is not in the root pack".into()),
+            }
         }
         if self.resolution_choice.resolution != self.grid.resolution {
             return bad("resolution choice disagrees with the grid".into());
@@ -273,6 +287,7 @@ mod tests {
             page_levels: 3,
             root,
             root_page: Some(PageRef { root: BlockKey::new(1, 0, 0, 0), hash: "cd".repeat(32), bytes: 99 }),
+            root_pack: None,
         }
     }
 
@@ -303,6 +318,26 @@ mod tests {
         m.format_version = 99;
         assert!(matches!(Manifest::from_json(&m.to_json()), Err(ManifestError::Version(99))));
         assert!(Manifest::from_json(b"{").is_err());
+    }
+
+    #[test]
+    fn the_root_block_lies_inside_its_pack() {
+        let mut m = sample();
+        m.root.location = BlockLocation { pack: 0, offset: 70 };
+        m.root_pack = Some(PackRef { hash: "ef".repeat(32), bytes: 100 });
+        assert_eq!(Manifest::from_json(&m.to_json()).unwrap(), m, "30 bytes at 70 of 100");
+        let mut past = m.clone();
+        past.root.location.offset = 71;
+        assert!(Manifest::from_json(&past.to_json()).is_err(), "one byte past the pack's end");
+        let mut none = m.clone();
+        none.root_pack = None;
+        assert!(Manifest::from_json(&none.to_json()).is_err(), "a packed root needs its pack");
+        let mut other = m.clone();
+        other.root.location.pack = 1;
+        assert!(Manifest::from_json(&other.to_json()).is_err(), "pack 1 does not exist");
+        let mut huge = m;
+        huge.root.location.offset = u64::MAX;
+        assert!(Manifest::from_json(&huge.to_json()).is_err(), "an offset that overflows");
     }
 
     #[test]

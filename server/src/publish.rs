@@ -176,15 +176,7 @@ fn write_site(
     let bytes: u64 = blocks
         .par_iter()
         .map(|e| -> anyhow::Result<u64> {
-            let path = scene.block_path(&e.key);
-            let data = fs::read(&path)
-                .with_context(|| format!("cannot read block {} ({})", e.key, path.display()))?;
-            if blake3::hash(&data).to_hex().as_str() != e.hash {
-                bail!(
-                    "block {} of scene {id:?} differs from its hash in the hierarchy (damaged store)",
-                    e.key
-                );
-            }
+            let data = scene.read_block(e).map_err(|err| damaged_block(id, err))?;
             write_file(&blocks_dir.join(format!("{}.{}", e.key, e.hash)), &data)?;
             Ok(data.len() as u64)
         })
@@ -199,6 +191,18 @@ fn write_site(
             .with_context(|| format!("cannot sync {}", d.display()))?;
     }
     Ok(report)
+}
+
+/// A block that cannot be published, as an error naming the scene and the cause.
+fn damaged_block(id: &str, err: store::BlockReadError) -> anyhow::Error {
+    match err {
+        store::BlockReadError::Changed { key } => {
+            anyhow::anyhow!(
+                "block {key} of scene {id:?} differs from its hash in the hierarchy (damaged store)"
+            )
+        }
+        e => anyhow::anyhow!("scene {id:?}: {e} (damaged store)"),
+    }
 }
 
 /// Every hierarchy page of the scene with its bytes, each checked against its reference.
@@ -244,8 +248,10 @@ pub async fn publish_to_bucket(
     use futures_util::{StreamExt, TryStreamExt};
     const IMMUTABLE: &str = "public, max-age=31536000, immutable";
     const REVALIDATE: &str = "no-cache";
-    let scene = store::open_scene(store, id)
-        .with_context(|| format!("cannot open scene {id:?} in {}", store.display()))?;
+    let scene = std::sync::Arc::new(
+        store::open_scene(store, id)
+            .with_context(|| format!("cannot open scene {id:?} in {}", store.display()))?,
+    );
     let files = viewer_files(viewer)?;
     let pages = scene_pages(&scene)?;
     let scene_prefix = format!("api/scenes/{id}");
@@ -260,18 +266,16 @@ pub async fn publish_to_bucket(
     // 1. Content-addressed objects and the viewer's files (not index.html).
     let blocks: Vec<voxstream_format::BlockEntry> = scene.blocks().into_iter().cloned().collect();
     let block_puts = futures_util::stream::iter(blocks.into_iter().map(|e| {
-        let path = scene.block_path(&e.key);
         let rel = format!("{scene_prefix}/blocks/{}.{}", e.key, e.hash);
+        let scene = scene.clone();
         async move {
-            let data = tokio::fs::read(&path)
-                .await
-                .with_context(|| format!("cannot read block {} ({})", e.key, path.display()))?;
-            if blake3::hash(&data).to_hex().as_str() != e.hash {
-                bail!("block {} differs from its hash in the hierarchy (damaged store)", e.key);
-            }
+            let data = tokio::task::spawn_blocking(move || {
+                scene.read_block(&e).map_err(|err| damaged_block(&scene.id, err))
+            })
+            .await??;
             let n = data.len() as u64;
             bucket.put(&rel, data, "application/octet-stream", IMMUTABLE).await?;
-            Ok(n)
+            Ok::<u64, anyhow::Error>(n)
         }
         .boxed()
     }));

@@ -2,13 +2,15 @@
 //! serves them. Scenes are written by [`crate::pipeline::write`].
 //!
 //! Layout: `<store>/<id>/manifest.json`, `<store>/<id>/pages/<key>.vxh` and
-//! `<store>/<id>/blocks/<key>.vxb`;
-//! directories starting with `.` (temp, trash, builds) are never listed.
+//! `<store>/<id>/packs/<blake3>.vxp` (one pack per page, holding the bytes of
+//! the blocks the page lists; `blocks/<key>.vxb` for blocks stored as their
+//! own files by older builds); directories starting with `.` (temp, trash,
+//! builds) are never listed.
 
 use std::fs;
 use std::path::{Path, PathBuf};
 
-use voxstream_format::hierarchy::page_path;
+use voxstream_format::hierarchy::{pack_path, page_path};
 use voxstream_format::{BlockEntry, BlockKey, Manifest, SceneIndex, load_scene_index};
 
 #[derive(Debug, thiserror::Error)]
@@ -47,6 +49,17 @@ pub fn id_from_file_stem(path: &Path) -> String {
     if id.is_empty() { "scene".to_string() } else { id }
 }
 
+/// Why a block's bytes could not be read.
+#[derive(Debug, thiserror::Error)]
+pub enum BlockReadError {
+    /// The file or pack holding it is missing, unreadable or too short: a damaged store.
+    #[error("block {key} cannot be read: {detail}")]
+    Unreadable { key: BlockKey, detail: String },
+    /// Bytes were read but are not the ones the hierarchy's hash names.
+    #[error("block {key}: its bytes differ from the hash in the hierarchy")]
+    Changed { key: BlockKey },
+}
+
 /// A published scene, as the server reads it: the manifest and every page,
 /// checked when opened, so a listed scene's hierarchy is complete.
 #[derive(Debug, Clone)]
@@ -58,8 +71,49 @@ pub struct StoredScene {
 }
 
 impl StoredScene {
+    /// The own file of a block stored unpacked (older builds).
     pub fn block_path(&self, key: &BlockKey) -> PathBuf {
         self.dir.join("blocks").join(format!("{key}.vxb"))
+    }
+
+    pub fn pack_path(&self, hash: &str) -> PathBuf {
+        self.dir.join(pack_path(hash))
+    }
+
+    /// Reads a block's bytes (one positioned read from its pack, or its own
+    /// file) and checks them against the entry's hash. Blocking. Errors name
+    /// the file relative to the scene directory.
+    pub fn read_block(&self, entry: &BlockEntry) -> Result<Vec<u8>, BlockReadError> {
+        let key = entry.key;
+        let unreadable = |detail: String| BlockReadError::Unreadable { key, detail };
+        let bytes = match self.index.pack_range(&key) {
+            None => {
+                let rel = format!("blocks/{key}.vxb");
+                fs::read(self.dir.join(&rel)).map_err(|e| unreadable(format!("{rel}: {e}")))?
+            }
+            Some(r) => {
+                let rel = pack_path(&r.pack.hash);
+                let file = fs::File::open(self.dir.join(&rel))
+                    .map_err(|e| unreadable(format!("pack {rel}: {e}")))?;
+                let mut bytes = vec![0u8; r.bytes as usize];
+                if let Err(e) = read_exact_at(&file, &mut bytes, r.offset) {
+                    return Err(unreadable(match file.metadata().map(|m| m.len()) {
+                        Ok(len) if len < r.end() => format!(
+                            "pack {rel} is truncated: {len} bytes, the block lies at bytes {}..{} (the page names {} bytes)",
+                            r.offset,
+                            r.end(),
+                            r.pack.bytes
+                        ),
+                        _ => format!("pack {rel}: {e}"),
+                    }));
+                }
+                bytes
+            }
+        };
+        if blake3::hash(&bytes).to_hex().as_str() != entry.hash {
+            return Err(BlockReadError::Changed { key });
+        }
+        Ok(bytes)
     }
 
     pub fn page_path(&self, root: &BlockKey) -> PathBuf {
@@ -72,6 +126,18 @@ impl StoredScene {
         all.sort_by_key(|b| b.key);
         all
     }
+}
+
+#[cfg(unix)]
+fn read_exact_at(file: &fs::File, buf: &mut [u8], offset: u64) -> std::io::Result<()> {
+    std::os::unix::fs::FileExt::read_exact_at(file, buf, offset)
+}
+
+#[cfg(not(unix))]
+fn read_exact_at(mut file: &fs::File, buf: &mut [u8], offset: u64) -> std::io::Result<()> {
+    use std::io::{Read, Seek, SeekFrom};
+    file.seek(SeekFrom::Start(offset))?;
+    file.read_exact(buf)
 }
 
 /// Reads every hierarchy page of the scene in `dir`.

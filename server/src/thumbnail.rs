@@ -78,11 +78,12 @@ pub fn read_level(scene: &StoredScene, level: u8) -> Result<Vec<Block>, Thumbnai
         .filter(|b| b.key.level == level)
         .map(|entry| {
             let key = entry.key.to_string();
-            let bytes =
-                std::fs::read(scene.block_path(&entry.key)).map_err(|e| fail(key.clone(), e.to_string()))?;
-            if blake3::hash(&bytes).to_hex().as_str() != entry.hash {
-                return Err(fail(key, "its bytes differ from the manifest's hash".into()));
-            }
+            let bytes = scene.read_block(entry).map_err(|e| match e {
+                crate::store::BlockReadError::Changed { .. } => {
+                    fail(key.clone(), "its bytes differ from the manifest's hash".into())
+                }
+                e => fail(key.clone(), e.to_string()),
+            })?;
             let block = decode_block(&bytes).map_err(|e| fail(key.clone(), e.to_string()))?;
             if block.key != entry.key {
                 return Err(fail(key, format!("the file holds block {}", block.key)));
@@ -517,7 +518,12 @@ mod tests {
         let (_dir, scene) = build(&ellipsoid_obj([1.0; 3]), 64);
         let level = thumbnail_level(&scene.manifest, MAX_VOXELS);
         let entry = scene.blocks().into_iter().find(|b| b.key.level == level).unwrap().clone();
-        std::fs::write(scene.block_path(&entry.key), b"VXB2 not really").unwrap();
+        // Overwrite the block's range of its pack.
+        let range = scene.index.pack_range(&entry.key).expect("blocks are packed");
+        let pack = scene.pack_path(&range.pack.hash);
+        let mut bytes = std::fs::read(&pack).unwrap();
+        bytes[range.offset as usize..range.end() as usize].fill(b'x');
+        std::fs::write(&pack, bytes).unwrap();
         let err = render_scene(&scene).unwrap_err().to_string();
         assert!(err.contains(&entry.key.to_string()), "{err}");
     }

@@ -119,6 +119,14 @@ fn publish_writes_a_static_site_and_refuses_bad_targets() {
         assert!(err.contains(expected), "expected {expected:?} in {err:?}");
     }
     assert_eq!(std::fs::read(precious.join("thesis.tex")).unwrap(), b"keep me");
+    // A truncated pack in the store: the publish fails naming the pack, and the earlier site stays.
+    let pack = std::fs::read_dir(store.join("tri/packs")).unwrap().next().unwrap().unwrap().path();
+    std::fs::OpenOptions::new().write(true).open(&pack).unwrap().set_len(1).unwrap();
+    let (ok, _, err) = voxstream(&args);
+    assert!(!ok, "a publish from a truncated pack succeeded");
+    let name = pack.file_name().unwrap().to_str().unwrap();
+    assert!(err.contains("truncated") && err.contains(name), "{err}");
+    assert_eq!(std::fs::read(scene.join("manifest")).unwrap(), manifest, "the earlier publish stays");
 }
 
 /// Bad object-storage configuration is one clear error and a non-zero exit within seconds, naming

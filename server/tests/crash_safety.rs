@@ -131,8 +131,19 @@ async fn check_scene(base: &str, store: &Path, id: &str, http: &reqwest::Client)
         ));
     }
     for e in &blocks {
-        let bytes = std::fs::read(dir.join("blocks").join(format!("{}.vxb", e.key)))
+        // Its range of its page's pack (every block is packed).
+        let range = index.pack_range(&e.key).ok_or_else(|| format!("scene {id} block {}: no pack", e.key))?;
+        let pack = std::fs::read(dir.join(voxstream_format::hierarchy::pack_path(&range.pack.hash)))
             .map_err(|err| format!("scene {id} block {}: {err}", e.key))?;
+        if pack.len() as u64 != range.pack.bytes {
+            return Err(format!(
+                "scene {id} pack {}: {} bytes, its page says {}",
+                range.pack.hash,
+                pack.len(),
+                range.pack.bytes
+            ));
+        }
+        let bytes = pack[range.offset as usize..range.end() as usize].to_vec();
         if blake3::hash(&bytes).to_hex().as_str() != e.hash {
             return Err(format!("scene {id} block {}: hash mismatch", e.key));
         }

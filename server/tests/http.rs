@@ -13,7 +13,7 @@ use tokio_util::sync::CancellationToken;
 use voxstream::config::ServerConfig;
 use voxstream::http::{AppState, BLOCK_CACHE_CONTROL, router};
 use voxstream::pipeline::{BuildOptions, Resolution, build_scene};
-use voxstream_format::{Manifest, SceneSummary, decode_block};
+use voxstream_format::{BlockKey, Manifest, SceneSummary, decode_block};
 
 const TOKEN: &str = "s3cret-token";
 
@@ -151,6 +151,7 @@ async fn wait_job(base: &str, job: &str) -> serde_json::Value {
 /// A stored scene: its manifest and every block entry of its pages, sorted by key.
 struct OnDisk {
     manifest: Manifest,
+    index: std::sync::Arc<voxstream_format::SceneIndex>,
     blocks: Vec<voxstream_format::BlockEntry>,
     page_bytes: u64,
 }
@@ -162,17 +163,32 @@ impl std::ops::Deref for OnDisk {
     }
 }
 
+/// A block's bytes as the store keeps them, read without the server's code:
+/// its range of the pack its page names.
+fn block_on_disk(store: &Path, id: &str, index: &voxstream_format::SceneIndex, key: &BlockKey) -> Vec<u8> {
+    let r = index.pack_range(key).unwrap_or_else(|| panic!("block {key} is not packed"));
+    let pack =
+        std::fs::read(store.join(id).join(voxstream_format::hierarchy::pack_path(&r.pack.hash))).unwrap();
+    assert_eq!(pack.len() as u64, r.pack.bytes, "pack {} of block {key}", r.pack.hash);
+    pack[r.offset as usize..r.end() as usize].to_vec()
+}
+
 /// Every page of a stored scene decodes, and every block it lists decodes and matches its hash.
 fn assert_scene_complete(store: &Path, id: &str) -> OnDisk {
     let scene = voxstream::store::open_scene(store, id).unwrap();
     let blocks: Vec<_> = scene.blocks().into_iter().cloned().collect();
     assert_eq!(blocks.len() as u64, scene.manifest.block_count());
     for e in &blocks {
-        let bytes = std::fs::read(store.join(id).join("blocks").join(format!("{}.vxb", e.key))).unwrap();
+        let bytes = block_on_disk(store, id, &scene.index, &e.key);
         assert_eq!(blake3::hash(&bytes).to_hex().as_str(), e.hash);
         assert_eq!(decode_block(&bytes).unwrap().key, e.key);
     }
-    OnDisk { page_bytes: scene.index.page_bytes_loaded(), manifest: scene.manifest, blocks }
+    OnDisk {
+        page_bytes: scene.index.page_bytes_loaded(),
+        manifest: scene.manifest,
+        index: scene.index,
+        blocks,
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -240,7 +256,7 @@ async fn serves_what_the_store_holds() {
         assert_eq!(resp.headers()["content-type"], "application/octet-stream");
         assert!(resp.headers().get("content-encoding").is_none());
         let bytes = resp.bytes().await.unwrap();
-        let file = std::fs::read(store.join(format!("box-scan/blocks/{}.vxb", entry.key))).unwrap();
+        let file = block_on_disk(&store, "box-scan", &index, &entry.key);
         assert_eq!(&bytes[..], &file[..]);
         let block = decode_block(&bytes).unwrap();
         assert_eq!(block.key, entry.key);
@@ -785,6 +801,80 @@ async fn rename_and_delete_scenes() {
     assert_eq!(scenes[0]["id"], "other");
 }
 
+/// Fails if a block served from a pack is not byte for byte the block the
+/// in-memory reference path encodes (a wrong offset, a block of another page's
+/// pack, bytes shifted by one), or if a missing or truncated pack panics or
+/// answers anything but a JSON 5xx naming the pack.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn served_blocks_are_the_reference_encoding_and_a_damaged_pack_is_a_clear_error() {
+    use voxstream::pipeline::progress::ProgressSink;
+    use voxstream::pipeline::pyramid::build_levels;
+    use voxstream::pipeline::read::read_mesh;
+    use voxstream::pipeline::voxelize::{choose_frame, voxelize_reporting};
+    use voxstream::pipeline::write::encode_entry;
+
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let mesh = dir.path().join("box.obj");
+    write_test_mesh(&mesh);
+    let opts = BuildOptions { resolution: Resolution::Explicit(256), ..Default::default() };
+    build_scene(&mesh, &store, &opts).unwrap();
+    // The reference: the mesh voxelized in memory, every level built at once, each block encoded alone.
+    let (triangles, _) = read_mesh(&mesh).unwrap();
+    let frame = choose_frame(&triangles, 256).unwrap();
+    let (level0, _) =
+        voxelize_reporting(&triangles, &frame, opts.topology, &ProgressSink::new(&|_| {})).unwrap();
+    let reference: std::collections::BTreeMap<BlockKey, Vec<u8>> =
+        build_levels(level0, 256).iter().flatten().map(|b| (b.key, encode_entry(b).1)).collect();
+
+    let m = assert_scene_complete(&store, "box");
+    let base = start_read_only(&store).await;
+    let c = http();
+    assert_eq!(m.blocks.len(), reference.len());
+    let get = |key: BlockKey, hash: String| {
+        let c = c.clone();
+        let url = format!("{base}/api/scenes/box/blocks/{key}.{hash}");
+        async move { c.get(url).send().await.unwrap() }
+    };
+    for e in &m.blocks {
+        let resp = get(e.key, e.hash.clone()).await;
+        assert_eq!(resp.status(), 200);
+        let bytes = resp.bytes().await.unwrap();
+        assert!(bytes[..] == reference[&e.key][..], "block {} differs from the reference encoding", e.key);
+    }
+    // The negative control: blocks are distinct, so a block at another range would have failed.
+    let distinct: std::collections::HashSet<&Vec<u8>> = reference.values().collect();
+    assert_eq!(distinct.len(), reference.len());
+
+    // The root block is the last range of the root page's pack; the first range stays readable.
+    let root = m.index.pack_range(&m.root.key).unwrap();
+    assert_eq!(root.end(), root.pack.bytes, "the root comes last in its pack");
+    let first = m
+        .blocks
+        .iter()
+        .find(|e| m.index.pack_range(&e.key).is_some_and(|r| r.offset == 0 && r.pack == root.pack))
+        .unwrap();
+    let pack = store.join("box").join(voxstream_format::hierarchy::pack_path(&root.pack.hash));
+    std::fs::OpenOptions::new().write(true).open(&pack).unwrap().set_len(root.offset + 1).unwrap();
+    let e = json_error(get(m.root.key, m.root.hash.clone()).await, 500).await;
+    assert!(
+        e.contains("truncated") && e.contains(&root.pack.hash) && e.contains(&m.root.key.to_string()),
+        "{e}"
+    );
+    assert_eq!(get(first.key, first.hash.clone()).await.status(), 200, "a range before the cut still reads");
+    let batch = c
+        .post(format!("{base}/api/scenes/box/blocks/batch"))
+        .json(&serde_json::json!({ "blocks": [format!("{}.{}", m.root.key, m.root.hash)] }))
+        .send()
+        .await
+        .unwrap();
+    assert!(json_error(batch, 500).await.contains("truncated"));
+    std::fs::remove_file(&pack).unwrap();
+    let e = json_error(get(first.key, first.hash.clone()).await, 500).await;
+    assert!(e.contains(&format!("packs/{}.vxp", root.pack.hash)), "{e}");
+    assert_eq!(c.get(format!("{base}/healthz")).send().await.unwrap().status(), 200, "the server lives on");
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn batch_returns_framed_blocks_with_a_cap() {
     let dir = tempfile::tempdir().unwrap();
@@ -807,7 +897,7 @@ async fn batch_returns_framed_blocks_with_a_cap() {
     for e in m.blocks.iter().take(8) {
         let len = u32::from_le_bytes(body[at..at + 4].try_into().unwrap()) as usize;
         let bytes = &body[at + 4..at + 4 + len];
-        assert_eq!(bytes, &std::fs::read(store.join(format!("box/blocks/{}.vxb", e.key))).unwrap()[..]);
+        assert_eq!(bytes, &block_on_disk(&store, "box", &m.index, &e.key)[..]);
         at += 4 + len;
     }
     assert_eq!(at, body.len());

@@ -108,7 +108,12 @@ fn stores_are_byte_identical_across_runs_budgets_and_threads() {
     let tmp = tempfile::tempdir().unwrap();
     let input = koala_ply(tmp.path());
     let reference = build_with(&input, 1, 1 << 30, None);
-    assert!(reference.len() > 5 && reference.contains_key("manifest.json"));
+    // The manifest, a page and its pack: every one compared below.
+    assert!(reference.len() >= 3 && reference.contains_key("manifest.json"), "{:?}", reference.keys());
+    assert!(
+        reference.keys().any(|n| n.starts_with("packs/"))
+            && reference.keys().any(|n| n.starts_with("pages/"))
+    );
     // The smallest budget: the stream and the bins spill to disk, the bin
     // buffers flush often, one brick in flight, small batches.
     let least = MemoryPlan::minimum_budget(128);
@@ -195,6 +200,38 @@ fn sphere_ply(dir: &Path, n: usize) -> PathBuf {
     path
 }
 
+/// Every pack is exactly the concatenation of the blocks that name it (no gap,
+/// no overlap, nothing after the last), each block's range is the block its
+/// hash names, and no pack file is left that no page names.
+fn check_packs(store: &Path, id: &str) {
+    let scene = voxstream::store::open_scene(store, id).unwrap();
+    let mut ranges: BTreeMap<String, Vec<(u64, u64)>> = BTreeMap::new();
+    for e in scene.blocks() {
+        let r =
+            scene.index.pack_range(&e.key).unwrap_or_else(|| panic!("{id}: block {} is not packed", e.key));
+        ranges.entry(r.pack.hash.clone()).or_default().push((r.offset, r.end()));
+        let bytes = scene.read_block(e).unwrap();
+        assert_eq!(voxstream_format::decode_block(&bytes).unwrap().key, e.key);
+    }
+    let on_disk: Vec<String> = std::fs::read_dir(scene.dir.join("packs"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    let mut named: Vec<String> = ranges.keys().map(|h| format!("{h}.vxp")).collect();
+    let mut on_disk_sorted = on_disk.clone();
+    on_disk_sorted.sort();
+    named.sort();
+    assert_eq!(on_disk_sorted, named, "{id}: packs on disk and packs named");
+    for (hash, mut r) in ranges {
+        r.sort();
+        let bytes = std::fs::read(scene.dir.join(format!("packs/{hash}.vxp"))).unwrap();
+        assert_eq!(blake3::hash(&bytes).to_hex().as_str(), hash, "{id}: a pack is named by its hash");
+        assert_eq!(r[0].0, 0, "{id}");
+        assert!(r.windows(2).all(|w| w[0].1 == w[1].0), "{id}: ranges tile the pack");
+        assert_eq!(r.last().unwrap().1, bytes.len() as u64, "{id}: nothing after the last block");
+    }
+}
+
 /// Fails if the streaming pyramid or the block writer differs from the
 /// in-memory reference in any byte of any block or of the manifest: a sum in
 /// another order, a wrong octant, an error bound, a dropped or extra block,
@@ -234,8 +271,17 @@ fn streaming_build_matches_the_in_memory_reference() {
                 input.display()
             );
         }
-        let block_files = want.keys().filter(|n| n.starts_with("blocks/")).count();
-        assert_eq!(report.blocks as usize, block_files, "{id}: one file a block");
+        // Few objects: the manifest, the pages and one pack a page (the root
+        // shares the root page's; a one-level scene has one pack, no page).
+        let count = |dir: &str| want.keys().filter(|n| n.starts_with(dir)).count();
+        let (pages, packs) = (count("pages/"), count("packs/"));
+        assert_eq!(want.len(), 1 + pages + packs, "{id}: {:?}", want.keys());
+        assert_eq!(packs, pages.max(1), "{id}: one pack a page");
+        let blocks = report.blocks as usize;
+        if resolution >= 256 {
+            assert!(4 * want.len() <= blocks, "{id}: {} files for {blocks} blocks", want.len());
+        }
+        check_packs(&dir.path().join("reference"), &id);
         if resolution > 64 {
             assert!(want.keys().any(|n| n.starts_with("pages/")), "{id}: pages are compared too");
         }

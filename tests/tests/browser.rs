@@ -221,13 +221,17 @@ fn render_and_check(url: &str, out: &Path, scene_dir: &Path, interact: bool) {
     assert!(lit > 0, "the screenshot is pure background colour: nothing visible was rendered");
     assert!(lit < silhouette.len(), "the screenshot has no background pixel at all");
 
-    // 6. CPU coverage of the drawn blocks, read back from the store the server used.
+    // 6. CPU coverage of the drawn blocks, read back from the store the server used
+    //    (each block's range of its page's pack).
+    let id = scene_dir.file_name().and_then(|n| n.to_str()).expect("a scene folder");
+    let scene = voxstream::store::open_scene(scene_dir.parent().expect("a store"), id)
+        .unwrap_or_else(|e| panic!("{}: {e}", scene_dir.display()));
     let blocks: Vec<_> = keys
         .iter()
         .map(|k| {
             let key: BlockKey = k.parse().unwrap_or_else(|e| panic!("bad block key {k:?}: {e}"));
-            let path = scene_dir.join("blocks").join(format!("{k}.vxb"));
-            let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+            let entry = scene.index.block(&key).unwrap_or_else(|| panic!("{k} is not in the scene"));
+            let bytes = scene.read_block(entry).unwrap_or_else(|e| panic!("{k}: {e}"));
             (key, decode_block(&bytes).unwrap_or_else(|e| panic!("decode {k}: {e}")))
         })
         .collect();

@@ -220,12 +220,18 @@ fn corrupt_and_missing_blocks_fall_back_to_their_ancestor() {
     let fine: Vec<BlockKey> = wanted.iter().filter(|k| k.level == finest).copied().collect();
     assert!(fine.len() >= 2, "need two fine blocks to damage, selection: {wanted:?}");
     let (corrupt, missing) = (fine[0], fine[fine.len() - 1]);
-    let path = |k: BlockKey| scene.join("blocks").join(format!("{k}.vxb"));
-    let mut bytes = std::fs::read(path(corrupt)).unwrap();
-    let mid = bytes.len() / 2;
-    bytes.truncate(mid);
-    std::fs::write(path(corrupt), &bytes).unwrap();
-    std::fs::remove_file(path(missing)).unwrap();
+    // Blocks are ranges of their page's pack: the corrupt one loses its second
+    // half to garbage, the "missing" one is zeroed whole (no header, no block).
+    let damage = |k: BlockKey, from_half: bool| {
+        let r = offscreen.scene.index.pack_range(&k).unwrap_or_else(|| panic!("{k} is not packed"));
+        let path = scene.join(voxstream_format::hierarchy::pack_path(&r.pack.hash));
+        let mut bytes = std::fs::read(&path).unwrap();
+        let start = if from_half { r.offset + r.bytes as u64 / 2 } else { r.offset };
+        bytes[start as usize..r.end() as usize].fill(if from_half { 0xff } else { 0 });
+        std::fs::write(&path, &bytes).unwrap();
+    };
+    damage(corrupt, true);
+    damage(missing, false);
 
     let frame = offscreen.render().expect("a damaged scene still renders");
     let failed: Vec<BlockKey> = frame.failures.iter().map(|(k, _)| *k).collect();

@@ -2,7 +2,7 @@
 //! browser, a store's scene directory natively (tests). Only this module knows
 //! the difference; everything downstream sees bytes or a [`FetchError`].
 
-use voxstream_format::{BlockKey, PageRef};
+use voxstream_format::{BlockKey, PackRange, PageRef};
 
 #[derive(Debug, Clone, thiserror::Error, PartialEq, Eq)]
 pub enum FetchError {
@@ -17,7 +17,8 @@ pub enum FetchError {
 /// A scene's bytes, addressed as the store layout and HTTP API in CONTRACTS.md do.
 #[derive(Debug, Clone)]
 pub enum BlockSource {
-    /// `<store>/<scene-id>/`: `manifest.json` and `blocks/<key>.vxb`.
+    /// `<store>/<scene-id>/`: `manifest.json`, `pages/<key>.vxh` and the blocks
+    /// as ranges of `packs/<hash>.vxp` (or, from older builds, `blocks/<key>.vxb`).
     #[cfg(not(target_arch = "wasm32"))]
     SceneDir(std::path::PathBuf),
     /// `.../api/scenes/<id>`: `/manifest` and `/blocks/<key>.<hash>` (content-addressed,
@@ -88,15 +89,29 @@ impl BlockSource {
 
     /// A block's bytes; `hash` is its blake3 from the manifest, which makes the
     /// URL immutable (without it the server answers with a revalidated URL).
-    pub async fn block_bytes(&self, key: BlockKey, hash: Option<&str>) -> Result<Vec<u8>, FetchError> {
+    /// `range` is where a store directory keeps it (`SceneIndex::pack_range`;
+    /// `None`: its own file); the server finds that itself.
+    pub async fn block_bytes(
+        &self,
+        key: BlockKey,
+        hash: Option<&str>,
+        range: Option<&PackRange>,
+    ) -> Result<Vec<u8>, FetchError> {
         match self {
             #[cfg(not(target_arch = "wasm32"))]
             BlockSource::SceneDir(dir) => {
                 let _ = hash; // the store path has no hash; decode checks the block against the manifest
-                read_file(&dir.join("blocks").join(format!("{key}.vxb")), &format!("block {key}"))
+                let what = format!("block {key}");
+                match range {
+                    Some(r) => {
+                        read_range(&dir.join(voxstream_format::hierarchy::pack_path(&r.pack.hash)), r, &what)
+                    }
+                    None => read_file(&dir.join("blocks").join(format!("{key}.vxb")), &what),
+                }
             }
             #[cfg(target_arch = "wasm32")]
             BlockSource::Http { scene_url } => {
+                let _ = range;
                 let url = match hash {
                     Some(h) => format!("{scene_url}/blocks/{key}.{h}"),
                     None => format!("{scene_url}/blocks/{key}"),
@@ -113,6 +128,24 @@ fn read_file(path: &std::path::Path, what: &str) -> Result<Vec<u8>, FetchError> 
         std::io::ErrorKind::NotFound => FetchError::NotFound { what: format!("{what} ({})", path.display()) },
         _ => FetchError::Failed { what: what.to_string(), message: format!("{}: {e}", path.display()) },
     })
+}
+
+/// One block's range of a pack file.
+#[cfg(not(target_arch = "wasm32"))]
+fn read_range(path: &std::path::Path, range: &PackRange, what: &str) -> Result<Vec<u8>, FetchError> {
+    use std::io::{Read, Seek, SeekFrom};
+    let mut file = std::fs::File::open(path).map_err(|e| match e.kind() {
+        std::io::ErrorKind::NotFound => FetchError::NotFound { what: format!("{what} ({})", path.display()) },
+        _ => FetchError::Failed { what: what.to_string(), message: format!("{}: {e}", path.display()) },
+    })?;
+    let mut bytes = vec![0u8; range.bytes as usize];
+    file.seek(SeekFrom::Start(range.offset)).and_then(|_| file.read_exact(&mut bytes)).map_err(|e| {
+        FetchError::Failed {
+            what: what.to_string(),
+            message: format!("{} at bytes {}..{}: {e}", path.display(), range.offset, range.end()),
+        }
+    })?;
+    Ok(bytes)
 }
 
 #[cfg(target_arch = "wasm32")]
@@ -172,11 +205,24 @@ mod tests {
         let src = BlockSource::SceneDir(dir.clone());
         assert_eq!(pollster::block_on(src.manifest_bytes()).unwrap(), b"{}");
         assert_eq!(
-            pollster::block_on(src.block_bytes(BlockKey::new(2, 0, 1, 0), Some("ab"))).unwrap(),
+            pollster::block_on(src.block_bytes(BlockKey::new(2, 0, 1, 0), Some("ab"), None)).unwrap(),
             b"xyz"
         );
-        let missing = pollster::block_on(src.block_bytes(BlockKey::new(0, 0, 0, 0), None)).unwrap_err();
+        let missing = pollster::block_on(src.block_bytes(BlockKey::new(0, 0, 0, 0), None, None)).unwrap_err();
         assert!(matches!(missing, FetchError::NotFound { .. }), "{missing}");
+        // A packed block: its range of the pack.
+        let hash = "ab".repeat(32);
+        std::fs::create_dir_all(dir.join("packs")).unwrap();
+        std::fs::write(dir.join(format!("packs/{hash}.vxp")), b"0123456789").unwrap();
+        let pack = voxstream_format::PackRef { hash, bytes: 10 };
+        let range = PackRange { pack: pack.clone(), offset: 3, bytes: 4 };
+        assert_eq!(
+            pollster::block_on(src.block_bytes(BlockKey::new(1, 0, 0, 0), None, Some(&range))).unwrap(),
+            b"3456"
+        );
+        let past = PackRange { pack, offset: 8, bytes: 4 };
+        let short = pollster::block_on(src.block_bytes(BlockKey::new(1, 0, 0, 0), None, Some(&past)));
+        assert!(matches!(short, Err(FetchError::Failed { .. })), "{short:?}");
         std::fs::remove_dir_all(dir).unwrap();
     }
 }

@@ -177,7 +177,9 @@ impl Offscreen {
                     self.scene.insert_page(page, result);
                 }
                 Request::Block(key) => {
-                    blocks.push((*key, pollster::block_on(self.source.block_bytes(*key, None))))
+                    let range = self.scene.index.pack_range(key);
+                    blocks
+                        .push((*key, pollster::block_on(self.source.block_bytes(*key, None, range.as_ref()))))
                 }
             }
         }
@@ -200,8 +202,13 @@ impl Offscreen {
 
     /// Fetches, decodes and expands `keys` whatever the view wants.
     pub fn load(&mut self, keys: &[BlockKey]) {
-        let results: Vec<_> =
-            keys.iter().map(|&k| (k, pollster::block_on(self.source.block_bytes(k, None)))).collect();
+        let results: Vec<_> = keys
+            .iter()
+            .map(|&k| {
+                let range = self.scene.index.pack_range(&k);
+                (k, pollster::block_on(self.source.block_bytes(k, None, range.as_ref())))
+            })
+            .collect();
         self.scene.insert_fetched(results);
         self.scene.upload_all(&self.renderer);
     }

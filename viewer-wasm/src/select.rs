@@ -317,6 +317,7 @@ pub(crate) mod tests {
             page_levels: PAGE_LEVELS,
             root,
             root_page,
+            root_pack: None,
         };
         m.validate().unwrap();
         let index = load_scene_index(&m, |r| {
@@ -440,7 +441,7 @@ pub(crate) mod tests {
         let mut page = voxstream_format::HierarchyPage {
             root: root_page.root,
             page_levels: PAGE_LEVELS,
-            packs: vec![],
+            pack: None,
             child_pages: vec![],
             entries,
         };

@@ -18,7 +18,7 @@ use voxstream_format::{BlockEntry, BlockKey};
 use super::access::{ReadAccess, WriteAccess};
 use super::{ApiError, AppState, JSON_BODY_LIMIT, read_json};
 use crate::catalog::{CatalogError, LoadedScene, SceneMeta};
-use crate::store::validate_id;
+use crate::store::{BlockReadError, validate_id};
 
 pub const BLOCK_CACHE_CONTROL: &str = "public, max-age=31536000, immutable";
 /// Manifests and key-only block URLs change when a scene is rebuilt.
@@ -185,22 +185,22 @@ fn find_block<'a>(scene: &'a LoadedScene, name: &str) -> Result<(&'a BlockEntry,
     Ok((entry, hash.is_some()))
 }
 
-/// Reads a block file and checks it is the content its hash names.
+/// Reads a block (a range of its page's pack) and checks it is the content its hash names.
 fn read_block(scene: &LoadedScene, entry: &BlockEntry) -> Result<Vec<u8>, ApiError> {
-    let path = scene.stored.block_path(&entry.key);
     let id = &scene.stored.id;
-    let bytes = std::fs::read(&path).map_err(|e| {
-        tracing::error!(path = %path.display(), error = %e, "block listed in the manifest cannot be read");
-        ApiError::internal(format!("block {} of scene {id:?} is unreadable", entry.key))
-    })?;
-    if blake3::hash(&bytes).to_hex().as_str() != entry.hash {
-        tracing::warn!(path = %path.display(), "block bytes differ from the manifest's hash (replaced or damaged)");
-        return Err(ApiError::not_found(format!(
-            "block {} of scene {id:?} changed on disk; fetch the manifest again",
-            entry.key
-        )));
-    }
-    Ok(bytes)
+    scene.stored.read_block(entry).map_err(|e| match e {
+        BlockReadError::Unreadable { .. } => {
+            tracing::error!(scene = %id, error = %e, "block listed in the hierarchy cannot be read");
+            ApiError::internal(format!("scene {id:?}: {e}"))
+        }
+        BlockReadError::Changed { .. } => {
+            tracing::warn!(scene = %id, block = %entry.key, "block bytes differ from the hierarchy's hash (replaced or damaged)");
+            ApiError::not_found(format!(
+                "block {} of scene {id:?} changed on disk; fetch the manifest again",
+                entry.key
+            ))
+        }
+    })
 }
 
 #[utoipa::path(get, path = "/api/scenes/{id}/blocks/{block}", tag = "scenes",

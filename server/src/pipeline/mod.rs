@@ -182,9 +182,15 @@ impl MemoryPlan {
         if levels > 1 { levels as u64 * FULL_LOD_BLOCK_BYTES as u64 } else { 0 }
     }
 
+    /// The writer's queue and its open packs' buffers (one per page layer).
+    fn writer(levels: u8) -> u64 {
+        (WRITER_BYTES + write::pack_writer_bytes(levels)) as u64
+    }
+
     /// What the pyramid stage holds at worst besides the bins.
     pub fn reserve(resolution: u32) -> u64 {
-        Self::front(level_count(resolution)) + (WRITER_BYTES + WORKER_BYTES) as u64
+        let levels = level_count(resolution);
+        Self::front(levels) + Self::writer(levels) + WORKER_BYTES as u64
     }
 
     /// The smallest budget a build at `resolution` can run in, whatever the input.
@@ -203,7 +209,7 @@ impl MemoryPlan {
                 resolution,
                 needed,
                 detail: format!(
-                    "{} levels: a front of {} blocks of 64³ voxels at {} each, the writer's queue, \
+                    "{} levels: a front of {} blocks of 64³ voxels at {} each, the writer's queue and open packs, \
                      one voxelizer and {} for the triangle stores",
                     levels,
                     if levels > 1 { levels } else { 0 },
@@ -238,10 +244,8 @@ impl MemoryPlan {
     /// Bytes pass 3 has for workers and waiting level-0 blocks, once the
     /// bins hold `index_bytes` of index; an error when not even one worker fits.
     pub fn pass3_pool(&self, index_bytes: u64) -> Result<u64, BuildError> {
-        let fixed = Self::front(level_count(self.resolution))
-            + WRITER_BYTES as u64
-            + self.bin_resident() as u64
-            + index_bytes;
+        let levels = level_count(self.resolution);
+        let fixed = Self::front(levels) + Self::writer(levels) + self.bin_resident() as u64 + index_bytes;
         let needed = fixed + WORKER_BYTES as u64;
         if self.budget < needed {
             return Err(BuildError::BudgetTooSmall {

@@ -2,25 +2,31 @@
 //! pages into a scene directory and publishes it atomically.
 //!
 //! Layout: `<store>/<id>/manifest.json`, `<store>/<id>/pages/<key>.vxh` and
-//! `<store>/<id>/blocks/<key>.vxb`.
-//! A scene is written under `<store>/.tmp-<id>-<pid>-<n>` and renamed into
-//! place only once every file is written and synced, so readers never see a
-//! half-written scene. Directories starting with `.` are never listed.
+//! `<store>/<id>/packs/<blake3>.vxp`: one pack per hierarchy page, the encoded
+//! bytes of the blocks the page lists, concatenated in the order they were
+//! finished (the pyramid's post order); the root block goes last into the root
+//! page's pack. A pack is appended to a temporary file while its page is open
+//! (blake3 hashed as it grows), synced once and renamed to its content address
+//! when the page's root block arrives; then the page, which names the pack, is
+//! written. A scene is written under `<store>/.tmp-<id>-<pid>-<n>` and renamed
+//! into place only once every file is written and synced, so readers never see
+//! a half-written scene. Directories starting with `.` are never listed.
 
+use std::collections::BTreeMap;
 use std::fs;
-use std::io::Write;
+use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
-use voxstream_format::hierarchy::page_path;
+use voxstream_format::hierarchy::{is_page_root_level, pack_path, page_path, page_root_of};
 use voxstream_format::{
-    BLOCK_SIZE, Block, BlockEntry, BlockLocation, FORMAT_VERSION, GridFrame, LevelInfo, Manifest,
-    PAGE_LEVELS, PackedVoxel, PageBuilder, PageError, ResolutionChoice, SourceInfo, VoxelBounds,
+    BLOCK_SIZE, Block, BlockEntry, BlockKey, BlockLocation, FORMAT_VERSION, GridFrame, LevelInfo, Manifest,
+    PAGE_LEVELS, PackRef, PackedVoxel, PageBuilder, PageError, ResolutionChoice, SourceInfo, VoxelBounds,
     coverage_from_count, encode_block, oct_encode,
 };
 
 use crate::pipeline::progress::{ProgressSink, Stage, StageCounter};
-use crate::pipeline::pyramid::{LodBlock, level_count, local_position};
+use crate::pipeline::pyramid::{LodBlock, block_morton, level_count, local_position};
 use crate::store::{StoreError, io, validate_id};
 
 /// Linear [0, 1] → sRGB8 (the viewer shows colours as stored, like its grey).
@@ -114,7 +120,10 @@ pub fn write_scene_reporting(
 ) -> Result<Manifest, StoreError> {
     let counter = StageCounter::new(progress, Stage::Write, content.levels.iter().map(Vec::len).sum());
     let mut writer = BlockWriter::create(store, id, content.grid.resolution, REFERENCE_PENDING_BYTES)?;
-    for block in content.levels.iter().flatten() {
+    // The streaming build's order (packs hold blocks in the order they come).
+    let mut blocks: Vec<&LodBlock> = content.levels.iter().flatten().collect();
+    blocks.sort_by_key(|b| post_order_key(&b.key));
+    for block in blocks {
         writer.add(block.clone())?;
         counter.tick();
     }
@@ -124,6 +133,71 @@ pub fn write_scene_reporting(
         content.grid.clone(),
         content.resolution_choice.clone(),
     )
+}
+
+/// Sorts blocks in the order the streaming pyramid finishes them: a block
+/// after every block of its subtree and before the next subtree (post order
+/// over the Morton order of level-0 blocks).
+pub fn post_order_key(key: &BlockKey) -> (u64, u8) {
+    let edge = 1u32 << key.level;
+    let last = key.coord().map(|c| c * edge + edge - 1);
+    (block_morton(last), key.level)
+}
+
+/// Buffer of each open pack file.
+pub const PACK_BUFFER_BYTES: usize = 64 << 10;
+
+/// Packs open at once when blocks come in post order: one per page layer
+/// (the pages on the path from the root to the current block), plus one.
+pub fn open_packs(levels: u8) -> usize {
+    (levels as usize).div_ceil(PAGE_LEVELS as usize) + 1
+}
+
+/// Memory the writer's open packs take (their buffers).
+pub fn pack_writer_bytes(levels: u8) -> usize {
+    open_packs(levels) * PACK_BUFFER_BYTES
+}
+
+/// A page's pack while its page is open: a temporary file in `packs/`,
+/// hashed as it grows.
+struct OpenPack {
+    path: PathBuf,
+    file: BufWriter<fs::File>,
+    hasher: blake3::Hasher,
+    len: u64,
+}
+
+impl OpenPack {
+    fn create(packs_dir: &Path, page: &BlockKey) -> Result<Self, StoreError> {
+        let path = packs_dir.join(format!("{page}.open"));
+        let file = fs::File::create(&path).map_err(io("create", &path))?;
+        Ok(Self {
+            path,
+            file: BufWriter::with_capacity(PACK_BUFFER_BYTES, file),
+            hasher: blake3::Hasher::new(),
+            len: 0,
+        })
+    }
+
+    /// Appends one block's bytes; returns their offset.
+    fn append(&mut self, bytes: &[u8]) -> Result<u64, StoreError> {
+        self.file.write_all(bytes).map_err(io("write", &self.path))?;
+        self.hasher.update(bytes);
+        let at = self.len;
+        self.len += bytes.len() as u64;
+        Ok(at)
+    }
+
+    /// Syncs the pack once and renames it to its content address in `scene_dir`.
+    fn close(self, scene_dir: &Path) -> Result<PackRef, StoreError> {
+        let file = self.file.into_inner().map_err(|e| io("write", &self.path)(e.into_error()))?;
+        file.sync_all().map_err(io("sync", &self.path))?;
+        drop(file);
+        let pack = PackRef { hash: self.hasher.finalize().to_hex().to_string(), bytes: self.len };
+        let dest = scene_dir.join(pack_path(&pack.hash));
+        fs::rename(&self.path, &dest).map_err(io("rename", &self.path))?;
+        Ok(pack)
+    }
 }
 
 /// Blocks the in-memory path encodes at once.
@@ -140,15 +214,24 @@ pub const ENCODE_BYTES_PER_VOXEL: usize = 48;
 
 /// Takes finished blocks one at a time, in any order with children before
 /// parents, packs and encodes them on all cores in batches of at most
-/// `pending_limit` bytes, writes each into a temporary scene directory, feeds
-/// its entry to the [`PageBuilder`] (writing each page it finishes) and
-/// drops it. [`BlockWriter::finish`] writes the manifest last and publishes
-/// the scene atomically; dropped before that, the writer removes what it wrote.
+/// `pending_limit` bytes, appends each, in the order it came, to its page's
+/// pack in a temporary scene directory, feeds its entry to the
+/// [`PageBuilder`] (closing the pack and writing the page when the page's
+/// root comes) and drops it. The packs' bytes depend on the order blocks
+/// come in: the build gives post order ([`post_order_key`]), and only
+/// [`open_packs`] packs are open at once then. [`BlockWriter::finish`] writes
+/// the manifest last and publishes the scene atomically; dropped before that,
+/// the writer removes what it wrote.
 pub struct BlockWriter {
     store: PathBuf,
     id: String,
     tmp: PathBuf,
-    blocks_dir: PathBuf,
+    packs_dir: PathBuf,
+    /// Open packs by the root of the page they belong to (the root block's
+    /// own key for the root page's pack, which the root block closes).
+    packs: BTreeMap<BlockKey, OpenPack>,
+    coarsest: u8,
+    root_pack: Option<PackRef>,
     pending: Vec<LodBlock>,
     pending_bytes: usize,
     pending_limit: usize,
@@ -167,13 +250,16 @@ impl BlockWriter {
             std::process::id(),
             std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos())
         ));
-        let blocks_dir = tmp.join("blocks");
+        let packs_dir = tmp.join("packs");
         let levels = level_count(resolution);
         let writer = Self {
             store: store.to_path_buf(),
             id: id.to_string(),
             tmp,
-            blocks_dir,
+            packs_dir,
+            packs: BTreeMap::new(),
+            coarsest: levels - 1,
+            root_pack: None,
             pending: Vec::new(),
             pending_bytes: 0,
             pending_limit,
@@ -184,7 +270,7 @@ impl BlockWriter {
                 .collect(),
             published: false,
         };
-        for d in [&writer.blocks_dir, &writer.tmp.join("pages")] {
+        for d in [&writer.packs_dir, &writer.tmp.join("pages")] {
             fs::create_dir_all(d).map_err(io("create directory", d))?;
         }
         Ok(writer)
@@ -207,16 +293,13 @@ impl BlockWriter {
         self.pending_bytes
     }
 
-    /// Encodes and writes every queued block, on all cores, then records
-    /// their entries in queue order (children before parents).
+    /// Encodes every queued block, on all cores, then appends them to their
+    /// packs and records their entries in queue order (children before parents).
     pub fn flush(&mut self) -> Result<(), StoreError> {
-        let blocks_dir = &self.blocks_dir;
-        let entries: Vec<BlockEntry> = std::mem::take(&mut self.pending)
-            .into_par_iter()
-            .map(|b| write_block(blocks_dir, &b))
-            .collect::<Result<_, StoreError>>()?;
+        let encoded: Vec<(BlockEntry, Vec<u8>)> =
+            std::mem::take(&mut self.pending).into_par_iter().map(|b| encode_entry(&b)).collect();
         self.pending_bytes = 0;
-        for e in entries {
+        for (mut e, bytes) in encoded {
             let level = self.levels.get_mut(e.key.level as usize).ok_or_else(|| StoreError::Damaged {
                 id: self.id.clone(),
                 message: format!("block {} lies beyond the grid's levels", e.key),
@@ -225,11 +308,37 @@ impl BlockWriter {
             level.voxels += e.voxels as u64;
             level.bytes += e.bytes as u64;
             self.written += 1;
-            if let Some((page_ref, bytes)) = self.pages.add(e).map_err(page_err)? {
+            let key = e.key;
+            // A block's bytes go to the pack of the page listing it; the root's
+            // (listed by the manifest) to the root page's, which it closes.
+            let home = page_root_of(&key, self.coarsest, PAGE_LEVELS).unwrap_or(key);
+            let pack = match self.packs.entry(home) {
+                std::collections::btree_map::Entry::Occupied(o) => o.into_mut(),
+                std::collections::btree_map::Entry::Vacant(v) => {
+                    v.insert(OpenPack::create(&self.packs_dir, &home)?)
+                }
+            };
+            e.location = BlockLocation { pack: 0, offset: pack.append(&bytes)? };
+            let roots_page = is_page_root_level(key.level, self.coarsest, PAGE_LEVELS);
+            let closed = if roots_page || key.level == self.coarsest {
+                self.packs.remove(&key).map(|p| p.close(&self.tmp)).transpose()?
+            } else {
+                None
+            };
+            if key.level == self.coarsest {
+                self.root_pack = closed.clone();
+            }
+            let page_pack = if roots_page { closed } else { None };
+            if let Some((page_ref, bytes)) = self.pages.add_packed(e, page_pack).map_err(page_err)? {
                 write_synced(&self.tmp.join(page_path(&page_ref.root)), &bytes)?;
             }
         }
         Ok(())
+    }
+
+    /// Packs being appended to now.
+    pub fn open_packs(&self) -> usize {
+        self.packs.len()
     }
 
     /// Blocks written so far.
@@ -249,6 +358,9 @@ impl BlockWriter {
         self.flush()?;
         let pages = std::mem::replace(&mut self.pages, PageBuilder::new(0, PAGE_LEVELS));
         let (root, root_page) = pages.finish().map_err(page_err)?;
+        if let Some(k) = self.packs.keys().next() {
+            return Err(page_err(PageError::Order(format!("the pack of page {k} was never closed"))));
+        }
         let manifest = Manifest {
             format_version: FORMAT_VERSION,
             name,
@@ -260,9 +372,10 @@ impl BlockWriter {
             page_levels: PAGE_LEVELS,
             root,
             root_page,
+            root_pack: self.root_pack.take(),
         };
         write_synced(&self.tmp.join("manifest.json"), &manifest.to_json())?;
-        for d in [self.blocks_dir.clone(), self.tmp.join("pages")] {
+        for d in [self.packs_dir.clone(), self.tmp.join("pages")] {
             fs::File::open(&d).and_then(|f| f.sync_all()).map_err(io("sync", &d))?;
         }
         publish(&self.store, &self.id, &self.tmp)?;
@@ -275,13 +388,13 @@ fn page_err(e: PageError) -> StoreError {
     StoreError::Damaged { id: "(being written)".into(), message: format!("hierarchy: {e}") }
 }
 
-/// Packs, encodes and writes one block as `blocks/<key>.vxb`; returns its entry
-/// (child mask still 0: the page builder fills it in).
-pub fn write_block(blocks_dir: &Path, b: &LodBlock) -> Result<BlockEntry, StoreError> {
+/// Packs and encodes one block; returns its entry (child mask still 0: the
+/// page builder fills it in; location still a file: the writer places it)
+/// and its bytes.
+pub fn encode_entry(b: &LodBlock) -> (BlockEntry, Vec<u8>) {
     let packed = packed_block(b);
     let bytes = encode_block(&packed);
-    write_synced(&blocks_dir.join(format!("{}.vxb", b.key)), &bytes)?;
-    Ok(BlockEntry {
+    let entry = BlockEntry {
         key: b.key,
         bounds: tight_bounds(b),
         voxels: packed.voxels.len() as u32,
@@ -291,7 +404,8 @@ pub fn write_block(blocks_dir: &Path, b: &LodBlock) -> Result<BlockEntry, StoreE
         geometric_error: b.geometric_error(),
         child_mask: 0,
         location: BlockLocation::FILE,
-    })
+    };
+    (entry, bytes)
 }
 
 impl Drop for BlockWriter {
@@ -348,6 +462,88 @@ mod tests {
     use voxstream_format::BlockKey;
 
     use super::*;
+
+    /// One voxel a block, for every block of a tree over a diagonal of
+    /// level-0 blocks (`n` of them) up to the single root on `coarsest`.
+    fn diagonal_tree(n: u32, coarsest: u8) -> Vec<LodBlock> {
+        use crate::pipeline::pyramid::LodVoxel;
+        use crate::pipeline::voxelize::BuildVoxel;
+        let voxel = LodVoxel {
+            voxel: BuildVoxel {
+                morton: 0,
+                normal_sum: [0.0, 0.0, 1.0],
+                color_sum: [0.0; 3],
+                color_weight: 0.0,
+                faces: 1,
+            },
+            solid: 1,
+            error: 0.0,
+        };
+        let mut keys = std::collections::BTreeSet::new();
+        for i in 0..n {
+            let mut k = BlockKey::new(0, i, i, i);
+            keys.insert(k);
+            while k.level < coarsest {
+                k = k.parent();
+                keys.insert(k);
+            }
+        }
+        keys.into_iter().map(|key| LodBlock { key, voxels: vec![voxel] }).collect()
+    }
+
+    fn most_open_packs(blocks: &[LodBlock], store: &Path, resolution: u32) -> (usize, Manifest) {
+        let mut w = BlockWriter::create(store, "t", resolution, 1).unwrap();
+        let mut most = 0;
+        for b in blocks {
+            w.add(b.clone()).unwrap();
+            w.flush().unwrap();
+            most = most.max(w.open_packs());
+        }
+        let m = w
+            .finish(
+                "t".into(),
+                SourceInfo { file: "t".into(), format: "obj".into(), triangles: 1, skipped_triangles: 0 },
+                GridFrame { origin: [0.0; 3], voxel_size: 1.0, resolution, units: None },
+                ResolutionChoice {
+                    mode: "explicit".into(),
+                    resolution,
+                    voxel_size: 1.0,
+                    median_edge: None,
+                    reason: "test".into(),
+                },
+            )
+            .unwrap();
+        (most, m)
+    }
+
+    /// Fails if the writer holds more packs open than one per page layer when
+    /// blocks come in post order (the build's order), i.e. if its files or
+    /// buffers grow with the scene; the control shows level order would.
+    #[test]
+    fn post_order_keeps_one_pack_open_per_page_layer() {
+        let (resolution, coarsest) = (4096, 6);
+        let mut blocks = diagonal_tree(64, coarsest);
+        blocks.sort_by_key(|b| post_order_key(&b.key));
+        let dir = tempfile::tempdir().unwrap();
+        let (most, manifest) = most_open_packs(&blocks, dir.path(), resolution);
+        let bound = open_packs(level_count(resolution));
+        assert!(most <= bound, "{most} packs open at once, bound {bound}");
+        let scene = crate::store::open_scene(dir.path(), "t").unwrap();
+        assert_eq!(scene.manifest, manifest);
+        assert_eq!(scene.blocks().len(), blocks.len());
+        let pages = std::fs::read_dir(dir.path().join("t/pages")).unwrap().count();
+        let packs = std::fs::read_dir(dir.path().join("t/packs")).unwrap().count();
+        assert_eq!((pages, packs), (9, 9), "the root page and 8 level-3 pages, a pack each");
+        for e in scene.blocks() {
+            let bytes = scene.read_block(e).unwrap();
+            assert_eq!(voxstream_format::decode_block(&bytes).unwrap().key, e.key);
+        }
+        // Control: level order (finest first) keeps every level-3 page's pack open at once.
+        blocks.sort_by_key(|b| (b.key.level, b.key));
+        let dir = tempfile::tempdir().unwrap();
+        let (level_order, _) = most_open_packs(&blocks, dir.path(), resolution);
+        assert!(level_order > bound, "level order opened only {level_order} packs");
+    }
 
     #[test]
     fn srgb_conversion() {
