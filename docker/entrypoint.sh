@@ -11,7 +11,7 @@ set -eu
 BIN=/usr/local/bin/voxstream
 STORE="${VOXSTREAM_STORE:-/store}"
 ADDR="${VOXSTREAM_ADDR:-0.0.0.0:8080}"
-WEB="${VOXSTREAM_WEB:-/opt/voxstream/web}"
+WEB="${VOXSTREAM_WEB:-}" # empty: the viewer embedded in the binary
 MESH="${VOXSTREAM_DEFAULT_MESH:-/opt/voxstream/data/koala.obj}"
 
 if [ "$#" -gt 0 ]; then
@@ -44,4 +44,9 @@ fi
 
 echo "voxstream-entrypoint: serving $STORE on $ADDR" >&2
 # shellcheck disable=SC2086 # READ_ONLY is one flag or nothing
-exec "$BIN" serve --store "$STORE" --addr "$ADDR" --web "$WEB" $READ_ONLY
+WEB_ARGS=""
+if [ -n "$WEB" ]; then
+  WEB_ARGS="--web $WEB"
+fi
+# shellcheck disable=SC2086 # READ_ONLY and WEB_ARGS are empty or whole flags
+exec "$BIN" serve --store "$STORE" --addr "$ADDR" $WEB_ARGS $READ_ONLY

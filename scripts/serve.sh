@@ -3,8 +3,8 @@
 #
 #   bash scripts/serve.sh            then open http://127.0.0.1:8080/
 #
-# Steps: scripts/setup.sh (installs what is missing), release build of the server,
-# scripts/build-web.sh (wasm viewer into viewer-wasm/dist), `voxstream build data/koala.obj`
+# Steps: scripts/setup.sh (installs what is missing), scripts/build-web.sh (wasm viewer into
+# viewer-wasm/dist), release build of the server (which embeds that viewer), `voxstream build data/koala.obj`
 # into ./store when store/koala/manifest.json is missing or older than the mesh (or the server
 # binary), then exec `voxstream serve`.
 #
@@ -33,14 +33,15 @@ BIN="$TARGET_DIR/release/voxstream"
 
 bash scripts/setup.sh || die "scripts/setup.sh failed (see above)"
 
-log "cargo build --release -p voxstream"
-cargo build --release -p voxstream --bin voxstream || die "building the server failed"
-[ -x "$BIN" ] || die "$BIN was not produced by the build"
-
+# The viewer first: the server binary embeds viewer-wasm/dist (server/build.rs).
 [ -f scripts/build-web.sh ] || die "scripts/build-web.sh is missing (the viewer build script)"
 log "scripts/build-web.sh"
 bash scripts/build-web.sh || die "scripts/build-web.sh failed (see above)"
 [ -f "$WEB/index.html" ] || die "scripts/build-web.sh did not produce $WEB/index.html"
+
+log "cargo build --release -p voxstream"
+cargo build --release -p voxstream --bin voxstream || die "building the server failed"
+[ -x "$BIN" ] || die "$BIN was not produced by the build"
 
 [ -f "$MESH" ] || die "$MESH is missing"
 MANIFEST="$STORE/$SCENE/manifest.json"
@@ -60,4 +61,4 @@ else
 fi
 
 log "serving $STORE on http://$ADDR/ (Ctrl-C to stop)"
-exec "$BIN" serve --store "$STORE" --addr "$ADDR" --web "$WEB"
+exec "$BIN" serve --store "$STORE" --addr "$ADDR" # the viewer embedded in the binary

@@ -96,12 +96,13 @@ fi
 step "fmt" cargo fmt --all -- --check
 step "shell syntax" shell_syntax
 step "node syntax" node_syntax
+# The viewer before anything compiles the server: the server embeds viewer-wasm/dist (server/build.rs).
+step "build-web" build_web
 step "clippy" cargo clippy --workspace --all-targets "${LOCKED[@]}" -- -D warnings
 # The fuzz crate is outside the workspace; type-check its targets against the current APIs
 # (stable rustc, no libFuzzer C++ build: see DEVELOPERS.md, "Fuzzing"). Running them is scripts/fuzz.sh.
 # Not --locked: fuzz/Cargo.lock follows the server's dependencies, which change without it.
 step "fuzz targets compile" cargo check --manifest-path fuzz/Cargo.toml --no-default-features --bins
-step "build-web" build_web
 step "cargo test" cargo test --workspace "${LOCKED[@]}" "${PROFILE_ARGS[@]}" "$@"
 
 echo >&2

@@ -44,6 +44,15 @@ struct FaceRecord {
 @group(1) @binding(0) var<uniform> block: BlockInfo;
 @group(1) @binding(1) var<storage, read> faces: array<FaceRecord>;
 
+// A block fading in or out over a level change (viewer-wasm/src/crossfade.rs).
+struct FadeInfo {
+    // x: share of the pixels the newcomers own (0..1), y: 1 for a newcomer, 0 for a leaver.
+    value: vec4<f32>,
+}
+
+// Only fs_fade reads group 2, so the other pipelines' layouts need not have it.
+@group(2) @binding(0) var<uniform> fade: FadeInfo;
+
 struct VertexOut {
     @builtin(position) clip: vec4<f32>,
     @location(0) grid_pos: vec3<f32>,
@@ -164,6 +173,24 @@ fn shade(in: VertexOut) -> Shaded {
 
 @fragment
 fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
+    return shade(in).colour;
+}
+
+// Interleaved gradient noise (Jimenez 2014): a per-pixel threshold in [0, 1)
+// that is evenly spread over any small neighbourhood, so a partial screen door
+// reads as a blend rather than a pattern.
+fn dither(pixel: vec2<f32>) -> f32 {
+    return fract(52.9829189 * fract(dot(floor(pixel), vec2<f32>(0.06711056, 0.00583715))));
+}
+
+// A block in a cross-fade: a newcomer keeps the pixels whose threshold is below
+// t, a leaver the others, so each pixel shows exactly one of the two levels.
+@fragment
+fn fs_fade(in: VertexOut) -> @location(0) vec4<f32> {
+    let mine = dither(in.clip.xy) < fade.value.x;
+    if (mine != (fade.value.y > 0.5)) {
+        discard;
+    }
     return shade(in).colour;
 }
 

@@ -61,6 +61,21 @@ enum Command {
     BenchMeshopt(voxstream::bench::BenchMeshoptArgs),
     /// Serve a store's scenes and the viewer over HTTP; take uploads and build them.
     Serve(voxstream::config::ServeArgs),
+    /// Write a scene and the viewer as a static site (any static file host serves it).
+    Publish {
+        /// The scene id.
+        scene: String,
+        /// The store holding the scene.
+        #[arg(long)]
+        store: PathBuf,
+        /// The folder to write (replaced whole if it holds an earlier publish), or s3://bucket/prefix
+        /// (endpoint and credentials from AWS_* variables or VOXSTREAM_S3_ENV_FILE).
+        #[arg(long)]
+        to: String,
+        /// Take the viewer's files from this built folder instead of the ones in this binary.
+        #[arg(long)]
+        web: Option<PathBuf>,
+    },
     /// Render one view of a stored scene offscreen (Vulkan; lavapipe without a GPU) and write
     /// image.png, ao.f32, position.f64, normal.f32 and render.json.
     Render(RenderArgs),
@@ -196,9 +211,23 @@ fn main() -> ExitCode {
     }
 }
 
+/// Stores are local folders for now: an `s3://` store is refused by name instead of being taken
+/// for a folder called "s3:" (only `publish --to` writes to a bucket).
+fn no_bucket_store(path: &std::path::Path, flag: &str) -> anyhow::Result<()> {
+    if path.to_str().is_some_and(|p| p.contains("://")) {
+        anyhow::bail!(
+            "{flag} {}: stores in object storage are not supported yet, only local folders \
+             (publish --to s3://bucket/prefix writes a static site to a bucket)",
+            path.display()
+        );
+    }
+    Ok(())
+}
+
 fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Build { mesh, out, resolution, voxel_size, name, topology, memory_budget, tmp } => {
+            no_bucket_store(&out, "build --out")?;
             let resolution = voxel_size.map_or(resolution, Resolution::VoxelSize);
             let topology = match topology {
                 TopologyArg::Conservative => Topology::Conservative,
@@ -262,7 +291,44 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Bench(args) => voxstream::bench::bench_main(&args),
         Command::BenchMeshopt(args) => voxstream::bench::bench_meshopt_main(&args),
-        Command::Serve(args) => voxstream::http::serve_command(args),
+        Command::Serve(args) => {
+            no_bucket_store(&args.store, "serve --store")?;
+            voxstream::http::serve_command(args)
+        }
+        Command::Publish { scene, store, to, web } => {
+            let viewer = match &web {
+                Some(dir) => voxstream::publish::ViewerFiles::Dir(dir),
+                None => voxstream::publish::ViewerFiles::Embedded,
+            };
+            no_bucket_store(&store, "publish --store")?;
+            let r = match voxstream::objstore::parse_location(&to).map_err(|e| anyhow::anyhow!("--to {e}"))? {
+                voxstream::objstore::Location::Local(dir) => {
+                    voxstream::publish::publish(&store, &scene, &dir, viewer)?
+                }
+                voxstream::objstore::Location::S3 { bucket, prefix } => {
+                    let rt = tokio::runtime::Runtime::new()?;
+                    rt.block_on(async {
+                        let b = voxstream::objstore::connect(
+                            &bucket,
+                            &prefix,
+                            std::time::Duration::from_secs(10),
+                        )
+                        .await?;
+                        voxstream::publish::publish_to_bucket(&store, &scene, &b, viewer).await
+                    })?
+                }
+            };
+            println!(
+                "published scene {:?} to {}: {} files ({} blocks, {} pages), {} bytes",
+                r.id,
+                r.to.display(),
+                r.files,
+                r.blocks,
+                r.pages,
+                r.bytes
+            );
+            Ok(())
+        }
         Command::Render(args) => {
             let bytes = std::fs::read(&args.camera)
                 .map_err(|e| anyhow::anyhow!("cannot read --camera {}: {e}", args.camera.display()))?;

@@ -53,3 +53,137 @@ fn write(dir: &tempfile::TempDir, name: &str, bytes: &[u8]) -> String {
     std::fs::write(&p, bytes).unwrap();
     p.display().to_string()
 }
+
+/// `voxstream publish` writes a static site in the API's URL layout: every block and page named
+/// `<key>.<hash>` with bytes that hash to that name, the manifest as stored, index.html naming the
+/// scene; it replaces an earlier publish whole and refuses anything else.
+#[test]
+fn publish_writes_a_static_site_and_refuses_bad_targets() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let mesh =
+        write(&dir, "tri.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n");
+    let (ok, _, err) = voxstream(&["build", &mesh, "--out", store.to_str().unwrap(), "--resolution", "256"]);
+    assert!(ok, "{err}");
+    let site = dir.path().join("site");
+    let (s, t) = (store.to_str().unwrap(), site.to_str().unwrap());
+    let web = concat!(env!("CARGO_MANIFEST_DIR"), "/../viewer-wasm/dist");
+    let viewer = if voxstream::http::web::has_embedded_viewer() { vec![] } else { vec!["--web", web] };
+    let mut args = vec!["publish", "tri", "--store", s, "--to", t];
+    args.extend(&viewer);
+    let (ok, out, err) = voxstream(&args);
+    assert!(ok, "publish failed: {err}");
+    assert!(out.contains("published scene \"tri\""), "{out}");
+    let scene = site.join("api/scenes/tri");
+    let manifest = std::fs::read(scene.join("manifest")).unwrap();
+    assert_eq!(manifest, std::fs::read(store.join("tri/manifest.json")).unwrap());
+    let index = std::fs::read_to_string(site.join("index.html")).unwrap();
+    assert!(index.contains("<meta name=\"voxstream-scene\" content=\"tri\">"), "{index}");
+    assert!(site.join("pkg/voxstream_viewer_bg.wasm").is_file());
+    let m = voxstream_format::Manifest::from_json(&manifest).unwrap();
+    let mut blocks = 0;
+    for entry in std::fs::read_dir(scene.join("blocks")).unwrap() {
+        let path = entry.unwrap().path();
+        let name = path.file_name().unwrap().to_str().unwrap().to_string();
+        let (_, hash) = name.split_once('.').expect("blocks are <key>.<hash>");
+        assert_eq!(blake3::hash(&std::fs::read(&path).unwrap()).to_hex().as_str(), hash, "{name}");
+        blocks += 1;
+    }
+    assert_eq!(blocks, m.block_count(), "every block of the scene, nothing else");
+    let root_page = m.root_page.as_ref().expect("a scene on 3 levels has a root page");
+    let page = scene.join("pages").join(format!("{}.{}", root_page.root, root_page.hash));
+    assert_eq!(blake3::hash(&std::fs::read(page).unwrap()).to_hex().as_str(), root_page.hash);
+    // Again: the earlier publish is replaced whole, no temp folder stays behind.
+    let (ok, _, err) = voxstream(&args);
+    assert!(ok, "republish failed: {err}");
+    let leftovers: Vec<_> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .filter(|n| n.starts_with('.'))
+        .collect();
+    assert!(leftovers.is_empty(), "{leftovers:?}");
+    // Refusals: a folder that is not a publish, an unknown scene, a missing store.
+    let precious = dir.path().join("precious");
+    std::fs::create_dir(&precious).unwrap();
+    std::fs::write(precious.join("thesis.tex"), b"keep me").unwrap();
+    for (scene, store, to, expected) in [
+        ("tri", s, precious.to_str().unwrap(), "not a voxstream publish"),
+        ("nope", s, t, "cannot open scene \"nope\""),
+        ("tri", "/nonexistent/store", t, "cannot open scene"),
+        ("../x", s, t, "invalid"),
+    ] {
+        let mut args = vec!["publish", scene, "--store", store, "--to", to];
+        args.extend(&viewer);
+        let (ok, _, err) = voxstream(&args);
+        assert!(!ok, "publish {scene} {store} -> {to} succeeded");
+        assert!(err.contains(expected), "expected {expected:?} in {err:?}");
+    }
+    assert_eq!(std::fs::read(precious.join("thesis.tex")).unwrap(), b"keep me");
+}
+
+/// Bad object-storage configuration is one clear error and a non-zero exit within seconds, naming
+/// the endpoint and the cause and never the secret: no credentials, an endpoint nobody listens
+/// on, a malformed bucket URL, and a store URL where only a folder works. Negative control: a
+/// `publish --to s3://` that hung on the dead endpoint (connect retries without a deadline) fails
+/// the time bound; one that printed the secret fails the last check.
+#[test]
+fn object_store_misconfiguration_fails_fast_and_clearly() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let mesh = write(&dir, "tri.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n");
+    let (ok, _, err) = voxstream(&["build", &mesh, "--out", store.to_str().unwrap(), "--resolution", "64"]);
+    assert!(ok, "{err}");
+    let s = store.to_str().unwrap();
+    // A port that was free a moment ago: nothing listens there.
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let endpoint = format!("http://127.0.0.1:{port}");
+    let secret = "very-secret-key-0123456789";
+    let run = |env: &[(&str, &str)], args: &[&str]| {
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_voxstream"));
+        cmd.args(args);
+        for (k, _) in std::env::vars().filter(|(k, _)| k.starts_with("AWS_")) {
+            cmd.env_remove(k);
+        }
+        cmd.env_remove("VOXSTREAM_S3_ENV_FILE");
+        cmd.envs(env.iter().copied());
+        let t = std::time::Instant::now();
+        let out = cmd.output().unwrap();
+        (out.status.success(), String::from_utf8_lossy(&out.stderr).to_string(), t.elapsed())
+    };
+    let publish = ["publish", "tri", "--store", s, "--to", "s3://scans/site"];
+    let (ok, err, _) = run(&[("AWS_ENDPOINT_URL", &endpoint), ("AWS_ALLOW_HTTP", "true")], &publish);
+    assert!(!ok && err.contains("no credentials") && err.contains(&endpoint), "{err}");
+    let keys = [
+        ("AWS_ENDPOINT_URL", endpoint.as_str()),
+        ("AWS_ALLOW_HTTP", "true"),
+        ("AWS_ACCESS_KEY_ID", "GKtest"),
+        ("AWS_SECRET_ACCESS_KEY", secret),
+    ];
+    let (ok, err, took) = run(&keys, &publish);
+    assert!(!ok, "publish to a dead endpoint succeeded");
+    assert!(err.contains(&endpoint) && err.contains("scans"), "names the endpoint and bucket: {err}");
+    assert!(err.contains("connect"), "names the cause: {err}");
+    assert!(took < std::time::Duration::from_secs(30), "took {took:?}: {err}");
+    assert!(!err.contains(secret), "the secret was printed: {err}");
+    // The same settings from a file.
+    let env_file = write(
+        &dir,
+        "s3.env",
+        format!("export AWS_ACCESS_KEY_ID=GKtest\nAWS_SECRET_ACCESS_KEY={secret}\n").as_bytes(),
+    );
+    let (ok, err, _) = run(
+        &[("AWS_ENDPOINT_URL", &endpoint), ("AWS_ALLOW_HTTP", "true"), ("VOXSTREAM_S3_ENV_FILE", &env_file)],
+        &publish,
+    );
+    assert!(!ok && !err.contains("no credentials") && err.contains(&endpoint), "{err}");
+    for (args, expected) in [
+        (vec!["publish", "tri", "--store", s, "--to", "s3://A_B/x"], "bucket name"),
+        (vec!["publish", "tri", "--store", s, "--to", "gs://bucket/x"], "not supported"),
+        (vec!["publish", "tri", "--store", "s3://scans/store", "--to", "site"], "not supported yet"),
+        (vec!["serve", "--store", "s3://scans/store"], "not supported yet"),
+        (vec!["build", &mesh, "--out", "s3://scans/store"], "not supported yet"),
+    ] {
+        let (ok, err, _) = run(&keys, &args);
+        assert!(!ok && err.contains(expected), "{args:?}: expected {expected:?} in {err:?}");
+    }
+}

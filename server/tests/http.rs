@@ -293,7 +293,8 @@ async fn serves_what_the_store_holds() {
     assert!(e.contains("invalid"), "{e}");
     json_error(http.get(format!("{base}/api/scenes/Box/manifest")).send().await.unwrap(), 400).await;
     json_error(http.get(format!("{base}/api/nothing-here")).send().await.unwrap(), 404).await;
-    json_error(http.get(format!("{base}/index.html")).send().await.unwrap(), 404).await;
+    // No --web: the embedded viewer answers outside /api; a file it lacks is a 404.
+    assert_eq!(http.get(format!("{base}/no-such-file.js")).send().await.unwrap().status(), 404);
     // The compatible server is read-only.
     let e = json_error(upload(&base, "filename=b.obj", box_obj()).await, 403).await;
     assert!(e.contains("read-only"), "{e}");
@@ -1166,4 +1167,49 @@ async fn upload_format_comes_from_magic_name_header_or_content_type() {
         assert_eq!(meta["source_format"], format);
         assert_eq!(meta["triangles"], 12);
     }
+}
+
+/// `voxstream serve` without `--web` serves the viewer compiled into the binary: the same bytes
+/// as viewer-wasm/dist, with the right content types and revalidation. Negative control: a binary
+/// built before the viewer (server/build.rs embeds an empty folder) answers 404 here and fails.
+#[tokio::test]
+async fn embedded_viewer_is_served_without_web() {
+    let dist = Path::new(env!("CARGO_MANIFEST_DIR")).join("../viewer-wasm/dist");
+    assert!(
+        dist.join("index.html").is_file() && voxstream::http::web::has_embedded_viewer(),
+        "this test binary embeds no viewer: run bash scripts/build-web.sh, then cargo test again \
+         (server/build.rs embeds viewer-wasm/dist when it has an index.html)"
+    );
+    let store = tempfile::tempdir().unwrap();
+    let base = start_read_only(store.path()).await;
+    let http = http();
+    for (path, file, mime) in [
+        ("/", "index.html", "text/html"),
+        ("/index.html", "index.html", "text/html"),
+        ("/pkg/voxstream_viewer_bg.wasm", "pkg/voxstream_viewer_bg.wasm", "application/wasm"),
+        ("/pkg/voxstream_viewer.js", "pkg/voxstream_viewer.js", "javascript"),
+        ("/viewer.css", "viewer.css", "text/css"),
+        ("/upload.html", "upload.html", "text/html"),
+    ] {
+        let resp = http.get(format!("{base}{path}")).send().await.unwrap();
+        assert_eq!(resp.status(), 200, "{path}");
+        let ct = resp.headers()["content-type"].to_str().unwrap().to_string();
+        assert!(ct.contains(mime), "{path}: content-type {ct:?}, expected {mime}");
+        assert_eq!(resp.headers()["cache-control"], "no-cache", "{path}");
+        let etag = resp.headers()["etag"].clone();
+        let body = resp.bytes().await.unwrap();
+        assert_eq!(
+            body.as_ref(),
+            std::fs::read(dist.join(file)).unwrap().as_slice(),
+            "{path} differs from dist/{file}"
+        );
+        let again = http.get(format!("{base}{path}")).header("if-none-match", etag).send().await.unwrap();
+        assert_eq!(again.status(), 304, "{path}");
+    }
+    let head = http.head(format!("{base}/pkg/voxstream_viewer_bg.wasm")).send().await.unwrap();
+    assert_eq!(head.status(), 200);
+    let e = json_error(http.get(format!("{base}/pkg/missing.wasm")).send().await.unwrap(), 404).await;
+    assert!(e.contains("no viewer file"), "{e}");
+    let e = json_error(http.post(format!("{base}/index.html")).send().await.unwrap(), 405).await;
+    assert!(e.contains("read-only"), "{e}");
 }

@@ -97,6 +97,36 @@ try {
   await canvas.screenshot({ path: join(outDir, 'browser.png'), animations: 'disabled', timeout: 60000 });
   const after = await snapshot();
 
+  // VOXSTREAM_E2E_INTERACT=1: the screenshot button and double-click re-centring, after the
+  // still-view checks above (they move the camera).
+  let interact = null;
+  if (process.env.VOXSTREAM_E2E_INTERACT === '1') {
+    const [download] = await Promise.all([
+      page.waitForEvent('download', { timeout: 60000 }),
+      page.click('#vs-screenshot'),
+    ]);
+    await download.saveAs(join(outDir, 'download.png'));
+    const pickAfter = async (x, y) => {
+      const answered = await page.evaluate(() => window.voxstream.view().picksAnswered);
+      await canvas.dblclick({ position: { x, y } });
+      await page.waitForFunction((n) => window.voxstream.view().picksAnswered > n, answered, {
+        timeout: 60000,
+        polling: 100,
+      });
+      return (await snapshot()).view;
+    };
+    const corner = await pickAfter(2, 2);
+    const centre = await pickAfter(canvasBox.clientWidth / 2, canvasBox.clientHeight / 2);
+    interact = {
+      download: download.suggestedFilename(),
+      cornerPick: corner.pick,
+      cornerTarget: corner.camera.target,
+      centrePick: centre.pick,
+      centreTarget: centre.camera.target,
+    };
+    console.log(`[e2e ${since()}] interactions ${JSON.stringify(interact)}`);
+  }
+
   const result = {
     url,
     elapsedMs: Date.now() - t0,
@@ -108,6 +138,7 @@ try {
     view: before.view,
     statsAfter: after.stats,
     viewAfter: after.view,
+    interact,
     pageErrors,
   };
   writeFileSync(join(outDir, 'browser.json'), JSON.stringify(result, null, 2));

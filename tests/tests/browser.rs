@@ -147,22 +147,41 @@ fn browser_renders_koala_matching_cpu_coverage() {
 
     // 2. Server on an ephemeral port, running on its own runtime while this thread drives node.
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
-    let state = AppState::load(store.path(), Some(&web)).expect("AppState::load");
+    // No --web: the viewer compiled into the binary (server/build.rs, src/http/web.rs).
+    assert!(
+        voxstream::http::web::has_embedded_viewer(),
+        "the server embeds no viewer: run bash scripts/build-web.sh, then cargo test again"
+    );
+    let state = AppState::load(store.path(), None).expect("AppState::load");
     let listener = rt.block_on(tokio::net::TcpListener::bind("127.0.0.1:0")).expect("bind 127.0.0.1:0");
     let addr = listener.local_addr().unwrap();
     let server = rt.spawn(async move { axum::serve(listener, router(state)).await });
     let url = format!("http://{addr}/?scene={}", report.id);
 
-    // 3. Headless Chromium.
-    let out = artifacts_dir();
-    std::fs::create_dir_all(&out).unwrap();
+    // 3. Headless Chromium, with the checks below.
+    render_and_check(&url, &artifacts_dir(), &report.scene_dir, true);
+    assert!(!server.is_finished(), "the server stopped during the browser run: {:?}", rt.block_on(server));
+    server.abort();
+}
+
+/// Opens `url` in headless Chromium (tests/browser/e2e.mjs), waits for the ready marker and checks
+/// the screenshot's silhouette against the CPU coverage of the blocks the page says it drew, read
+/// from `scene_dir` (the store's scene folder). Artifacts go to `out`.
+/// With `interact`, the harness then presses the screenshot button and double-clicks a background
+/// corner and the canvas centre; [`check_interactions`] judges what came of it.
+fn render_and_check(url: &str, out: &Path, scene_dir: &Path, interact: bool) {
+    let root = workspace_root();
+    let script = root.join("tests/browser/e2e.mjs");
+    std::fs::create_dir_all(out).unwrap();
     for name in ["browser.png", "browser.json"] {
         let _ = std::fs::remove_file(out.join(name));
     }
     let mut cmd = Command::new("node");
-    cmd.arg(&script).arg(&url).arg(&out).current_dir(&root);
+    cmd.arg(&script).arg(url).arg(out).current_dir(&root);
+    if interact {
+        cmd.env("VOXSTREAM_E2E_INTERACT", "1");
+    }
     let (ok, log) = run_with_timeout(cmd, HARNESS_TIMEOUT);
-    assert!(!server.is_finished(), "the server stopped during the browser run: {:?}", rt.block_on(server));
     assert!(ok, "browser harness failed for {url}; its output (page console included):\n{log}");
 
     // 4. What the page reported.
@@ -207,7 +226,7 @@ fn browser_renders_koala_matching_cpu_coverage() {
         .iter()
         .map(|k| {
             let key: BlockKey = k.parse().unwrap_or_else(|e| panic!("bad block key {k:?}: {e}"));
-            let path = report.scene_dir.join("blocks").join(format!("{k}.vxb"));
+            let path = scene_dir.join("blocks").join(format!("{k}.vxb"));
             let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
             (key, decode_block(&bytes).unwrap_or_else(|e| panic!("decode {k}: {e}")))
         })
@@ -227,8 +246,69 @@ fn browser_renders_koala_matching_cpu_coverage() {
     moved[12] += 0.1 * moved[15];
     let wrong = coverage::compare_masks(&silhouette, &coverage::coverage_mask(&blocks, &moved, w, h), w, h);
     assert!(!wrong.within_tolerance(), "a moved camera still matched the screenshot: {wrong:?}");
+    // The AO volume reached the GPU, built by the worker, not on the main thread.
+    let volumes = stats["aoVolumes"].as_u64().unwrap_or(0);
+    assert!(volumes > 0, "no AO volume was uploaded: {stats}");
+    assert_eq!(
+        stats["aoVolumesFromWorker"].as_u64(),
+        Some(volumes),
+        "the main thread built an AO volume: {stats}"
+    );
+    if interact {
+        check_interactions(&result, out, &silhouette, &view_proj, (w, h));
+    }
+}
 
-    server.abort();
+/// The screenshot button saved the canvas as drawn, a double-click on the background changed
+/// nothing, and one on the scan put the orbit centre on the surface under the cursor.
+fn check_interactions(
+    result: &Value,
+    out: &Path,
+    silhouette: &[bool],
+    view_proj: &[f32; 16],
+    size: (u32, u32),
+) {
+    let interact = &result["interact"];
+    assert!(interact.is_object(), "the harness reported no interactions: {result}");
+    let (dw, dh, rgb) = read_png_rgb(&out.join("download.png"));
+    assert_eq!((dw, dh), size, "the screenshot button's PNG is not the canvas size");
+    let saved: Vec<bool> = rgb.chunks_exact(3).map(|p| p != &BACKGROUND_RGBA8[..3]).collect();
+    let cmp = coverage::compare_masks(&saved, silhouette, size.0, size.1);
+    println!("screenshot button vs page screenshot: {cmp:?}");
+    assert!(cmp.within_tolerance() && saved.iter().any(|&s| s), "the saved PNG is not the view: {cmp:?}");
+
+    let target = |v: &Value| -> Vec<f64> {
+        v.as_array()
+            .unwrap_or_else(|| panic!("camera target: {v}"))
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect()
+    };
+    let before = target(&result["view"]["camera"]["target"]);
+    assert_eq!(
+        interact["cornerPick"], "none",
+        "a double-click on the background found a surface: {interact}"
+    );
+    assert_eq!(
+        target(&interact["cornerTarget"]),
+        before,
+        "a double-click on the background moved the orbit centre"
+    );
+    let picked = target(&interact["centrePick"]);
+    assert_eq!(target(&interact["centreTarget"]), picked, "the orbit centre is not the picked point");
+    assert_ne!(picked, before, "the orbit centre did not move");
+    // The picked point lies on the clicked pixel's ray: it projects back onto the canvas centre.
+    let m = glam::Mat4::from_cols_array(view_proj);
+    let c = m * glam::Vec4::new(picked[0] as f32, picked[1] as f32, picked[2] as f32, 1.0);
+    let ndc = c.truncate() / c.w;
+    let px = ((ndc.x * 0.5 + 0.5) * size.0 as f32, (0.5 - ndc.y * 0.5) * size.1 as f32);
+    let centre = (size.0 as f32 / 2.0, size.1 as f32 / 2.0);
+    let off = ((px.0 - centre.0).powi(2) + (px.1 - centre.1).powi(2)).sqrt();
+    assert!(off < 2.5, "the picked point projects to {px:?}, {off:.1} px from the clicked {centre:?}");
+    assert!((0.0..1.0).contains(&ndc.z), "the picked point is outside the depth range: {ndc}");
+    // And it is on the scan: some drawn pixel near the click.
+    let (cx, cy) = (centre.0 as usize, centre.1 as usize);
+    assert!(silhouette[cy * size.0 as usize + cx], "the clicked pixel shows no surface in the screenshot");
 }
 
 /// The upload page against the full server (jobs, tus, SSE, thumbnails) on an empty store:
@@ -391,6 +471,57 @@ fn upload_page_builds_and_opens_scene() {
         out.display()
     );
     server.abort();
+}
+
+/// `voxstream publish` writes a static site; a plain static file server (python3 -m http.server,
+/// no voxstream process) serves it and Chromium shows the scene with the same ready marker and
+/// silhouette check. The URL has no `?scene=`: the published index.html names it. Negative
+/// control: the viewer with absolute `/api/...` URLs, or without the meta tag, never gets ready
+/// here (there is no `/api/scenes` list on a static host).
+#[test]
+fn static_publish_renders_in_chromium() {
+    let root = workspace_root();
+    require(
+        &root.join("tests/browser/node_modules/playwright-core/package.json"),
+        "install the harness dependencies: bash scripts/setup.sh (npm ci in tests/browser)",
+    );
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = dir.path().join("store");
+    let report = build_scene(&root.join("data/koala.obj"), &store, &BuildOptions::default())
+        .expect("build_scene(data/koala.obj)");
+    // Served from a sub-folder of the host: the viewer's URLs are relative to its page.
+    let host_root = dir.path().join("www");
+    let site = host_root.join("scans/koala");
+    let viewer = if voxstream::http::web::has_embedded_viewer() {
+        voxstream::publish::ViewerFiles::Embedded
+    } else {
+        panic!("the server embeds no viewer: run bash scripts/build-web.sh, then cargo test again")
+    };
+    let published = voxstream::publish::publish(&store, &report.id, &site, viewer).expect("publish");
+    println!("published {} files, {} bytes", published.files, published.bytes);
+
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let mut server = Command::new("python3")
+        .args(["-m", "http.server", "--bind", "127.0.0.1", &port.to_string(), "--directory"])
+        .arg(&host_root)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("python3 -m http.server (python3 is on every Debian machine)");
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+        assert!(Instant::now() < deadline, "python3 -m http.server did not listen on {port}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let url = format!("http://127.0.0.1:{port}/scans/koala/");
+    let result = std::panic::catch_unwind(|| {
+        render_and_check(&url, &artifacts_dir().join("publish"), &report.scene_dir, false)
+    });
+    let _ = server.kill();
+    let _ = server.wait();
+    if let Err(e) = result {
+        std::panic::resume_unwind(e);
+    }
 }
 
 /// Failure handling in the browser: every level-0 block the page asks for fails for good, half

@@ -571,3 +571,70 @@ fn streaming_frames_on_a_path_have_no_holes() {
     assert!(checked >= 10, "only {checked} frames checked");
     assert!(control_failed, "dropping a drawn block never changed the verdict");
 }
+
+/// The shader's dither threshold (voxel.wgsl `dither`), for predicting which level a pixel shows.
+fn dither(x: u32, y: u32) -> f32 {
+    let d = 0.06711056f32 * x as f32 + 0.00583715 * y as f32;
+    (52.982_918_f32 * d.fract()).fract()
+}
+
+/// A level change cross-fades instead of popping: halfway through, every pixel shows exactly one
+/// of the two levels — the new one where the dither is below t, the old one elsewhere — so the
+/// frame is the old image and the new image interleaved, with no hole and no double surface.
+/// The frame is not complete until the fade ends. Control: the halfway frame is neither image.
+#[test]
+fn a_level_change_cross_fades_pixel_by_pixel() {
+    let (_store, scene) = koala_scene();
+    let options = RenderOptions { ao_strength: 0.0, ..RenderOptions::new(256, 256) };
+    let mut o = open(&scene, &options);
+    o.load_wanted();
+    o.scene.crossfade = voxstream_viewer::crossfade::Crossfade::new(100.0);
+    o.scene.select_params.max_error_pixels = 48.0;
+    o.load_wanted();
+    let coarse_frame = o.draw_frame_at(0.0).expect("coarse frame");
+    let coarse = o.read_pixels().expect("read back");
+    o.scene.select_params.max_error_pixels = 1.0;
+    let start = o.draw_frame_at(1000.0).expect("the swap");
+    assert_ne!(start.drawn, coarse_frame.drawn, "the finer threshold changed nothing");
+    assert!(!start.complete, "a frame in a fade is not complete");
+    let halfway_frame = o.draw_frame_at(1050.0).expect("halfway");
+    assert!(!halfway_frame.complete);
+    let halfway = o.read_pixels().expect("read back");
+    let end = o.draw_frame_at(1100.0).expect("the fade's end");
+    assert!(end.complete, "the fade ended but the frame is not complete");
+    let fine = o.read_pixels().expect("read back");
+
+    let px = |img: &[u8], i: usize| [img[4 * i], img[4 * i + 1], img[4 * i + 2], img[4 * i + 3]];
+    let (mut changed, mut predicted, mut from_fine, mut near_threshold) = (0usize, 0usize, 0usize, 0usize);
+    for y in 0..256u32 {
+        for x in 0..256u32 {
+            let i = (y * 256 + x) as usize;
+            if px(&coarse, i) == px(&fine, i) {
+                continue;
+            }
+            changed += 1;
+            let t = dither(x, y);
+            if (t - 0.5).abs() < 1e-3 {
+                near_threshold += 1;
+                continue;
+            }
+            let expected = if t < 0.5 { px(&fine, i) } else { px(&coarse, i) };
+            predicted += (px(&halfway, i) == expected) as usize;
+            from_fine += (px(&halfway, i) == px(&fine, i)) as usize;
+        }
+    }
+    let judged = changed - near_threshold;
+    println!(
+        "cross-fade: {changed} pixels differ between the levels; halfway {predicted}/{judged} as predicted, {from_fine} from the new level"
+    );
+    assert!(changed > 500, "the level change moved only {changed} pixels: nothing to fade");
+    assert!(
+        predicted as f64 >= 0.99 * judged as f64,
+        "{predicted} of {judged} pixels show the predicted level"
+    );
+    let share = from_fine as f64 / judged as f64;
+    assert!(
+        (0.35..0.65).contains(&share),
+        "the new level owns {share:.2} of the pixels halfway, not about half"
+    );
+}

@@ -19,7 +19,7 @@
 //! into the volume as the fine blocks it stands for would: the AO does not
 //! darken or brighten as the LOD changes.
 
-use voxstream_format::{BLOCK_SIZE, Block, FULL_COVERAGE, oct_decode};
+use voxstream_format::{BLOCK_SIZE, Block, BlockKey, FULL_COVERAGE, PackedVoxel, oct_decode};
 
 /// Cone counts with a fixed direction set ([`cone_directions`]).
 pub const CONE_COUNTS: [u32; 5] = [3, 5, 6, 8, 16];
@@ -180,6 +180,43 @@ pub struct OccupancyVolume {
     pub mips: Vec<Vec<u8>>,
 }
 
+/// Bytes before each block's voxels in an [`encode_sources`] payload: level,
+/// then x, y, z and the voxel count as little-endian u32.
+const SOURCE_HEADER: usize = 1 + 4 * 4;
+
+/// The blocks a volume is splatted from as one flat buffer, for a worker:
+/// per block its key, its voxel count and its voxels' raw bytes.
+pub fn encode_sources<'a>(blocks: impl IntoIterator<Item = &'a Block>) -> Vec<u8> {
+    let mut out = Vec::new();
+    for b in blocks {
+        out.push(b.key.level);
+        for v in [b.key.x, b.key.y, b.key.z, b.voxels.len() as u32] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        out.extend_from_slice(bytemuck::cast_slice(&b.voxels));
+    }
+    out
+}
+
+/// The inverse of [`encode_sources`]; a payload cut short or with trailing bytes is an error.
+pub fn decode_sources(mut bytes: &[u8]) -> Result<Vec<Block>, String> {
+    let voxel = size_of::<PackedVoxel>();
+    let mut blocks = Vec::new();
+    while !bytes.is_empty() {
+        let header = bytes.get(..SOURCE_HEADER).ok_or("occupancy sources: a block header is cut short")?;
+        let word = |i: usize| u32::from_le_bytes(header[1 + 4 * i..5 + 4 * i].try_into().expect("4 bytes"));
+        let key = BlockKey::new(header[0], word(0), word(1), word(2));
+        let len = (word(3) as usize).checked_mul(voxel).ok_or("occupancy sources: voxel count overflows")?;
+        let body = bytes
+            .get(SOURCE_HEADER..SOURCE_HEADER + len)
+            .ok_or_else(|| format!("occupancy sources: block {key} is cut short"))?;
+        let voxels = body.chunks_exact(voxel).map(bytemuck::pod_read_unaligned).collect();
+        blocks.push(Block { key, voxels });
+        bytes = &bytes[SOURCE_HEADER + len..];
+    }
+    Ok(blocks)
+}
+
 /// Cells per edge for a grid: a power of two no larger than [`MAX_CELLS`].
 pub fn cells_for_grid(grid_resolution: u32) -> u32 {
     grid_resolution.clamp(1, MAX_CELLS).next_power_of_two().min(MAX_CELLS)
@@ -245,6 +282,34 @@ impl OccupancyVolume {
             edge /= 2;
         }
         Self { grid_resolution, cells, mips }
+    }
+
+    /// All mips back to back, finest first (what a worker sends back).
+    pub fn into_bytes(self) -> Vec<u8> {
+        self.mips.concat()
+    }
+
+    /// The inverse of [`OccupancyVolume::into_bytes`] for a `grid_resolution`³ grid;
+    /// a length that is not exactly that volume's is an error.
+    pub fn from_bytes(grid_resolution: u32, bytes: &[u8]) -> Result<Self, String> {
+        let cells = cells_for_grid(grid_resolution);
+        let sizes: Vec<usize> = (0..=cells.ilog2()).map(|m| ((cells >> m) as usize).pow(3)).collect();
+        let total: usize = sizes.iter().sum();
+        if bytes.len() != total {
+            return Err(format!(
+                "occupancy volume: {} bytes, a {cells}³ volume with mips has {total}",
+                bytes.len()
+            ));
+        }
+        let mut at = 0;
+        let mips = sizes
+            .iter()
+            .map(|&n| {
+                at += n;
+                bytes[at - n..at].to_vec()
+            })
+            .collect();
+        Ok(Self { grid_resolution, cells, mips })
     }
 
     pub fn mip_count(&self) -> u32 {
@@ -440,7 +505,35 @@ impl OccupancyTexture {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use voxstream_format::{BlockKey, PackedVoxel, oct_encode};
+    use voxstream_format::oct_encode;
+
+    #[test]
+    fn a_volume_built_from_a_worker_payload_equals_the_direct_build() {
+        let blocks = vec![
+            block(0, [0, 0, 0], &[[1, 2, 3], [4, 5, 6], [63, 63, 63]]),
+            block(1, [1, 0, 1], &[[0, 0, 0], [10, 20, 30]]),
+            block(2, [0, 1, 0], &[]),
+        ];
+        let payload = encode_sources(&blocks);
+        let decoded = decode_sources(&payload).expect("decodes");
+        assert_eq!(decoded, blocks);
+        let direct = OccupancyVolume::build(512, &blocks);
+        let via_worker = OccupancyVolume::build(512, &decoded);
+        let round_trip =
+            OccupancyVolume::from_bytes(512, &via_worker.clone().into_bytes()).expect("sizes match");
+        assert_eq!(round_trip, direct);
+        // Controls: a payload missing a block gives another volume; cut or padded payloads and
+        // wrongly sized volumes are errors.
+        let fewer = OccupancyVolume::build(512, &decode_sources(&encode_sources(&blocks[1..])).unwrap());
+        assert_ne!(fewer, direct);
+        assert!(decode_sources(&payload[..payload.len() - 1]).is_err());
+        assert!(decode_sources(&[payload.as_slice(), &[0u8; 3]].concat()).is_err());
+        assert!(OccupancyVolume::from_bytes(512, &direct.clone().into_bytes()[1..]).is_err());
+        assert!(
+            OccupancyVolume::from_bytes(64, &direct.into_bytes()).is_err(),
+            "a 64³ grid has a 64³ volume"
+        );
+    }
 
     fn block(level: u8, coord: [u32; 3], locals: &[[u32; 3]]) -> Block {
         let mut voxels: Vec<PackedVoxel> =

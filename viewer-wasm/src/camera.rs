@@ -117,6 +117,21 @@ impl OrbitCamera {
         self.distance = (self.distance * factor).clamp(min, max);
     }
 
+    /// Double-click: the orbit turns about `point` from where the eye is now;
+    /// the eye stays (up to the pitch limit) and looks at the point.
+    pub fn recentre(&mut self, point: Vec3) {
+        let offset = self.eye() - point;
+        let distance = offset.length();
+        if !distance.is_finite() || distance < 1e-4 {
+            return;
+        }
+        let d = offset / distance;
+        self.yaw = d.x.atan2(d.z);
+        self.pitch = d.y.clamp(-1.0, 1.0).asin().clamp(-MAX_PITCH, MAX_PITCH);
+        self.target = point;
+        self.distance = distance.max(self.scene_radius * 0.01);
+    }
+
     /// Moves the target so the scene follows a drag of (dx, dy) pixels.
     pub fn pan(&mut self, dx: f32, dy: f32, viewport_height: f32) {
         let units_per_pixel = self.distance / self.focal_pixels(viewport_height.max(1.0));
@@ -300,5 +315,24 @@ mod tests {
         // 50 px of a 500 px viewport is 0.2 NDC units at the target's depth.
         assert!((old_target_now.x - 0.2).abs() < 1e-3, "moved to {}", old_target_now.x);
         assert!(project(vp, before).x.abs() < 1e-4);
+    }
+
+    #[test]
+    fn recentre_keeps_the_eye_and_puts_the_point_at_the_centre() {
+        let mut cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(64.0));
+        let eye = cam.eye();
+        let point = Vec3::new(10.0, 50.0, 20.0);
+        assert!(project(cam.view_proj(1.0), point).truncate().length() > 0.05, "the point starts off-centre");
+        cam.recentre(point);
+        assert!((cam.eye() - eye).length() < 1e-3 * eye.length(), "the eye moved: {} vs {eye}", cam.eye());
+        assert_eq!(cam.target, point);
+        assert!(project(cam.view_proj(1.0), point).truncate().length() < 1e-4);
+        // Orbiting now turns about the point: its distance from the eye stays.
+        cam.orbit(40.0, 10.0);
+        assert!(((cam.eye() - point).length() - (eye - point).length()).abs() < 1e-3);
+        // Control: the eye itself is no centre; nothing changes.
+        let before = cam;
+        cam.recentre(cam.eye());
+        assert_eq!(cam, before);
     }
 }

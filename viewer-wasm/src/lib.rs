@@ -13,6 +13,7 @@
 
 pub mod ao;
 pub mod camera;
+pub mod crossfade;
 pub mod decode;
 pub mod expand;
 pub mod fetch;

@@ -50,6 +50,10 @@ pub struct Visibility {
 pub struct Occlusion {
     readbacks: [Readback; 2],
     current: Option<usize>,
+    /// A double-click waiting for a depth readback: the pixel and the frame it came in.
+    pick: Option<((f32, f32), u64)>,
+    /// The surface point under the last answered pick; `Some(None)` when it hit nothing.
+    picked: Option<Option<Vec3>>,
 }
 
 impl Default for Occlusion {
@@ -63,7 +67,7 @@ impl Default for Occlusion {
             tests: Vec::new(),
             frame: 0,
         };
-        Self { readbacks: [readback(), readback()], current: None }
+        Self { readbacks: [readback(), readback()], current: None, pick: None, picked: None }
     }
 }
 
@@ -88,7 +92,7 @@ impl Occlusion {
         frame: u64,
     ) {
         self.current = None;
-        if tests.is_empty() {
+        if tests.is_empty() && self.pick.is_none() {
             return;
         }
         let Some(slot) = self.readbacks.iter().position(|r| r.state.load(Ordering::Acquire) == IDLE) else {
@@ -162,8 +166,16 @@ impl Occlusion {
             match r.state.load(Ordering::Acquire) {
                 MAPPED => {
                     let Some(buffer) = &r.buffer else { continue };
+                    let answers_pick =
+                        self.pick.filter(|(_, since)| r.frame >= *since).map(|(pixel, _)| pixel);
                     let hidden = match buffer.get_mapped_range(..) {
                         Ok(view) => {
+                            if let Some(pixel) = answers_pick {
+                                let depth = depth_at(&view, r.size, r.padded_row, pixel);
+                                self.picked =
+                                    Some(depth.and_then(|d| unproject(d, pixel, r.size, &r.view_proj)));
+                                self.pick = None;
+                            }
                             let depth = DepthPyramid::from_rows(&view, r.size, r.padded_row);
                             r.tests
                                 .iter()
@@ -175,7 +187,8 @@ impl Occlusion {
                     };
                     buffer.unmap();
                     r.state.store(IDLE, Ordering::Release);
-                    if newest.as_ref().is_none_or(|v| v.frame < r.frame) {
+                    // A readback taken only for a pick tested nothing: it says nothing about visibility.
+                    if !r.tests.is_empty() && newest.as_ref().is_none_or(|v| v.frame < r.frame) {
                         newest = Some(Visibility { frame: r.frame, hidden, tested: r.tests.len() });
                     }
                 }
@@ -185,6 +198,51 @@ impl Occlusion {
         }
         newest
     }
+}
+
+impl Occlusion {
+    /// Asks for the surface under `pixel` (viewport pixels, row 0 at the top);
+    /// answered by the first depth readback of frame `frame` or later.
+    pub fn request_pick(&mut self, pixel: (f32, f32), frame: u64) {
+        self.pick = Some((pixel, frame));
+    }
+
+    pub fn pick_pending(&self) -> bool {
+        self.pick.is_some()
+    }
+
+    /// The answer to the last pick, once: `Some(None)` when the pixel showed no surface.
+    pub fn take_picked(&mut self) -> Option<Option<Vec3>> {
+        self.picked.take()
+    }
+}
+
+/// The depth at `pixel` of row-padded f32 depth rows; `None` outside the image.
+fn depth_at(bytes: &[u8], size: (u32, u32), row_bytes: u32, pixel: (f32, f32)) -> Option<f32> {
+    let (x, y) = (pixel.0.floor(), pixel.1.floor());
+    if !(x >= 0.0 && y >= 0.0 && x < size.0 as f32 && y < size.1 as f32) {
+        return None;
+    }
+    let at = y as usize * row_bytes as usize + x as usize * 4;
+    let b = bytes.get(at..at + 4)?;
+    Some(f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+}
+
+/// The grid-unit point a depth-buffer sample stands for, or `None` where the
+/// depth is the clear value (nothing drawn) or the matrix is singular.
+/// Invariant: projecting the result with `view_proj` gives back `pixel`'s centre and `depth`.
+pub fn unproject(depth: f32, pixel: (f32, f32), size: (u32, u32), view_proj: &Mat4) -> Option<Vec3> {
+    if !(depth.is_finite() && (0.0..1.0).contains(&depth)) {
+        return None;
+    }
+    let ndc = Vec3::new(
+        ((pixel.0.floor() + 0.5) / size.0 as f32) * 2.0 - 1.0,
+        1.0 - ((pixel.1.floor() + 0.5) / size.1 as f32) * 2.0,
+        depth,
+    );
+    let inverse = view_proj.inverse();
+    let p = inverse * ndc.extend(1.0);
+    (p.w.abs() > 1e-12 && p.is_finite()).then(|| p.truncate() / p.w)
 }
 
 /// Max-depth mips of a depth image: `mips[0]` is the image, each next level
@@ -283,6 +341,38 @@ pub fn contains_eye(bounds: &Aabb, eye: Vec3) -> bool {
 mod tests {
     use super::*;
     use crate::camera::OrbitCamera;
+
+    #[test]
+    fn a_picked_pixel_unprojects_onto_the_drawn_surface_and_the_clear_depth_onto_nothing() {
+        let cam = OrbitCamera {
+            target: Vec3::new(3.0, -2.0, 7.0),
+            yaw: 0.4,
+            pitch: 0.3,
+            distance: 50.0,
+            fov_y: 0.8,
+            scene_radius: 30.0,
+        };
+        let (w, h) = (64u32, 48u32);
+        let vp = cam.view_proj(w as f32 / h as f32);
+        // A point on some surface, its pixel and its depth as the rasteriser would store them.
+        let surface = cam.target + Vec3::new(4.0, 1.5, -2.0);
+        let c = vp * surface.extend(1.0);
+        let ndc = c.truncate() / c.w;
+        let pixel = ((ndc.x * 0.5 + 0.5) * w as f32, (0.5 - ndc.y * 0.5) * h as f32);
+        let mut rows = vec![0u8; (256 * h) as usize];
+        let at = pixel.1 as usize * 256 + pixel.0 as usize * 4;
+        rows[at..at + 4].copy_from_slice(&ndc.z.to_le_bytes());
+        let depth = depth_at(&rows, (w, h), 256, pixel).expect("inside the image");
+        assert_eq!(depth, ndc.z);
+        let p = unproject(depth, pixel, (w, h), &vp).expect("a surface");
+        // Within the half pixel the sample centre moves it: well under a grid unit at this range.
+        let pixel_size = 2.0 * cam.distance * (cam.fov_y * 0.5).tan() / h as f32;
+        assert!((p - surface).length() < pixel_size, "{p} vs {surface}");
+        // Controls: the cleared depth and a pixel outside the image give nothing.
+        assert_eq!(unproject(1.0, pixel, (w, h), &vp), None);
+        assert_eq!(depth_at(&rows, (w, h), 256, (w as f32 + 1.0, 0.0)), None);
+        assert_eq!(depth_at(&rows, (w, h), 256, (-1.0, 0.0)), None);
+    }
 
     #[test]
     fn a_box_behind_a_near_wall_is_hidden_and_one_in_front_is_not() {

@@ -215,8 +215,13 @@ impl Offscreen {
     /// uploaded (within the per-frame cap), the view drawn, and the GPU
     /// waited for (so occlusion feedback is ready for the next frame).
     pub fn draw_frame(&mut self) -> Result<crate::scene::DrawnFrame, OffscreenError> {
+        self.draw_frame_at(0.0)
+    }
+
+    /// [`Offscreen::draw_frame`] at a given clock (cross-fades and AO rebuilds are timed by it).
+    pub fn draw_frame_at(&mut self, now_ms: f64) -> Result<crate::scene::DrawnFrame, OffscreenError> {
         let view = self.target.create_view(&Default::default());
-        let frame = self.scene.draw(&mut self.renderer, &view, 0.0);
+        let frame = self.scene.draw(&mut self.renderer, &view, now_ms);
         wait_idle(&self.renderer.device)?;
         Ok(frame)
     }

@@ -6,6 +6,7 @@ use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec3};
 
 use crate::ao::{AoSettings, AoUniform, OccupancyTexture, OccupancyVolume};
+use crate::crossfade::{FADE_SLOT_BYTES, Fade, MAX_FADES};
 use crate::expand::{Expander, GpuBlock, block_bind_group_layout};
 use crate::shaders;
 
@@ -72,7 +73,14 @@ pub struct Renderer {
     /// colour target: position + visibility ([`GBUFFER_POSITION_FORMAT`]) and
     /// normal (w = 1 on a surface, [`GBUFFER_NORMAL_FORMAT`]).
     gbuffer: Option<[wgpu::TextureView; 2]>,
+    /// `fs_fade` with group 2: one uniform slot per fading block (dynamic offset).
+    fade_pipeline: wgpu::RenderPipeline,
+    fade_buffer: wgpu::Buffer,
+    fade_group: wgpu::BindGroup,
 }
+
+/// GPU bytes of the cross-fade slots.
+pub const FADE_BUFFER_BYTES: u64 = MAX_FADES as u64 * FADE_SLOT_BYTES;
 
 impl Renderer {
     /// Builds the pipelines for colour targets of `color_format` and an
@@ -148,6 +156,44 @@ impl Renderer {
             immediate_size: 0,
         });
         let pipeline = voxel_pipeline(&device, &module, &layout, &[Some(color_format.into())], "fs_main");
+        let fade_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("fade"),
+            entries: &[wgpu::BindGroupLayoutEntry {
+                binding: 0,
+                visibility: wgpu::ShaderStages::FRAGMENT,
+                ty: wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Uniform,
+                    has_dynamic_offset: true,
+                    min_binding_size: wgpu::BufferSize::new(16),
+                },
+                count: None,
+            }],
+        });
+        let fade_buffer = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("fade slots"),
+            size: FADE_BUFFER_BYTES,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let fade_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("fade"),
+            layout: &fade_layout,
+            entries: &[wgpu::BindGroupEntry {
+                binding: 0,
+                resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                    buffer: &fade_buffer,
+                    offset: 0,
+                    size: wgpu::BufferSize::new(16),
+                }),
+            }],
+        });
+        let fade_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("voxel draw, fading"),
+            bind_group_layouts: &[Some(&frame_layout), Some(&block_layout), Some(&fade_layout)],
+            immediate_size: 0,
+        });
+        let fade_pipeline =
+            voxel_pipeline(&device, &module, &fade_layout, &[Some(color_format.into())], "fs_fade");
         Self {
             device,
             queue,
@@ -164,6 +210,9 @@ impl Renderer {
             layout,
             gbuffer_pipeline: None,
             gbuffer: None,
+            fade_pipeline,
+            fade_buffer,
+            fade_group,
         }
     }
 
@@ -279,7 +328,7 @@ impl Renderer {
         target: &wgpu::TextureView,
         size: (u32, u32),
         params: &FrameParams,
-        blocks: &[&GpuBlock],
+        blocks: &[(&GpuBlock, Option<Fade>)],
     ) {
         // A key light from above and to the side of the viewer; the headlight is implicit.
         let key_light = (Vec3::new(0.4, 1.0, 0.3)).normalize();
@@ -327,8 +376,29 @@ impl Renderer {
         });
         pass.set_pipeline(pipeline);
         pass.set_bind_group(0, &self.frame_group, &[]);
-        for block in blocks {
+        for (block, _) in blocks.iter().filter(|(_, fade)| fade.is_none()) {
             pass.set_bind_group(1, &block.bind_group, &[]);
+            pass.draw_indirect(&block.buffers.draw_args, 0);
+        }
+        // The G-buffer pass (native renders) never fades: its blocks are drawn above or not at all.
+        if self.gbuffer.is_some() {
+            return;
+        }
+        let fading: Vec<(&GpuBlock, Fade)> =
+            blocks.iter().filter_map(|(b, f)| f.map(|f| (*b, f))).take(MAX_FADES).collect();
+        if fading.is_empty() {
+            return;
+        }
+        let mut slots = vec![0u8; fading.len() * FADE_SLOT_BYTES as usize];
+        for (i, (_, f)) in fading.iter().enumerate() {
+            let value = [f.t, if f.incoming { 1.0 } else { 0.0 }, 0.0, 0.0];
+            slots[i * FADE_SLOT_BYTES as usize..][..16].copy_from_slice(bytemuck::cast_slice(&value));
+        }
+        self.queue.write_buffer(&self.fade_buffer, 0, &slots);
+        pass.set_pipeline(&self.fade_pipeline);
+        for (i, (block, _)) in fading.iter().enumerate() {
+            pass.set_bind_group(1, &block.bind_group, &[]);
+            pass.set_bind_group(2, &self.fade_group, &[(i as u64 * FADE_SLOT_BYTES) as u32]);
             pass.draw_indirect(&block.buffers.draw_args, 0);
         }
     }

@@ -15,13 +15,14 @@ use std::collections::{HashMap, HashSet};
 use glam::{Mat4, Vec3};
 use voxstream_format::{Block, BlockKey, HierarchyPage, Manifest, PageRef, SceneIndex};
 
-use crate::ao::OccupancyVolume;
+use crate::ao::{OccupancyVolume, encode_sources};
 use crate::camera::OrbitCamera;
+use crate::crossfade::{Crossfade, Fade};
 use crate::decode::decode_fetched;
 use crate::expand::{GpuBlock, UPLOAD_BYTES_PER_FRAME, UploadBatch, upload_buffer};
 use crate::fetch::FetchError;
 use crate::occlusion::{Occlusion, contains_eye, occlusion_gpu_bytes, proxy_bounds};
-use crate::render::{FrameParams, Renderer};
+use crate::render::{FADE_BUFFER_BYTES, FrameParams, Renderer};
 use crate::request::{DEFAULT_MAX_IN_FLIGHT, Request, RequestQueue};
 use crate::residency::{DEFAULT_BUDGET_BYTES, Residency, block_gpu_bytes};
 use crate::select::{SelectParams, ViewParams, block_bounds, resolve_draw_set_in, scene_bounds};
@@ -101,6 +102,14 @@ pub struct Scene {
     occupancy_for: Option<Vec<BlockKey>>,
     occupancy_built_ms: f64,
     frame_counter: u64,
+    picked: Option<Option<Vec3>>,
+    /// Set where a worker builds the occupancy volume (the browser); native builds inline.
+    pub occupancy_offload: bool,
+    /// Level changes fade over `crossfade.duration_ms` (0: they pop, as native renders want).
+    pub crossfade: Crossfade,
+    /// A payload waiting to be sent to the worker, and whether an answer is outstanding.
+    occupancy_job: Option<Vec<u8>>,
+    occupancy_job_in_flight: bool,
 }
 
 impl Scene {
@@ -136,6 +145,11 @@ impl Scene {
             occupancy_for: None,
             occupancy_built_ms: f64::NEG_INFINITY,
             frame_counter: 0,
+            picked: None,
+            occupancy_offload: false,
+            crossfade: Crossfade::default(),
+            occupancy_job: None,
+            occupancy_job_in_flight: false,
         }
     }
 
@@ -200,6 +214,7 @@ impl Scene {
             + 256
             + UPLOAD_BYTES_PER_FRAME
             + occlusion_gpu_bytes(self.viewport.0, self.viewport.1)
+            + FADE_BUFFER_BYTES
     }
 
     fn traverse_params(&self) -> TraverseParams {
@@ -509,7 +524,22 @@ impl Scene {
     /// blocks wait for the per-frame upload cap, or the feedback changed
     /// lately (the next frames' queries settle it).
     pub fn needs_another_frame(&mut self) -> bool {
-        self.has_pending_uploads() || self.frame_counter <= self.feedback_changed_frame + 2
+        self.has_pending_uploads()
+            || self.frame_counter <= self.feedback_changed_frame + 2
+            || self.occlusion.as_ref().is_some_and(Occlusion::pick_pending)
+            || self.crossfade.is_active()
+    }
+
+    /// Double-click at `pixel` (viewport pixels, row 0 at the top): a frame or
+    /// two later the orbit centres on the surface there (none: nothing changes).
+    pub fn pick(&mut self, pixel: (f32, f32)) {
+        let frame = self.frame_counter + 1;
+        self.occlusion.get_or_insert_with(Occlusion::default).request_pick(pixel, frame);
+    }
+
+    /// The answer to the last [`Scene::pick`], once; it has already been applied to the camera.
+    pub fn take_picked(&mut self) -> Option<Option<Vec3>> {
+        self.picked.take()
     }
 
     /// Uploads until nothing needed waits (native loops; the browser uploads once per frame).
@@ -565,9 +595,13 @@ impl Scene {
 
         self.update_occupancy(renderer, &drawn, settled, now_ms);
 
+        let gpu = &self.gpu;
+        let draw_list = self.crossfade.update(&drawn, max_level, now_ms, |k| gpu.contains_key(k));
+        for (key, _) in &draw_list {
+            self.residency.mark_visible(key, self.frame_counter);
+        }
         let mut faces = 0u64;
         for key in &drawn {
-            self.residency.mark_visible(key, self.frame_counter);
             if let Some(g) = self.gpu.get(key) {
                 faces += g.faces as u64;
             }
@@ -577,7 +611,8 @@ impl Scene {
                 entry.1 = self.frame_counter;
             }
         }
-        let gpu_blocks: Vec<&GpuBlock> = drawn.iter().filter_map(|k| self.gpu.get(k)).collect();
+        let gpu_blocks: Vec<(&GpuBlock, Option<Fade>)> =
+            draw_list.iter().filter_map(|(k, fade)| Some((self.gpu.get(k)?, *fade))).collect();
         let params = FrameParams {
             view_proj: self.view_proj(),
             eye: self.eye(),
@@ -602,7 +637,12 @@ impl Scene {
         self.enforce_budget();
         self.trim_decoded();
         self.note_residency();
-        DrawnFrame { view_proj: params.view_proj, drawn, complete: settled }
+        // The picture is complete once the AO volume the worker builds is in it too.
+        DrawnFrame {
+            view_proj: params.view_proj,
+            drawn,
+            complete: settled && !self.occupancy_job_in_flight && !self.crossfade.is_active(),
+        }
     }
 
     /// Blocks whose visibility decides refinement: every visited block whose
@@ -624,11 +664,24 @@ impl Scene {
 
     /// Takes the newest occlusion feedback, if any arrived.
     fn take_feedback(&mut self) {
-        let Some(v) = self.occlusion.as_mut().and_then(Occlusion::take_results) else { return };
+        let Some(v) = self.occlusion.as_mut().and_then(Occlusion::take_results) else {
+            self.take_pick_answer();
+            return;
+        };
+        self.take_pick_answer();
         if v.hidden != self.hidden {
             self.hidden = v.hidden;
             self.hidden_generation += 1;
             self.feedback_changed_frame = self.frame_counter;
+        }
+    }
+
+    fn take_pick_answer(&mut self) {
+        if let Some(answer) = self.occlusion.as_mut().and_then(Occlusion::take_picked) {
+            if let Some(point) = answer.filter(|_| self.fixed_view.is_none()) {
+                self.camera.recentre(point);
+            }
+            self.picked = Some(answer);
         }
     }
 
@@ -639,6 +692,30 @@ impl Scene {
         for victim in &room.evict {
             if let Some(g) = self.gpu.remove(victim) {
                 self.residency.release(victim, g.buffers);
+            }
+        }
+    }
+
+    /// The occupancy payload ([`encode_sources`]) to hand to the worker, once.
+    pub fn take_occupancy_job(&mut self) -> Option<Vec<u8>> {
+        self.occupancy_job.take()
+    }
+
+    /// The worker's answer to the last job: the volume's mips, uploaded; an
+    /// error is reported and the volume is built on the main thread from then on.
+    pub fn finish_occupancy_job(&mut self, renderer: &Renderer, mips: Result<Vec<u8>, String>) {
+        self.occupancy_job_in_flight = false;
+        match mips.and_then(|b| OccupancyVolume::from_bytes(self.manifest.grid.resolution, &b)) {
+            Ok(volume) if volume.cells == renderer.occupancy_cells() => {
+                renderer.upload_occupancy(&volume);
+                self.stats.ao_volumes += 1;
+                self.stats.ao_volumes_from_worker += 1;
+            }
+            Ok(_) => {}
+            Err(e) => {
+                self.stats.record_error(format!("AO volume worker: {e}; building on the main thread"));
+                self.occupancy_offload = false;
+                self.occupancy_for = None;
             }
         }
     }
@@ -700,14 +777,22 @@ impl Scene {
         {
             return;
         }
+        if self.occupancy_offload && self.occupancy_job_in_flight {
+            // One build at a time; the sources are compared again after its answer.
+            return;
+        }
         // Nothing drawn yet: the texture starts out empty, no need to splat nothing.
-        if !sources.is_empty() || self.occupancy_for.is_some() {
+        if self.occupancy_offload && (!sources.is_empty() || self.occupancy_for.is_some()) {
+            self.occupancy_job = Some(encode_sources(sources.iter().filter_map(|k| self.block(k))));
+            self.occupancy_job_in_flight = true;
+        } else if !sources.is_empty() || self.occupancy_for.is_some() {
             let volume = OccupancyVolume::build(
                 self.manifest.grid.resolution,
                 sources.iter().filter_map(|k| self.block(k)),
             );
             if volume.cells == renderer.occupancy_cells() {
                 renderer.upload_occupancy(&volume);
+                self.stats.ao_volumes += 1;
             }
         }
         self.occupancy_for = Some(sources);

@@ -49,6 +49,7 @@ mod tests {
             vec![
                 ("vs_main".to_string(), naga::ShaderStage::Vertex),
                 ("fs_main".to_string(), naga::ShaderStage::Fragment),
+                ("fs_fade".to_string(), naga::ShaderStage::Fragment),
                 ("fs_gbuffer".to_string(), naga::ShaderStage::Fragment)
             ]
         );

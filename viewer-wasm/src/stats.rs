@@ -35,6 +35,9 @@ pub struct Stats {
     /// The longest main-thread task of the viewer's own code so far (a frame's
     /// encoding, a worker result taken in), in ms: WebGPU's own work excluded.
     pub longest_main_task_ms: f64,
+    /// AO occupancy volumes uploaded so far, and how many of them a worker built.
+    pub ao_volumes: u32,
+    pub ao_volumes_from_worker: u32,
     /// From the page's start to the first frame with a block on screen, and
     /// to the first complete frame (the ready marker), in ms (browser only).
     pub first_image_ms: f64,
@@ -91,7 +94,7 @@ mod tests {
         };
         let v: serde_json::Value = serde_json::to_value(&s).unwrap();
         let keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
-        assert_eq!(keys.len(), 19);
+        assert_eq!(keys.len(), 21);
         for k in [
             "frameMs",
             "blocksDrawn",
@@ -107,6 +110,8 @@ mod tests {
             "requestsInFlight",
             "requestsAborted",
             "blocksFailed",
+            "aoVolumes",
+            "aoVolumesFromWorker",
         ] {
             assert!(keys.contains(&k), "missing {k}");
         }

@@ -19,7 +19,7 @@ use crate::render::Renderer;
 use crate::request::Request;
 use crate::scene::Scene;
 use crate::select::Refinement;
-use crate::worker::{DecodePool, WorkerResult};
+use crate::worker::{DecodePool, OccupancyWorker, WorkerResult};
 
 const CANVAS_ID: &str = "voxstream-canvas";
 const STATS_ID: &str = "voxstream-stats";
@@ -53,6 +53,8 @@ struct App {
     last_view_proj: [f32; 16],
     /// Decode workers; `None` where workers could not start (then the main thread decodes).
     decoder: Option<DecodePool>,
+    /// Builds the AO volume; `None` where it could not start (then the main thread builds it).
+    occupancy_worker: Option<OccupancyWorker>,
     /// Abort handles of requests in flight, by [`request_id`].
     aborts: HashMap<String, web_sys::AbortController>,
     ready: bool,
@@ -62,6 +64,11 @@ struct App {
     home: crate::camera::OrbitCamera,
     start_ms: f64,
     frames: u64,
+    /// The last double-click's answer: the surface point (grid units), or `None` for none.
+    last_pick: Option<Option<glam::Vec3>>,
+    picks_answered: u64,
+    /// The screenshot button asks for the next frame's image.
+    screenshot_pending: bool,
 }
 
 fn request_id(r: &Request) -> String {
@@ -126,12 +133,22 @@ fn url_number(name: &str, range: std::ops::RangeInclusive<f32>) -> Option<f32> {
     }
 }
 
-/// The scene id: `?scene=<id>`, else the first scene the server lists.
+/// The page's default scene: `<meta name="voxstream-scene" content="<id>">`, which a static
+/// publish (`voxstream publish`) writes into its copy of index.html.
+fn meta_scene() -> Option<String> {
+    let doc = window().document()?;
+    let el = doc.query_selector("meta[name=\"voxstream-scene\"]").ok()??;
+    el.get_attribute("content").filter(|s| !s.is_empty())
+}
+
+/// The scene id: `?scene=<id>`, else the page's `voxstream-scene` meta tag, else the first
+/// scene the server lists. URLs are relative to the page (`api/scenes/...`), so the viewer
+/// works at a server's root and from a static publish in any folder.
 async fn scene_id() -> Result<String, String> {
-    if let Some(id) = url_param("scene") {
+    if let Some(id) = url_param("scene").or_else(meta_scene) {
         return Ok(id);
     }
-    let bytes = http::get_bytes("/api/scenes", "scene list").await.map_err(|e| e.to_string())?;
+    let bytes = http::get_bytes("api/scenes", "scene list").await.map_err(|e| e.to_string())?;
     let scenes: Vec<SceneSummary> = serde_json::from_slice(&bytes).map_err(|e| format!("scene list: {e}"))?;
     scenes.into_iter().next().map(|s| s.id).ok_or_else(|| "the server has no scenes".to_string())
 }
@@ -200,7 +217,7 @@ async fn run() -> Result<(), String> {
     let id = scene_id().await?;
     show_status(&format!("loading scene {id}…"));
     let source = BlockSource::Http {
-        scene_url: format!("/api/scenes/{}", String::from(js_sys::encode_uri_component(&id))),
+        scene_url: format!("api/scenes/{}", String::from(js_sys::encode_uri_component(&id))),
     };
     let manifest_bytes = source.manifest_bytes().await.map_err(|e| e.to_string())?;
     let manifest = Manifest::from_json(&manifest_bytes).map_err(|e| format!("scene {id}: {e}"))?;
@@ -225,6 +242,9 @@ async fn run() -> Result<(), String> {
             log(&format!("voxstream: ignoring ?view={v}"));
         }
     }
+    // Level changes cross-fade over 250 ms; ?fade=0 makes them pop, ?fade=1000 slows them.
+    scene.crossfade =
+        crate::crossfade::Crossfade::new(url_number("fade", 0.0..=5000.0).map_or(250.0, f64::from));
     if url_param("refine").as_deref() == Some("holes") {
         scene.select_params.refinement = Refinement::HolesAllowed;
     }
@@ -254,6 +274,21 @@ async fn run() -> Result<(), String> {
             None
         }
     };
+    let occupancy_worker = match OccupancyWorker::new(|_, mips| {
+        let started = now_ms();
+        with_app(|app| {
+            app.scene.finish_occupancy_job(&app.renderer, mips);
+            app.scene.stats.note_main_thread_task(now_ms() - started);
+        });
+        request_frame();
+    }) {
+        Ok(worker) => Some(worker),
+        Err(e) => {
+            log(&format!("voxstream: building the AO volume on the main thread ({e})"));
+            None
+        }
+    };
+    scene.occupancy_offload = occupancy_worker.is_some();
     APP.with(|app| {
         *app.borrow_mut() = Some(App {
             renderer,
@@ -264,8 +299,12 @@ async fn run() -> Result<(), String> {
             canvas: canvas.clone(),
             pointers: HashMap::new(),
             last_view_proj: [0.0; 16],
+            last_pick: None,
+            picks_answered: 0,
+            screenshot_pending: false,
             aborts: HashMap::new(),
             decoder,
+            occupancy_worker,
             ready: false,
             fly_mode: false,
             home,
@@ -327,7 +366,24 @@ impl App {
         };
         let view = texture.texture.create_view(&Default::default());
         let frame = self.scene.draw(&mut self.renderer, &view, now);
+        if std::mem::take(&mut self.screenshot_pending) {
+            // Same task as the draw: the canvas still holds this frame's image.
+            self.save_screenshot();
+        }
         self.renderer.queue.present(texture);
+        if let Some(job) = self.scene.take_occupancy_job() {
+            let grid = self.scene.manifest.grid.resolution;
+            if let Some(Err(e)) = self.occupancy_worker.as_mut().map(|w| w.submit(grid, job)) {
+                self.scene.finish_occupancy_job(&self.renderer, Err(e));
+            }
+        }
+        if let Some(answer) = self.scene.take_picked() {
+            self.last_pick = Some(answer);
+            self.picks_answered += 1;
+            if answer.is_some() {
+                self.camera_moved();
+            }
+        }
         if self.scene.needs_another_frame() {
             // Blocks wait for the per-frame upload cap, or occlusion feedback is settling.
             REDRAW_AFTER_FLIGHT.with(|r| r.set(true));
@@ -563,8 +619,40 @@ impl App {
         if settings["reset"].as_bool() == Some(true) {
             self.scene.camera = self.home;
         }
+        if settings["screenshot"].as_bool() == Some(true) {
+            self.screenshot_pending = true;
+        }
         self.start_fetches();
         self.camera_moved();
+    }
+
+    /// Double-click: re-centre the orbit on the surface under the cursor.
+    fn double_click(&mut self, e: &web_sys::MouseEvent) {
+        let (css_w, css_h) =
+            (self.canvas.client_width().max(1) as f32, self.canvas.client_height().max(1) as f32);
+        let (w, h) = self.scene.viewport();
+        let pixel = (e.offset_x() as f32 * w as f32 / css_w, e.offset_y() as f32 * h as f32 / css_h);
+        self.scene.pick(pixel);
+        request_frame();
+    }
+
+    /// Downloads the canvas as a PNG named after the scene and the view.
+    fn save_screenshot(&self) {
+        let Ok(url) = self.canvas.to_data_url_with_type("image/png") else {
+            log("voxstream: the canvas could not be read for a screenshot");
+            return;
+        };
+        let Some(document) = window().document() else { return };
+        let Ok(link) = document.create_element("a") else { return };
+        let name = format!(
+            "voxstream-{}.png",
+            self.scene.manifest.name.replace(|c: char| !c.is_ascii_alphanumeric(), "_")
+        );
+        let _ = link.set_attribute("href", &url);
+        let _ = link.set_attribute("download", &name);
+        if let Ok(link) = link.dyn_into::<web_sys::HtmlElement>() {
+            link.click();
+        }
     }
 
     fn pointer_up(&mut self, e: &PointerEvent) {
@@ -625,6 +713,9 @@ fn install_input(canvas: &HtmlCanvasElement) -> Result<(), String> {
         with_app(|app| app.wheel(e));
     })?;
     listen::<web_sys::MouseEvent>(target, "contextmenu", false, |e| e.prevent_default())?;
+    listen::<web_sys::MouseEvent>(target, "dblclick", true, |e| {
+        with_app(|app| app.double_click(e));
+    })?;
     listen::<web_sys::Event>(window().as_ref(), "resize", true, |_| request_frame())?;
     listen::<web_sys::KeyboardEvent>(window().as_ref(), "keydown", true, |e| {
         // Typing into the panel's fields is not flying.
@@ -657,6 +748,17 @@ fn install_js_api() -> Result<(), String> {
                 "width": width,
                 "height": height,
                 "drawnBlocks": app.scene.drawn().iter().map(|k| k.to_string()).collect::<Vec<_>>(),
+                "camera": {
+                    "target": app.scene.camera.target.to_array(),
+                    "eye": app.scene.camera.eye().to_array(),
+                },
+                // null: no double-click answered yet; "none": it hit no surface; else the point.
+                "picksAnswered": app.picks_answered,
+                "pick": match app.last_pick {
+                    None => serde_json::Value::Null,
+                    Some(None) => serde_json::json!("none"),
+                    Some(Some(p)) => serde_json::json!(p.to_array()),
+                },
             }))
         })
         .unwrap_or(JsValue::NULL)

@@ -26,6 +26,77 @@ pub fn decode_block_for_worker(key: &str, bytes: &[u8], voxels: i32) -> Result<V
     Ok(bytemuck::cast_slice(&block.voxels).to_vec())
 }
 
+/// Runs in the occupancy worker: the AO volume splatted from an
+/// [`crate::ao::encode_sources`] payload, all mips back to back.
+#[wasm_bindgen]
+pub fn occupancy_for_worker(grid_resolution: u32, sources: &[u8]) -> Result<Vec<u8>, JsValue> {
+    let blocks = crate::ao::decode_sources(sources).map_err(|e| JsValue::from_str(&e))?;
+    Ok(crate::ao::OccupancyVolume::build(grid_resolution, &blocks).into_bytes())
+}
+
+/// Builds the AO occupancy volume in a worker (web/occupancy-worker.js): the
+/// splat, the enclosed-space fill and the mips cost hundreds of milliseconds
+/// in wasm, which the main thread must never spend.
+pub struct OccupancyWorker {
+    worker: web_sys::Worker,
+    next_id: u32,
+}
+
+thread_local! {
+    static ON_VOLUME: RefCell<Option<Box<dyn Fn(u32, Result<Vec<u8>, String>)>>> = const { RefCell::new(None) };
+}
+
+impl OccupancyWorker {
+    /// Starts the worker; `on_volume(id, mips)` runs on the main thread for each answer.
+    pub fn new(on_volume: impl Fn(u32, Result<Vec<u8>, String>) + 'static) -> Result<Self, String> {
+        ON_VOLUME.with(|r| *r.borrow_mut() = Some(Box::new(on_volume)));
+        let options = web_sys::WorkerOptions::new();
+        options.set_type(web_sys::WorkerType::Module);
+        let worker = web_sys::Worker::new_with_options("./occupancy-worker.js", &options)
+            .map_err(|e| format!("occupancy worker: {e:?}"))?;
+        let onmessage = Closure::<dyn FnMut(web_sys::MessageEvent)>::new(|e: web_sys::MessageEvent| {
+            let data = e.data();
+            let get = |name: &str| js_sys::Reflect::get(&data, &JsValue::from_str(name)).ok();
+            let Some(id) = get("id").and_then(|v| v.as_f64()) else { return };
+            let result = match get("mips").and_then(|m| m.dyn_into::<js_sys::ArrayBuffer>().ok()) {
+                Some(buffer) => Ok(js_sys::Uint8Array::new(&buffer).to_vec()),
+                None => Err(get("error")
+                    .and_then(|e| e.as_string())
+                    .unwrap_or_else(|| "occupancy worker failed".into())),
+            };
+            ON_VOLUME.with(|r| {
+                if let Some(f) = r.borrow().as_ref() {
+                    f(id as u32, result);
+                }
+            });
+        });
+        worker.set_onmessage(Some(onmessage.as_ref().unchecked_ref()));
+        // The worker lives as long as the page.
+        onmessage.forget();
+        Ok(Self { worker, next_id: 0 })
+    }
+
+    /// Sends a payload (transferred, not copied); the answer comes with the returned id.
+    pub fn submit(&mut self, grid_resolution: u32, sources: Vec<u8>) -> Result<u32, String> {
+        let id = self.next_id;
+        self.next_id = self.next_id.wrapping_add(1);
+        let bytes = js_sys::Uint8Array::from(sources.as_slice());
+        let msg = js_sys::Object::new();
+        for (k, v) in [
+            ("id", JsValue::from(id)),
+            ("grid", JsValue::from(grid_resolution)),
+            ("sources", bytes.buffer().into()),
+        ] {
+            let _ = js_sys::Reflect::set(&msg, &JsValue::from_str(k), &v);
+        }
+        let transfer = js_sys::Array::of1(&bytes.buffer());
+        self.worker
+            .post_message_with_transfer(&msg, &transfer)
+            .map_err(|e| format!("occupancy worker: {e:?}"))?;
+        Ok(id)
+    }
+}
+
 /// What a worker answered.
 pub struct WorkerResult {
     pub key: BlockKey,

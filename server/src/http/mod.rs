@@ -13,6 +13,7 @@ pub mod jobs;
 pub mod openapi;
 pub mod scenes;
 pub mod uploads;
+pub mod web;
 
 use std::path::Path;
 use std::sync::Arc;
@@ -196,7 +197,7 @@ pub fn router(state: AppState) -> Router {
         Router::new().nest("/api", api).route("/healthz", get(healthz)).route("/metrics", get(metrics));
     app = match &state.config.web {
         Some(dir) => app.fallback_service(ServeDir::new(dir)),
-        None => app.fallback(|| async { ApiError::not_found("this server has no viewer files (--web)") }),
+        None => app.fallback(web::serve_embedded),
     };
     let mut app = app
         .layer(middleware::from_fn_with_state(state.clone(), record_metrics))

@@ -1,0 +1,357 @@
+//! `voxstream publish`: a scene and the viewer as a self-contained static site that any static
+//! file host (nginx, `python3 -m http.server`, a bucket with website hosting) serves with no
+//! voxstream process.
+//!
+//! The site repeats the API's URL layout, so the viewer needs no second code path:
+//!
+//! ```text
+//! <to>/index.html                            the viewer page, with <meta name="voxstream-scene" content="<id>">
+//! <to>/viewer.css, pkg/…, upload.*           the rest of the viewer's files
+//! <to>/api/scenes/<id>/manifest              the manifest JSON (as stored)
+//! <to>/api/scenes/<id>/pages/<key>.<hash>    every hierarchy page, content-addressed
+//! <to>/api/scenes/<id>/blocks/<key>.<hash>   every block, content-addressed
+//! <to>/.voxstream-publish                    marker: this folder is a publish (so it may be replaced)
+//! ```
+//!
+//! The viewer fetches with URLs relative to its page, so the site works in any folder of a host.
+//! Every block and page is checked against its hash before it is written. The site is written
+//! into `<to>.tmp-*` beside `<to>` and renamed into place only when complete; an existing
+//! publish at `<to>` is replaced whole (never a folder that is not a publish).
+
+use std::fs;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, bail};
+use futures_util::FutureExt;
+use rayon::prelude::*;
+use voxstream_format::{PageRef, load_scene_index};
+
+use crate::store::{self, StoredScene};
+
+/// Marks a folder written by `voxstream publish`.
+pub const PUBLISH_MARKER: &str = ".voxstream-publish";
+
+/// What a publish wrote.
+#[derive(Debug, Clone)]
+pub struct PublishReport {
+    pub id: String,
+    pub to: PathBuf,
+    pub files: u64,
+    pub bytes: u64,
+    pub blocks: u64,
+    pub pages: u64,
+}
+
+/// Where the viewer's files come from.
+pub enum ViewerFiles<'a> {
+    /// The ones embedded in this binary.
+    Embedded,
+    /// A built viewer folder (`--web`).
+    Dir(&'a Path),
+}
+
+/// Publishes scene `id` of the local store `store` as a static site at `to`.
+pub fn publish(store: &Path, id: &str, to: &Path, viewer: ViewerFiles) -> anyhow::Result<PublishReport> {
+    let scene = store::open_scene(store, id)
+        .with_context(|| format!("cannot open scene {id:?} in {}", store.display()))?;
+    let files = viewer_files(viewer)?;
+    if to.exists() {
+        let marked = to.join(PUBLISH_MARKER).is_file();
+        let empty =
+            fs::read_dir(to).with_context(|| format!("cannot read {}", to.display()))?.next().is_none();
+        if !marked && !empty {
+            bail!(
+                "{} exists and is not a voxstream publish (no {PUBLISH_MARKER}): refusing to replace it; \
+                 name a new folder or remove it",
+                to.display()
+            );
+        }
+    }
+    let parent = match to.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    fs::create_dir_all(&parent).with_context(|| format!("cannot create {}", parent.display()))?;
+    let name = to.file_name().and_then(|n| n.to_str()).context("--to must name a folder")?;
+    let tmp = parent.join(format!(".{name}.tmp-{}", std::process::id()));
+    let _ = fs::remove_dir_all(&tmp);
+    let result = write_site(&tmp, &scene, &files).and_then(|report| {
+        replace_dir(&tmp, to)?;
+        Ok(PublishReport { to: to.to_path_buf(), ..report })
+    });
+    if result.is_err() {
+        let _ = fs::remove_dir_all(&tmp);
+    }
+    result
+}
+
+fn viewer_files(viewer: ViewerFiles) -> anyhow::Result<Vec<(String, Vec<u8>)>> {
+    let mut files = Vec::new();
+    match viewer {
+        ViewerFiles::Embedded => {
+            if !crate::http::web::has_embedded_viewer() {
+                bail!(
+                    "this voxstream binary embeds no viewer (it was compiled before scripts/build-web.sh built \
+                     viewer-wasm/dist): build the viewer and then voxstream again, or pass --web <viewer folder>"
+                );
+            }
+            for path in crate::http::web::embedded_files() {
+                let bytes = crate::http::web::embedded_file(&path).context("embedded file vanished")?;
+                files.push((path, bytes.into_owned()));
+            }
+        }
+        ViewerFiles::Dir(dir) => {
+            if !dir.join("index.html").is_file() {
+                bail!("{} has no index.html: build the viewer with scripts/build-web.sh", dir.display());
+            }
+            collect_dir(dir, dir, &mut files)?;
+        }
+    }
+    Ok(files)
+}
+
+fn collect_dir(root: &Path, dir: &Path, out: &mut Vec<(String, Vec<u8>)>) -> anyhow::Result<()> {
+    for entry in fs::read_dir(dir).with_context(|| format!("cannot read {}", dir.display()))? {
+        let entry = entry?;
+        let path = entry.path();
+        if entry.file_type()?.is_dir() {
+            collect_dir(root, &path, out)?;
+        } else {
+            let rel = path.strip_prefix(root)?.to_string_lossy().replace('\\', "/");
+            out.push((rel, fs::read(&path).with_context(|| format!("cannot read {}", path.display()))?));
+        }
+    }
+    Ok(())
+}
+
+/// index.html with the scene named as the page's default.
+pub fn index_with_scene(html: &[u8], id: &str) -> anyhow::Result<Vec<u8>> {
+    let html = std::str::from_utf8(html).context("the viewer's index.html is not UTF-8")?;
+    let at = html.find("<head>").context("the viewer's index.html has no <head>")? + "<head>".len();
+    // Scene ids are [a-z0-9_-]: nothing to escape.
+    Ok(format!("{}\n  <meta name=\"voxstream-scene\" content=\"{id}\">{}", &html[..at], &html[at..])
+        .into_bytes())
+}
+
+fn write_file(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
+    if let Some(dir) = path.parent() {
+        fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    }
+    let mut f = fs::File::create(path).with_context(|| format!("cannot create {}", path.display()))?;
+    f.write_all(bytes).with_context(|| format!("cannot write {}", path.display()))?;
+    f.sync_all().with_context(|| format!("cannot sync {}", path.display()))
+}
+
+fn write_site(
+    dir: &Path,
+    scene: &StoredScene,
+    viewer: &[(String, Vec<u8>)],
+) -> anyhow::Result<PublishReport> {
+    let id = &scene.id;
+    let mut report =
+        PublishReport { id: id.clone(), to: dir.to_path_buf(), files: 0, bytes: 0, blocks: 0, pages: 0 };
+    let add = |path: &Path, bytes: &[u8], report: &mut PublishReport| -> anyhow::Result<()> {
+        write_file(path, bytes)?;
+        report.files += 1;
+        report.bytes += bytes.len() as u64;
+        Ok(())
+    };
+    for (rel, bytes) in viewer {
+        let bytes = if rel == "index.html" { index_with_scene(bytes, id)? } else { bytes.clone() };
+        add(&dir.join(rel), &bytes, &mut report)?;
+    }
+    let scene_dir = dir.join("api/scenes").join(id);
+    // The manifest as stored (its hash names nothing; it is the scene's one mutable file).
+    let manifest = fs::read(scene.dir.join("manifest.json")).context("cannot read the manifest")?;
+    add(&scene_dir.join("manifest"), &manifest, &mut report)?;
+    for (r, bytes) in &scene_pages(scene)? {
+        add(&scene_dir.join("pages").join(format!("{}.{}", r.root, r.hash)), bytes, &mut report)?;
+        report.pages += 1;
+    }
+    // Blocks, in parallel, each checked against the hash its URL names.
+    let blocks = scene.blocks();
+    let blocks_dir = scene_dir.join("blocks");
+    fs::create_dir_all(&blocks_dir).with_context(|| format!("cannot create {}", blocks_dir.display()))?;
+    let bytes: u64 = blocks
+        .par_iter()
+        .map(|e| -> anyhow::Result<u64> {
+            let path = scene.block_path(&e.key);
+            let data = fs::read(&path)
+                .with_context(|| format!("cannot read block {} ({})", e.key, path.display()))?;
+            if blake3::hash(&data).to_hex().as_str() != e.hash {
+                bail!(
+                    "block {} of scene {id:?} differs from its hash in the hierarchy (damaged store)",
+                    e.key
+                );
+            }
+            write_file(&blocks_dir.join(format!("{}.{}", e.key, e.hash)), &data)?;
+            Ok(data.len() as u64)
+        })
+        .sum::<anyhow::Result<u64>>()?;
+    report.blocks = blocks.len() as u64;
+    report.files += report.blocks;
+    report.bytes += bytes;
+    add(&dir.join(PUBLISH_MARKER), format!("scene {id}\n").as_bytes(), &mut report)?;
+    for d in [&blocks_dir, &scene_dir, dir] {
+        fs::File::open(d)
+            .and_then(|f| f.sync_all())
+            .with_context(|| format!("cannot sync {}", d.display()))?;
+    }
+    Ok(report)
+}
+
+/// Every hierarchy page of the scene with its bytes, each checked against its reference.
+fn scene_pages(scene: &StoredScene) -> anyhow::Result<Vec<(PageRef, Vec<u8>)>> {
+    let mut pages: Vec<(PageRef, Vec<u8>)> = Vec::new();
+    load_scene_index(&scene.manifest, |r| {
+        let bytes = fs::read(scene.page_path(&r.root))?;
+        pages.push((r.clone(), bytes.clone()));
+        Ok::<_, std::io::Error>(bytes)
+    })
+    .map_err(|e| anyhow::anyhow!("scene {:?}: {e}", scene.id))?;
+    Ok(pages)
+}
+
+/// Content-Type of a site file by its extension.
+pub fn content_type(rel: &str) -> &'static str {
+    match rel.rsplit_once('.').map(|(_, ext)| ext) {
+        Some("html") => "text/html; charset=utf-8",
+        Some("css") => "text/css; charset=utf-8",
+        Some("js" | "mjs") => "text/javascript; charset=utf-8",
+        Some("wasm") => "application/wasm",
+        Some("json") => "application/json",
+        Some("png") => "image/png",
+        Some("svg") => "image/svg+xml",
+        _ => "application/octet-stream",
+    }
+}
+
+/// Objects written at once by [`publish_to_bucket`] (each at most one block or page in memory).
+pub const BUCKET_CONCURRENCY: usize = 16;
+
+/// Publishes scene `id` of the local store `store` to a bucket (S3, R2, MinIO, Garage with
+/// website hosting): blocks, pages and the viewer's files first, [`BUCKET_CONCURRENCY`] at a
+/// time, then the manifest, then `index.html`. Blocks and pages are content-addressed, so an
+/// earlier publish at the same prefix keeps working until the manifest (one atomic PUT) switches
+/// to the new scene; a failed publish leaves the earlier one as it was.
+pub async fn publish_to_bucket(
+    store: &Path,
+    id: &str,
+    bucket: &crate::objstore::Bucket,
+    viewer: ViewerFiles<'_>,
+) -> anyhow::Result<PublishReport> {
+    use futures_util::{StreamExt, TryStreamExt};
+    const IMMUTABLE: &str = "public, max-age=31536000, immutable";
+    const REVALIDATE: &str = "no-cache";
+    let scene = store::open_scene(store, id)
+        .with_context(|| format!("cannot open scene {id:?} in {}", store.display()))?;
+    let files = viewer_files(viewer)?;
+    let pages = scene_pages(&scene)?;
+    let scene_prefix = format!("api/scenes/{id}");
+    let mut report = PublishReport {
+        id: id.to_string(),
+        to: PathBuf::from(format!("s3://{}/{}", bucket.bucket, bucket.prefix)),
+        files: 0,
+        bytes: 0,
+        blocks: 0,
+        pages: pages.len() as u64,
+    };
+    // 1. Content-addressed objects and the viewer's files (not index.html).
+    let blocks: Vec<voxstream_format::BlockEntry> = scene.blocks().into_iter().cloned().collect();
+    let block_puts = futures_util::stream::iter(blocks.into_iter().map(|e| {
+        let path = scene.block_path(&e.key);
+        let rel = format!("{scene_prefix}/blocks/{}.{}", e.key, e.hash);
+        async move {
+            let data = tokio::fs::read(&path)
+                .await
+                .with_context(|| format!("cannot read block {} ({})", e.key, path.display()))?;
+            if blake3::hash(&data).to_hex().as_str() != e.hash {
+                bail!("block {} differs from its hash in the hierarchy (damaged store)", e.key);
+            }
+            let n = data.len() as u64;
+            bucket.put(&rel, data, "application/octet-stream", IMMUTABLE).await?;
+            Ok(n)
+        }
+        .boxed()
+    }));
+    let page_puts = futures_util::stream::iter(pages.into_iter().map(|(r, bytes)| {
+        let rel = format!("{scene_prefix}/pages/{}.{}", r.root, r.hash);
+        async move {
+            let n = bytes.len() as u64;
+            bucket.put(&rel, bytes, "application/octet-stream", IMMUTABLE).await?;
+            Ok(n)
+        }
+        .boxed()
+    }));
+    let mut index_html = None;
+    let mut viewer_puts = Vec::new();
+    for (rel, bytes) in files {
+        if rel == "index.html" {
+            index_html = Some(index_with_scene(&bytes, id)?);
+            continue;
+        }
+        viewer_puts.push(
+            async move {
+                let n = bytes.len() as u64;
+                bucket.put(&rel, bytes, content_type(&rel), REVALIDATE).await?;
+                Ok(n)
+            }
+            .boxed(),
+        );
+    }
+    let index_html = index_html.context("the viewer has no index.html")?;
+    let (count, bytes) = block_puts
+        .chain(page_puts)
+        .chain(futures_util::stream::iter(viewer_puts))
+        .buffer_unordered(BUCKET_CONCURRENCY)
+        .try_fold((0u64, 0u64), |(c, b), n| async move { Ok((c + 1, b + n)) })
+        .await?;
+    report.blocks = scene.blocks().len() as u64;
+    report.files += count;
+    report.bytes += bytes;
+    // 2. The scene's one mutable pointer, then the page that names it.
+    let manifest = fs::read(scene.dir.join("manifest.json")).context("cannot read the manifest")?;
+    report.bytes += manifest.len() as u64 + index_html.len() as u64;
+    bucket.put(&format!("{scene_prefix}/manifest"), manifest, "application/json", REVALIDATE).await?;
+    bucket.put("index.html", index_html, "text/html; charset=utf-8", REVALIDATE).await?;
+    report.files += 2;
+    Ok(report)
+}
+
+/// Moves the finished site `tmp` to `to`, replacing an earlier publish there.
+fn replace_dir(tmp: &Path, to: &Path) -> anyhow::Result<()> {
+    if to.exists() {
+        let old = to.with_file_name(format!(
+            ".{}.old-{}",
+            to.file_name().and_then(|n| n.to_str()).unwrap_or("site"),
+            std::process::id()
+        ));
+        fs::rename(to, &old)
+            .with_context(|| format!("cannot move the earlier publish {} aside", to.display()))?;
+        if let Err(e) = fs::rename(tmp, to) {
+            let _ = fs::rename(&old, to);
+            return Err(e).with_context(|| format!("cannot publish {}", to.display()));
+        }
+        let _ = fs::remove_dir_all(&old);
+    } else {
+        fs::rename(tmp, to).with_context(|| format!("cannot publish {}", to.display()))?;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn index_gets_the_scene() {
+        let html = b"<!doctype html>\n<html><head>\n<title>x</title></head><body></body></html>";
+        let out = String::from_utf8(index_with_scene(html, "koala").unwrap()).unwrap();
+        assert!(
+            out.contains("<head>\n  <meta name=\"voxstream-scene\" content=\"koala\">\n<title>"),
+            "{out}"
+        );
+        assert!(index_with_scene(b"<html><body></body></html>", "koala").is_err());
+    }
+}
