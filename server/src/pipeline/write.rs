@@ -125,9 +125,9 @@ fn sync_tree(dir: &Path, subdirs: &[PathBuf]) -> Result<(), StoreError> {
             .map(|e| e.map(|e| e.path()))
             .collect::<Result<_, _>>()
             .map_err(io("list", sub))?;
-        files.par_iter().try_for_each(|f| {
-            fs::File::open(f).and_then(|f| f.sync_all()).map_err(io("sync", f))
-        })?;
+        files
+            .par_iter()
+            .try_for_each(|f| fs::File::open(f).and_then(|f| f.sync_all()).map_err(io("sync", f)))?;
     }
     for d in subdirs.iter().map(PathBuf::as_path).chain([dir]) {
         fs::File::open(d).and_then(|f| f.sync_all()).map_err(io("sync", d))?;
