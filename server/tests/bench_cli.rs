@@ -23,18 +23,45 @@ fn bench(args: &[&str], work: &Path) -> (bool, Value, String) {
 fn bench_reports_voxstream_and_meshopt_on_the_koala_and_a_synthetic_scan() {
     let work = tempfile::tempdir().unwrap();
     let koala = concat!(env!("CARGO_MANIFEST_DIR"), "/../data/koala.obj");
+    let (koala_64, koala_auto) = (format!("{koala}@64"), format!("{koala}@auto"));
     let (ok, v, stderr) = bench(
-        &["--input", koala, "--synth-triangles", "5000", "--runs", "2", "--threads", "1,2"],
+        &[
+            "--input",
+            &koala_64,
+            "--input",
+            &koala_auto,
+            "--synth-triangles",
+            "5000",
+            "--synth-resolution",
+            "128",
+            "--runs",
+            "2",
+            "--threads",
+            "1,2",
+        ],
         work.path(),
     );
     assert!(ok, "{stderr}");
     assert_eq!(v["config"]["runs"], 2);
     assert!(v["machine"]["cores"].as_u64().unwrap() >= 1);
     let inputs = v["inputs"].as_array().unwrap();
-    assert_eq!(inputs.len(), 2);
+    assert_eq!(inputs.len(), 3);
+    let cases: Vec<&str> = inputs.iter().map(|i| i["case"].as_str().unwrap()).collect();
+    assert_eq!(cases[..2], ["koala@64", "koala@auto"]);
+    assert!(cases[2].starts_with("synth_sphere_5000@128"), "{cases:?}");
+    // Each case builds at its own resolution.
+    assert_eq!(inputs[0]["voxstream"]["resolution"], 64);
+    assert_eq!(inputs[0]["voxstream"]["requested_resolution"], "64");
+    assert_eq!(inputs[1]["voxstream"]["requested_resolution"], "auto");
+    assert!(inputs[1]["voxstream"]["resolution"].as_u64().unwrap() > 64);
+    assert!(inputs[1]["voxstream"]["resolution_reason"].as_str().unwrap().contains("median"));
+    assert_eq!(inputs[2]["voxstream"]["resolution"], 128);
+    // The peer runs once per mesh; the second koala case reports that run.
+    assert_eq!(inputs[0]["meshopt"]["measured_in_case"], "koala@64");
+    assert_eq!(inputs[1]["meshopt"], inputs[0]["meshopt"]);
     assert_eq!(inputs[0]["name"], "koala");
     assert_eq!(inputs[0]["triangles"], 99994);
-    assert!(inputs[1]["triangles"].as_u64().unwrap() >= 5000);
+    assert!(inputs[2]["triangles"].as_u64().unwrap() >= 5000);
     for input in inputs {
         let vox = &input["voxstream"];
         for n in ["1", "2"] {
@@ -60,6 +87,26 @@ fn bench_reports_voxstream_and_meshopt_on_the_koala_and_a_synthetic_scan() {
         let bytes = vox["scene_bytes"].as_f64().unwrap();
         let bpt = vox["bytes_per_triangle"].as_f64().unwrap();
         assert!((bytes / input["triangles"].as_f64().unwrap() - bpt).abs() < 1e-9);
+        let voxels = vox["voxels_level0"].as_f64().unwrap();
+        assert!(voxels > 0.0);
+        assert!((bytes / voxels - vox["bytes_per_level0_voxel"].as_f64().unwrap()).abs() < 1e-9);
+        let f = &vox["files"];
+        let part = |k: &str| f[k].as_u64().unwrap();
+        assert_eq!(
+            part("manifest_bytes") + part("page_bytes") + part("block_bytes") + part("other_bytes"),
+            bytes as u64
+        );
+        assert_eq!(part("block_files"), vox["blocks"].as_u64().unwrap(), "one file a block");
+        assert!(part("manifest_bytes") > 100 && part("manifest_bytes") <= 64 << 10);
+        assert_eq!(
+            vox["manifest_plus_page_bytes"].as_u64().unwrap(),
+            part("manifest_bytes") + part("page_bytes")
+        );
+        for n in ["1", "2"] {
+            let t = &vox["threads"][n];
+            let per_thread = voxels / t["wall_seconds_median"].as_f64().unwrap() / n.parse::<f64>().unwrap();
+            assert!((t["voxels_per_s_per_thread"].as_f64().unwrap() / per_thread - 1.0).abs() < 1e-9);
+        }
         let per_level: u64 =
             vox["blocks_per_level"].as_array().unwrap().iter().map(|b| b.as_u64().unwrap()).sum();
         assert_eq!(per_level, vox["blocks"].as_u64().unwrap());
@@ -67,6 +114,7 @@ fn bench_reports_voxstream_and_meshopt_on_the_koala_and_a_synthetic_scan() {
         assert!(input["goals"]["all_runs_succeeded"].as_bool().unwrap());
     }
     assert!(v["goals"]["tri_per_s_per_core_2M"].is_boolean());
+    assert!(v["goals"]["voxels_per_s_per_core_10M"].is_boolean());
     assert!(v["goals"]["peak_rss_within_budget"].is_null());
     // Scratch stores and the synthetic scan are removed afterwards.
     assert_eq!(std::fs::read_dir(work.path()).unwrap().count(), 0);
@@ -100,10 +148,15 @@ fn bad_arguments_are_refused_before_measuring() {
         (&["--memory-budget", "lots"], "--memory-budget"),
         (&["--input", "/nonexistent/x.ply"], "is not a file"),
         (&["--resolution", "100"], "resolution"),
+        (&["--input", "x.ply@100"], "power of two"),
+        (&["--input", "x.ply@"], "after the last '@'"),
+        (&["--input", "@4096"], "names no file"),
+        (&["--synth-resolution", "3"], "--synth-resolution"),
+        (&["--single-run-over", "0"], "seconds"),
     ] {
         // A tiny input and no synthetic scan, so a check that failed to refuse could not run long.
         let mut all = vec!["--synth-triangles", "0", "--no-meshopt", "--runs", "1"];
-        if !args.contains(&"--input") {
+        if !args.iter().any(|a| a.starts_with("--input")) {
             all.extend(["--input", koala]);
         }
         all.extend(args);
@@ -111,4 +164,23 @@ fn bad_arguments_are_refused_before_measuring() {
         assert!(!ok);
         assert!(stderr.contains(message), "{args:?}: {stderr}");
     }
+}
+
+#[test]
+fn a_case_listed_twice_is_refused_and_its_resolution_spelled_once() {
+    let work = tempfile::tempdir().unwrap();
+    let koala = concat!(env!("CARGO_MANIFEST_DIR"), "/../data/koala.obj");
+    let at = format!("{koala}@64");
+    let base = ["--synth-triangles", "0", "--no-meshopt", "--runs", "1", "--threads", "1"];
+    // `koala` at --resolution 64 and `koala@64` are the same case.
+    let twice = [&base[..], &["--resolution", "64", "--input", koala, "--input", &at]].concat();
+    let (ok, _, stderr) = bench(&twice, work.path());
+    assert!(!ok);
+    assert!(stderr.contains("listed twice"), "{stderr}");
+    // Control: the same mesh at two resolutions is two cases.
+    let two = [&base[..], &["--input", koala, "--input", &at]].concat();
+    let (ok, v, stderr) = bench(&two, work.path());
+    assert!(ok, "{stderr}");
+    assert_eq!(v["inputs"].as_array().unwrap().len(), 2);
+    assert_eq!(v["config"]["cases"][1].as_str().unwrap(), at);
 }

@@ -21,38 +21,98 @@ use anyhow::{Context, bail};
 use measure::{ChildRun, dir_size, proc_kib_field, run_child};
 use peer::{CLUSTER_TRIANGLES, PeerRun};
 use report::{
-    Config, InputReport, Machine, PeerReport, Report, RunSample, VoxstreamReport, combine_goals,
-    evaluate_goals, goal_definitions, parse_thread_list, ratios, summarize_peer, summarize_runs,
+    Config, InputReport, Machine, PeerReport, Report, RunSample, SceneFiles, VoxstreamReport, combine_goals,
+    evaluate_goals, goal_definitions, parse_thread_list, ratios, record_scene, summarize_peer,
+    summarize_runs,
 };
 
-/// Inputs used when no `--input` is given, relative to the repository root.
-pub const DEFAULT_INPUTS: [&str; 2] =
-    ["../shared/data/dragon_vrip.ply", "../shared/data/matterport_cedar_creek.ply"];
+use crate::pipeline::Resolution;
+
+/// Cases measured when no `--input` is given (issue 8's "Measure" list, those
+/// whose mesh exists), relative to the repository root: the dragon at auto and
+/// Cedar Creek at 4096, 8192 and 16384. The synthetic scan is added by
+/// `--synth-triangles`.
+pub const DEFAULT_INPUTS: [&str; 4] = [
+    "../shared/data/dragon_vrip.ply@auto",
+    "../shared/data/matterport_cedar_creek.ply@4096",
+    "../shared/data/matterport_cedar_creek.ply@8192",
+    "../shared/data/matterport_cedar_creek.ply@16384",
+];
 
 /// The peer is skipped when its estimated peak (bytes per input triangle, measured
 /// on the dragon and the synthetic sphere at 105-125, doubled for margin) exceeds
 /// 80 % of the memory available.
 const PEER_BYTES_PER_TRIANGLE_ESTIMATE: u64 = 250;
 
+/// A resolution as the bench takes it: `auto` or a power of two up to 65536.
+pub fn parse_bench_resolution(text: &str) -> Result<Resolution, String> {
+    let r: Resolution = text.trim().parse()?;
+    if let Resolution::Explicit(n) = r {
+        crate::pipeline::voxelize::check_resolution(n).map_err(|e| e.to_string())?;
+    }
+    Ok(r)
+}
+
+/// One `--input`: a mesh, and the resolution its builds use (`None`: `--resolution`'s).
+#[derive(Debug, Clone, PartialEq)]
+pub struct InputSpec {
+    pub path: PathBuf,
+    pub resolution: Option<Resolution>,
+}
+
+impl InputSpec {
+    /// `PATH` or `PATH@RES` (RES `auto` or a power of two). The part after the
+    /// last `@` must be a resolution, so a path that itself holds an `@` is
+    /// written with one, e.g. `scan@2x.ply@auto`.
+    pub fn parse(text: &str) -> Result<Self, String> {
+        let Some((path, res)) = text.rsplit_once('@') else {
+            if text.is_empty() {
+                return Err("an empty input path".into());
+            }
+            return Ok(Self { path: PathBuf::from(text), resolution: None });
+        };
+        if path.is_empty() {
+            return Err(format!("{text:?} names no file before '@'"));
+        }
+        let resolution = parse_bench_resolution(res).map_err(|e| {
+            format!(
+                "{text:?}: after the last '@' comes the case's resolution, auto or a power of two up to \
+                 65536 ({e}); write a path that holds '@' as PATH@auto"
+            )
+        })?;
+        Ok(Self { path: PathBuf::from(path), resolution: Some(resolution) })
+    }
+}
+
 #[derive(clap::Args, Debug, Clone)]
 pub struct BenchArgs {
-    /// A mesh to measure (repeatable). Default: ../shared/data/dragon_vrip.ply and
-    /// ../shared/data/matterport_cedar_creek.ply, those that exist.
-    #[arg(long = "input")]
-    pub inputs: Vec<PathBuf>,
+    /// A case to measure (repeatable): a mesh, optionally with its own resolution as
+    /// `PATH@auto` or `PATH@4096`; the same mesh may be listed at several resolutions.
+    /// Default: the dragon at auto and Cedar Creek at 4096, 8192 and 16384 (from
+    /// ../shared/data, those that exist).
+    #[arg(long = "input", value_parser = InputSpec::parse)]
+    pub inputs: Vec<InputSpec>,
     /// Also measure a synthetic scan (`voxstream synth`) of at least this many
     /// triangles, generated once into the work directory; 0 for none.
-    #[arg(long, default_value_t = 50_000_000)]
+    #[arg(long, default_value_t = 100_000_000)]
     pub synth_triangles: u64,
-    /// Measured runs per input and thread count; medians are reported.
+    /// The synthetic scan's resolution (default: `--resolution`'s).
+    #[arg(long, value_parser = parse_bench_resolution)]
+    pub synth_resolution: Option<Resolution>,
+    /// Measured runs per case and thread count; medians are reported.
     #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..))]
     pub runs: u32,
+    /// Skip a case's later runs (at that thread count) once one of its runs took
+    /// longer than this many seconds: big cases then run once, small ones `--runs` times.
+    #[arg(long, value_parser = parse_seconds)]
+    pub single_run_over: Option<f64>,
     /// Comma-separated thread counts (RAYON_NUM_THREADS of each build).
     #[arg(long, default_value = "1,2")]
     pub threads: String,
-    /// Level-0 voxels per edge (`auto` or a power of two), passed to every build.
-    #[arg(long, default_value = "auto")]
-    pub resolution: crate::pipeline::Resolution,
+    /// Level-0 voxels per edge (`auto` or a power of two) of every case that does not
+    /// name its own with `@`.
+    #[arg(long, default_value = "auto", value_parser = parse_bench_resolution)]
+    pub resolution: Resolution,
     /// Passed through to `voxstream build --memory-budget`; peak RSS is judged against it.
     #[arg(long)]
     pub memory_budget: Option<String>,
@@ -62,6 +122,13 @@ pub struct BenchArgs {
     /// Where the synthetic scan and the scratch stores go (default: the system temp dir).
     #[arg(long)]
     pub work_dir: Option<PathBuf>,
+}
+
+fn parse_seconds(text: &str) -> Result<f64, String> {
+    match text.trim().parse::<f64>() {
+        Ok(s) if s.is_finite() && s > 0.0 => Ok(s),
+        _ => Err(format!("{text:?} is not a positive number of seconds")),
+    }
 }
 
 /// `voxstream bench-meshopt` (hidden): one peer run, printed as JSON.
@@ -135,6 +202,15 @@ fn mib(bytes: u64) -> f64 {
     bytes as f64 / (1u64 << 20) as f64
 }
 
+/// One measured case: a mesh at a resolution.
+struct Case {
+    /// `<name>@<resolution>`.
+    label: String,
+    name: String,
+    path: PathBuf,
+    resolution: Resolution,
+}
+
 struct Bench<'a> {
     exe: PathBuf,
     args: &'a BenchArgs,
@@ -143,14 +219,47 @@ struct Bench<'a> {
     scratch: PathBuf,
 }
 
+/// The published scene's files by kind: `manifest.json`, `pages/`, `blocks/`, the rest.
+pub fn scene_files(scene: &Path) -> std::io::Result<SceneFiles> {
+    let mut files = SceneFiles::default();
+    for entry in std::fs::read_dir(scene)? {
+        let entry = entry?;
+        let path = entry.path();
+        let kind = entry.file_type()?;
+        let name = entry.file_name();
+        if kind.is_dir() && (name == "pages" || name == "blocks") {
+            let (count, bytes) = std::fs::read_dir(&path)?.try_fold((0u64, 0u64), |(n, b), e| {
+                let e = e?;
+                Ok::<_, std::io::Error>(if e.file_type()?.is_file() {
+                    (n + 1, b + e.metadata()?.len())
+                } else {
+                    (n, b + dir_size(&e.path())?)
+                })
+            })?;
+            if name == "pages" {
+                (files.pages, files.page_bytes) = (count, bytes);
+            } else {
+                (files.block_files, files.block_bytes) = (count, bytes);
+            }
+        } else if kind.is_file() && name == "manifest.json" {
+            files.manifest_bytes = entry.metadata()?.len();
+        } else if kind.is_dir() {
+            files.other_bytes += dir_size(&path)?;
+        } else if kind.is_file() {
+            files.other_bytes += entry.metadata()?.len();
+        }
+    }
+    Ok(files)
+}
+
 impl Bench<'_> {
-    fn build_command(&self, input: &Path, store: &Path, threads: usize) -> Command {
+    fn build_command(&self, input: &Path, store: &Path, threads: usize, resolution: Resolution) -> Command {
         let mut cmd = Command::new(&self.exe);
         cmd.arg("build")
             .arg(input)
             .arg("--out")
             .arg(store)
-            .args(["--name", "bench", "--resolution", &self.args.resolution.to_string()])
+            .args(["--name", "bench", "--resolution", &resolution.to_string()])
             .env("RAYON_NUM_THREADS", threads.to_string())
             .env("RUST_LOG", "warn");
         if let Some(b) = &self.args.memory_budget {
@@ -159,8 +268,15 @@ impl Bench<'_> {
         cmd
     }
 
-    fn measure_voxstream(&self, name: &str, input: &Path) -> anyhow::Result<(VoxstreamReport, Option<u64>)> {
-        let mut report = VoxstreamReport::default();
+    /// Whether to stop a case's runs after `run` took `wall` seconds.
+    fn enough_runs(&self, wall: f64) -> bool {
+        self.args.single_run_over.is_some_and(|limit| wall > limit)
+    }
+
+    fn measure_voxstream(&self, case: &Case) -> anyhow::Result<(VoxstreamReport, Option<u64>)> {
+        let name = &case.label;
+        let mut report =
+            VoxstreamReport { requested_resolution: case.resolution.to_string(), ..Default::default() };
         let store = self.scratch.join("store");
         let mut triangles = None;
         for &n in &self.threads {
@@ -169,7 +285,10 @@ impl Bench<'_> {
                 if store.exists() {
                     std::fs::remove_dir_all(&store)?;
                 }
-                let run = run_child(&mut self.build_command(input, &store, n), &self.scratch.join("log"))?;
+                let run = run_child(
+                    &mut self.build_command(&case.path, &store, n, case.resolution),
+                    &self.scratch.join("log"),
+                )?;
                 if !run.succeeded() {
                     eprintln!("bench: {name} voxstream threads={n} run {}: FAILED {}", r + 1, run.failure());
                     failures.push(run.failure());
@@ -179,24 +298,31 @@ impl Bench<'_> {
                 let manifest =
                     voxstream_format::Manifest::from_json(&std::fs::read(scene.join("manifest.json"))?)
                         .context("the build's manifest")?;
-                let bytes = dir_size(&scene)?;
+                let files = scene_files(&scene).context("measuring the built scene")?;
                 triangles = Some(manifest.source.triangles);
-                report.resolution = manifest.grid.resolution;
-                report.scene_bytes = Some(bytes);
-                report.bytes_per_triangle = Some(bytes as f64 / manifest.source.triangles.max(1) as f64);
-                report.voxels_level0 = manifest.levels.first().map(|l| l.voxels);
-                report.blocks = Some(manifest.block_count());
-                report.blocks_per_level = manifest.levels.iter().map(|l| l.blocks).collect();
+                record_scene(&mut report, &manifest, files);
                 eprintln!(
-                    "bench: {name} voxstream threads={n} run {}: {:.2} s, {:.2} Mtri/s, peak {:.0} MiB",
+                    "bench: {name} voxstream threads={n} run {}: {:.2} s, {:.2} Mtri/s, {:.2} Mvoxel/s, \
+                     peak {:.0} MiB",
                     r + 1,
                     run.wall_seconds,
                     manifest.source.triangles as f64 / run.wall_seconds / 1e6,
+                    manifest.levels[0].voxels as f64 / run.wall_seconds / 1e6,
                     mib(run.peak_rss_bytes)
                 );
                 samples.push(sample(&run));
+                if self.enough_runs(run.wall_seconds) {
+                    break;
+                }
             }
-            let summary = summarize_runs(triangles.unwrap_or(0), n, &samples, failures, self.budget_bytes);
+            let summary = summarize_runs(
+                triangles.unwrap_or(0),
+                report.voxels_level0,
+                n,
+                &samples,
+                failures,
+                self.budget_bytes,
+            );
             report.threads.insert(n.to_string(), summary);
         }
         if store.exists() {
@@ -204,7 +330,6 @@ impl Bench<'_> {
         }
         Ok((report, triangles))
     }
-
     fn peer_skip_reason(&self, triangles: Option<u64>) -> Option<String> {
         if self.args.no_meshopt {
             return Some("--no-meshopt".into());
@@ -226,7 +351,7 @@ impl Bench<'_> {
     }
 
     fn measure_peer(&self, name: &str, input: &Path, triangles: Option<u64>) -> anyhow::Result<PeerReport> {
-        let mut report = PeerReport::default();
+        let mut report = PeerReport { measured_in_case: Some(name.to_string()), ..Default::default() };
         if let Some(reason) = self.peer_skip_reason(triangles) {
             eprintln!("bench: {name} meshopt skipped: {reason}");
             report.skipped = Some(reason);
@@ -263,7 +388,11 @@ impl Bench<'_> {
                         if n == 1 || first_dag.is_none() {
                             first_dag = Some((p.dag, p.stored_bytes_estimate, p.input_triangles));
                         }
+                        let wall = run.wall_seconds;
                         runs.push((sample(&run), p));
+                        if self.enough_runs(wall) {
+                            break;
+                        }
                     }
                     Err(e) => {
                         eprintln!("bench: {name} meshopt threads={n} run {}: FAILED {e}", r + 1);
@@ -291,19 +420,29 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<Report> {
         }
         None => None,
     };
-    if let crate::pipeline::Resolution::Explicit(r) = args.resolution {
-        crate::pipeline::voxelize::check_resolution(r)?;
-    }
     let machine = machine();
     let exe = std::env::current_exe().context("locating the voxstream binary")?;
-    let mut inputs: Vec<PathBuf> = if args.inputs.is_empty() {
-        DEFAULT_INPUTS.iter().map(PathBuf::from).filter(|p| p.is_file()).collect()
+    let specs: Vec<InputSpec> = if args.inputs.is_empty() {
+        DEFAULT_INPUTS
+            .iter()
+            .map(|s| InputSpec::parse(s).expect("the default cases parse"))
+            .filter(|c| c.path.is_file())
+            .collect()
     } else {
         args.inputs.clone()
     };
-    for p in &inputs {
-        if !p.is_file() {
-            bail!("input {} is not a file", p.display());
+    let mut cases = Vec::new();
+    for spec in specs {
+        if !spec.path.is_file() {
+            bail!("input {} is not a file", spec.path.display());
+        }
+        let resolution = spec.resolution.unwrap_or(args.resolution);
+        let name = input_name(&spec.path);
+        cases.push(Case { label: format!("{name}@{resolution}"), name, path: spec.path, resolution });
+    }
+    for (i, c) in cases.iter().enumerate() {
+        if cases[..i].iter().any(|d| d.path == c.path && d.resolution == c.resolution) {
+            bail!("--input {}@{} is listed twice", c.path.display(), c.resolution);
         }
     }
     let base = args.work_dir.clone().unwrap_or_else(std::env::temp_dir);
@@ -319,24 +458,32 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<Report> {
         let r = crate::synth::write_sphere_ply(&path, args.synth_triangles)
             .with_context(|| format!("writing {}", path.display()))?;
         eprintln!("bench: {} triangles, {} bytes", r.triangles, r.bytes);
-        inputs.push(path);
+        let resolution = args.synth_resolution.unwrap_or(args.resolution);
+        let name = input_name(&path);
+        cases.push(Case { label: format!("{name}@{resolution}"), name, path, resolution });
     }
-    if inputs.is_empty() {
+    if cases.is_empty() {
         bail!(
             "nothing to measure: no --input, none of {DEFAULT_INPUTS:?} exists, and --synth-triangles is 0"
         );
     }
     let bench =
         Bench { exe, args, threads: threads.clone(), budget_bytes, scratch: work.path().join("scratch") };
-    let mut reports = Vec::new();
-    for input in &inputs {
-        let name = input_name(input);
-        let file_bytes = std::fs::metadata(input)?.len();
-        let (voxstream, triangles) = bench.measure_voxstream(&name, input)?;
-        let meshopt = bench.measure_peer(&name, input, triangles)?;
+    let mut reports: Vec<InputReport> = Vec::new();
+    for case in &cases {
+        eprintln!("bench: case {} ({})", case.label, case.path.display());
+        let file_bytes = std::fs::metadata(&case.path)?.len();
+        let (voxstream, triangles) = bench.measure_voxstream(case)?;
+        // The peer does not depend on the resolution: measured once per mesh.
+        let earlier = reports.iter().find(|r| Path::new(&r.path) == case.path && r.meshopt.skipped.is_none());
+        let meshopt = match earlier {
+            Some(r) => r.meshopt.clone(),
+            None => bench.measure_peer(&case.label, &case.path, triangles)?,
+        };
         reports.push(InputReport {
-            name,
-            path: input.display().to_string(),
+            case: case.label.clone(),
+            name: case.name.clone(),
+            path: case.path.display().to_string(),
             triangles,
             file_bytes,
             ratio_voxstream_over_meshopt: ratios(&voxstream, &meshopt),
@@ -351,7 +498,8 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<Report> {
             voxstream_version: env!("CARGO_PKG_VERSION"),
             runs: args.runs as usize,
             threads,
-            resolution: args.resolution.to_string(),
+            single_run_over_seconds: args.single_run_over,
+            cases: cases.iter().map(|c| format!("{}@{}", c.path.display(), c.resolution)).collect(),
             synth_triangles: args.synth_triangles,
             memory_budget: args.memory_budget.clone(),
             meshopt_cluster_triangles: CLUSTER_TRIANGLES,
@@ -369,4 +517,71 @@ pub fn bench_main(args: &BenchArgs) -> anyhow::Result<()> {
     let report = run_bench(args)?;
     println!("{}", serde_json::to_string_pretty(&report)?);
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn input_specs_take_a_resolution_after_the_last_at() {
+        let spec = |s: &str| InputSpec::parse(s);
+        assert_eq!(spec("a/scan.ply").unwrap(), InputSpec { path: "a/scan.ply".into(), resolution: None });
+        assert_eq!(spec("scan.ply@4096").unwrap().resolution, Some(Resolution::Explicit(4096)));
+        assert_eq!(spec("scan.ply@AUTO").unwrap().resolution, Some(Resolution::Auto));
+        let at = spec("dir/scan@2x.ply@auto").unwrap();
+        assert_eq!((at.path, at.resolution), (PathBuf::from("dir/scan@2x.ply"), Some(Resolution::Auto)));
+        assert_eq!(spec("s@65536").unwrap().resolution, Some(Resolution::Explicit(65536)));
+        // Negative controls: each names what is wrong.
+        for (bad, says) in [
+            ("scan.ply@4000", "power of two"),
+            ("scan.ply@131072", "65536"),
+            ("scan.ply@", "resolution"),
+            ("scan.ply@fast", "auto"),
+            ("scan@2x.ply", "PATH@auto"),
+            ("@4096", "names no file"),
+            ("", "empty"),
+        ] {
+            let e = spec(bad).expect_err(bad);
+            assert!(e.contains(says), "{bad:?}: {e}");
+        }
+    }
+
+    #[test]
+    fn bench_resolutions_are_checked_when_parsed() {
+        assert_eq!(parse_bench_resolution("auto"), Ok(Resolution::Auto));
+        assert_eq!(parse_bench_resolution("1024"), Ok(Resolution::Explicit(1024)));
+        assert!(parse_bench_resolution("100").is_err());
+        assert!(parse_bench_resolution("0").is_err());
+        assert!(parse_seconds("0").is_err());
+        assert!(parse_seconds("nan").is_err());
+        assert_eq!(parse_seconds("60"), Ok(60.0));
+    }
+
+    #[test]
+    fn scene_files_are_split_by_kind() {
+        let dir = tempfile::tempdir().unwrap();
+        let scene = dir.path();
+        std::fs::create_dir_all(scene.join("blocks")).unwrap();
+        std::fs::create_dir_all(scene.join("pages")).unwrap();
+        std::fs::write(scene.join("manifest.json"), [0u8; 100]).unwrap();
+        std::fs::write(scene.join("pages/1-0-0-0.vxh"), [0u8; 40]).unwrap();
+        for (i, n) in [10usize, 20, 30].into_iter().enumerate() {
+            std::fs::write(scene.join(format!("blocks/0-{i}-0-0.vxb")), vec![0u8; n]).unwrap();
+        }
+        std::fs::write(scene.join("scene.json"), [0u8; 7]).unwrap();
+        let f = scene_files(scene).unwrap();
+        assert_eq!(
+            f,
+            SceneFiles {
+                manifest_bytes: 100,
+                pages: 1,
+                page_bytes: 40,
+                block_files: 3,
+                block_bytes: 60,
+                other_bytes: 7
+            }
+        );
+        assert_eq!(f.total(), dir_size(scene).unwrap());
+    }
 }

@@ -12,12 +12,20 @@ use super::peer::{ClodStats, PeerRun};
 /// The throughput goal: end-to-end input triangles per second per thread.
 pub const GOAL_TRI_PER_S_PER_CORE: f64 = 2_000_000.0;
 
+/// The voxel throughput goal: level-0 voxels written per second per thread.
+pub const GOAL_VOXELS_PER_S_PER_CORE: f64 = 10_000_000.0;
+
 pub fn goal_definitions() -> BTreeMap<&'static str, &'static str> {
     BTreeMap::from([
         (
             "tri_per_s_per_core_2M",
             "every input at every thread count: median end-to-end input triangles per second \
              (child `voxstream build` wall time) divided by the thread count >= 2,000,000",
+        ),
+        (
+            "voxels_per_s_per_core_10M",
+            "every input at every thread count: level-0 voxels stored divided by the median child \
+             `voxstream build` wall time and by the thread count >= 10,000,000",
         ),
         (
             "peak_rss_within_budget",
@@ -49,6 +57,9 @@ pub struct ThreadSummary {
     pub wall_seconds_median: Option<f64>,
     pub tri_per_s_median: Option<f64>,
     pub tri_per_s_per_thread: Option<f64>,
+    /// Level-0 voxels stored over the median wall time.
+    pub voxels_per_s_median: Option<f64>,
+    pub voxels_per_s_per_thread: Option<f64>,
     /// user + system CPU seconds over wall seconds: how many cores were busy.
     pub cpu_utilization_median: Option<f64>,
     pub peak_rss_bytes: Vec<u64>,
@@ -61,6 +72,7 @@ pub struct ThreadSummary {
 
 pub fn summarize_runs(
     triangles: u64,
+    voxels: Option<u64>,
     threads: usize,
     samples: &[RunSample],
     failures: Vec<String>,
@@ -72,13 +84,17 @@ pub fn summarize_runs(
     let rss: Vec<u64> = samples.iter().map(|s| s.peak_rss_bytes).collect();
     let tri_per_s_median = median(&rates);
     let peak_rss_bytes_max = rss.iter().copied().max();
+    let wall_seconds_median = median(&walls);
+    let voxels_per_s_median = voxels.zip(wall_seconds_median).map(|(v, w)| v as f64 / w);
     ThreadSummary {
         runs: samples.len() + failures.len(),
         failures,
-        wall_seconds_median: median(&walls),
+        wall_seconds_median,
         wall_seconds: walls,
         tri_per_s_median,
         tri_per_s_per_thread: tri_per_s_median.map(|r| r / threads.max(1) as f64),
+        voxels_per_s_median,
+        voxels_per_s_per_thread: voxels_per_s_median.map(|r| r / threads.max(1) as f64),
         cpu_utilization_median: median(&utilization),
         peak_rss_bytes_median: median_u64(&rss),
         peak_rss_bytes: rss,
@@ -91,15 +107,60 @@ pub fn summarize_runs(
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct VoxstreamReport {
     pub threads: BTreeMap<String, ThreadSummary>,
+    /// The resolution asked for (`auto` or a power of two).
+    pub requested_resolution: String,
     /// The resolution the build used (with `auto`, what it chose).
     pub resolution: u32,
-    /// Σ sizes of every file under the published scene directory (all levels + manifest).
+    /// Why the build used that resolution (the manifest's `resolution_choice.reason`).
+    pub resolution_reason: Option<String>,
+    /// Σ sizes of every file under the published scene directory (blocks, pages, manifest).
     pub scene_bytes: Option<u64>,
+    /// scene_bytes ÷ input triangles.
     pub bytes_per_triangle: Option<f64>,
+    /// scene_bytes ÷ level-0 voxels.
+    pub bytes_per_level0_voxel: Option<f64>,
     pub voxels_level0: Option<u64>,
     pub blocks: Option<u64>,
     /// Blocks on each level, finest first.
     pub blocks_per_level: Vec<u32>,
+    /// The published scene's files by kind.
+    pub files: Option<SceneFiles>,
+    /// manifest.json + every hierarchy page: what a viewer may read besides blocks.
+    pub manifest_plus_page_bytes: Option<u64>,
+}
+
+/// Bytes and counts of a published scene's files, by kind (measured on disk).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct SceneFiles {
+    pub manifest_bytes: u64,
+    pub pages: u64,
+    pub page_bytes: u64,
+    pub block_files: u64,
+    pub block_bytes: u64,
+    /// Anything else under the scene directory (nothing, today).
+    pub other_bytes: u64,
+}
+
+impl SceneFiles {
+    pub fn total(&self) -> u64 {
+        self.manifest_bytes + self.page_bytes + self.block_bytes + self.other_bytes
+    }
+}
+
+/// Fills in the size figures of `report` from the built scene's manifest and files.
+pub fn record_scene(report: &mut VoxstreamReport, manifest: &voxstream_format::Manifest, files: SceneFiles) {
+    let bytes = files.total();
+    let voxels = manifest.levels.first().map(|l| l.voxels);
+    report.resolution = manifest.grid.resolution;
+    report.resolution_reason = Some(manifest.resolution_choice.reason.clone());
+    report.scene_bytes = Some(bytes);
+    report.bytes_per_triangle = Some(bytes as f64 / manifest.source.triangles.max(1) as f64);
+    report.bytes_per_level0_voxel = voxels.map(|v| bytes as f64 / v.max(1) as f64);
+    report.voxels_level0 = voxels;
+    report.blocks = Some(manifest.block_count());
+    report.blocks_per_level = manifest.levels.iter().map(|l| l.blocks).collect();
+    report.files = Some(files);
+    report.manifest_plus_page_bytes = Some(files.manifest_bytes + files.page_bytes);
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -153,6 +214,9 @@ pub fn summarize_peer(
 pub struct PeerReport {
     /// Why the peer did not run on this input, when it did not.
     pub skipped: Option<String>,
+    /// The case whose run this is: the peer is measured once per mesh, on the
+    /// first case that names it, and repeated for its other resolutions.
+    pub measured_in_case: Option<String>,
     pub threads: BTreeMap<String, PeerThreadSummary>,
     /// The single-DAG build's shape (from the 1-thread run, else the first that ran).
     pub dag: Option<ClodStats>,
@@ -189,6 +253,8 @@ pub fn ratios(vox: &VoxstreamReport, peer: &PeerReport) -> Ratios {
 pub struct Goals {
     #[serde(rename = "tri_per_s_per_core_2M")]
     pub tri_per_s_per_core_2m: Option<bool>,
+    #[serde(rename = "voxels_per_s_per_core_10M")]
+    pub voxels_per_s_per_core_10m: Option<bool>,
     pub peak_rss_within_budget: Option<bool>,
     pub faster_than_meshopt: Option<bool>,
     pub all_runs_succeeded: bool,
@@ -201,6 +267,8 @@ fn all_of(values: impl IntoIterator<Item = Option<bool>>) -> Option<bool> {
 
 pub fn evaluate_goals(vox: &VoxstreamReport, peer: &PeerReport) -> Goals {
     let rates = vox.threads.values().map(|t| t.tri_per_s_per_thread.map(|r| r >= GOAL_TRI_PER_S_PER_CORE));
+    let voxel_rates =
+        vox.threads.values().map(|t| t.voxels_per_s_per_thread.map(|r| r >= GOAL_VOXELS_PER_S_PER_CORE));
     let mut faster = Vec::new();
     for (n, v) in &vox.threads {
         if let Some(p) = peer.threads.get(n) {
@@ -212,6 +280,7 @@ pub fn evaluate_goals(vox: &VoxstreamReport, peer: &PeerReport) -> Goals {
     Goals {
         // A thread count with no successful run fails the goal rather than vanishing from it.
         tri_per_s_per_core_2m: all_of(rates.map(|r| Some(r.unwrap_or(false)))),
+        voxels_per_s_per_core_10m: all_of(voxel_rates.map(|r| Some(r.unwrap_or(false)))),
         peak_rss_within_budget: all_of(vox.threads.values().map(|t| t.within_budget)),
         faster_than_meshopt: all_of(faster),
         all_runs_succeeded: !failed && !vox.threads.is_empty(),
@@ -221,6 +290,7 @@ pub fn evaluate_goals(vox: &VoxstreamReport, peer: &PeerReport) -> Goals {
 pub fn combine_goals(per_input: &[Goals]) -> Goals {
     Goals {
         tri_per_s_per_core_2m: all_of(per_input.iter().map(|g| g.tri_per_s_per_core_2m)),
+        voxels_per_s_per_core_10m: all_of(per_input.iter().map(|g| g.voxels_per_s_per_core_10m)),
         peak_rss_within_budget: all_of(per_input.iter().map(|g| g.peak_rss_within_budget)),
         faster_than_meshopt: all_of(per_input.iter().map(|g| g.faster_than_meshopt)),
         all_runs_succeeded: !per_input.is_empty() && per_input.iter().all(|g| g.all_runs_succeeded),
@@ -229,6 +299,8 @@ pub fn combine_goals(per_input: &[Goals]) -> Goals {
 
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct InputReport {
+    /// `<name>@<requested resolution>`, unique within a report.
+    pub case: String,
     pub name: String,
     pub path: String,
     /// Input triangles as the build counted them (skipped ones included).
@@ -256,8 +328,10 @@ pub struct Config {
     pub voxstream_version: &'static str,
     pub runs: usize,
     pub threads: Vec<usize>,
-    /// `auto` or a power of two, as passed to every build.
-    pub resolution: String,
+    /// Later runs of a case are skipped once one of its runs took longer than this.
+    pub single_run_over_seconds: Option<f64>,
+    /// Each case as `path@resolution`, in the order measured.
+    pub cases: Vec<String>,
     pub synth_triangles: u64,
     pub memory_budget: Option<String>,
     pub meshopt_cluster_triangles: usize,
@@ -318,17 +392,26 @@ mod tests {
     #[test]
     fn thread_summary_takes_medians_and_checks_the_budget() {
         let runs = [sample(2.0, 300), sample(1.0, 100), sample(4.0, 200)];
-        let s = summarize_runs(8_000_000, 2, &runs, vec!["exit code 1: boom".into()], Some(250 << 20));
+        let s = summarize_runs(
+            8_000_000,
+            Some(30_000_000),
+            2,
+            &runs,
+            vec!["exit code 1: boom".into()],
+            Some(250 << 20),
+        );
         assert_eq!(s.runs, 4);
         assert_eq!(s.wall_seconds_median, Some(2.0));
         assert_eq!(s.tri_per_s_median, Some(4_000_000.0));
         assert_eq!(s.tri_per_s_per_thread, Some(2_000_000.0));
         assert_eq!(s.cpu_utilization_median, Some(1.5));
+        assert_eq!(s.voxels_per_s_median, Some(15_000_000.0));
+        assert_eq!(s.voxels_per_s_per_thread, Some(7_500_000.0));
         assert_eq!(s.peak_rss_bytes_max, Some(300 << 20));
         assert_eq!(s.peak_rss_bytes_median, Some(200 << 20));
         assert_eq!(s.peak_rss_over_budget, Some(1.2));
         assert_eq!(s.within_budget, Some(false));
-        let none = summarize_runs(10, 1, &[], vec![], None);
+        let none = summarize_runs(10, None, 1, &[], vec![], None);
         assert_eq!((none.tri_per_s_median, none.within_budget, none.peak_rss_bytes_max), (None, None, None));
     }
 
@@ -336,8 +419,10 @@ mod tests {
         let mut v = VoxstreamReport::default();
         for &(n, wall) in rates {
             let budget = within.map(|ok| if ok { 1 << 30 } else { 1 });
-            v.threads
-                .insert(n.to_string(), summarize_runs(4_000_000, n, &[sample(wall, 64)], vec![], budget));
+            v.threads.insert(
+                n.to_string(),
+                summarize_runs(4_000_000, Some(24_000_000), n, &[sample(wall, 64)], vec![], budget),
+            );
         }
         v
     }
@@ -358,6 +443,7 @@ mod tests {
             g,
             Goals {
                 tri_per_s_per_core_2m: Some(true),
+                voxels_per_s_per_core_10m: Some(true),
                 peak_rss_within_budget: Some(true),
                 faster_than_meshopt: Some(true),
                 all_runs_succeeded: true
@@ -368,18 +454,22 @@ mod tests {
         assert_eq!(r.peak_rss.get("1").copied(), Some(0.5));
         assert!(!r.tri_per_s.contains_key("2"));
 
-        // 2 threads in 1.2 s is only 1.67 M/s per thread; over budget; no peer.
+        // 2 threads in 1.2 s is only 1.67 M/s and 10 M voxels/s per thread; over budget; no peer.
         let slow = vox_with(&[(1, 1.5), (2, 1.2)], Some(false));
         let g2 = evaluate_goals(&slow, &PeerReport::default());
         assert_eq!(g2.tri_per_s_per_core_2m, Some(false));
+        assert_eq!(g2.voxels_per_s_per_core_10m, Some(true));
+        let slower = vox_with(&[(1, 1.5), (2, 1.3)], Some(true));
+        assert_eq!(evaluate_goals(&slower, &PeerReport::default()).voxels_per_s_per_core_10m, Some(false));
         assert_eq!(g2.peak_rss_within_budget, Some(false));
         assert_eq!(g2.faster_than_meshopt, None);
 
-        let failed = summarize_runs(4_000_000, 1, &[], vec!["killed".into()], None);
+        let failed = summarize_runs(4_000_000, None, 1, &[], vec!["killed".into()], None);
         let broken =
             VoxstreamReport { threads: BTreeMap::from([("1".into(), failed)]), ..Default::default() };
         let g3 = evaluate_goals(&broken, &PeerReport::default());
         assert_eq!(g3.tri_per_s_per_core_2m, Some(false));
+        assert_eq!(g3.voxels_per_s_per_core_10m, Some(false));
         assert!(!g3.all_runs_succeeded);
 
         let all = combine_goals(&[g, g2]);
@@ -420,7 +510,8 @@ mod tests {
                 voxstream_version: "0",
                 runs: 1,
                 threads: vec![1, 2],
-                resolution: "512".into(),
+                single_run_over_seconds: None,
+                cases: vec!["x.ply@512".into()],
                 synth_triangles: 0,
                 memory_budget: None,
                 meshopt_cluster_triangles: 128,
@@ -428,6 +519,7 @@ mod tests {
             },
             budget_bytes: None,
             inputs: vec![InputReport {
+                case: "x@512".into(),
                 name: "x".into(),
                 path: "x.ply".into(),
                 triangles: Some(4_000_000),

@@ -96,28 +96,22 @@ fn mark_faces<V: HasVoxel>(voxels: &mut [V]) {
         let m = v.build_voxel().morton;
         occupied[m as usize / 64] |= 1 << (m % 64);
     }
-    let is_set = |p: [u32; 3]| {
-        let m = morton3(p[0], p[1], p[2]);
-        occupied[m as usize / 64] & (1 << (m % 64)) != 0
-    };
+    let is_set = |m: u32| occupied[m as usize / 64] & (1 << (m % 64)) != 0;
+    // The neighbour one step along an axis, found in Morton space: the axis's
+    // bits are incremented or decremented in place (the carry or borrow runs
+    // through the other axes' bits, which are masked off and put back).
+    let masks: [u32; 3] = std::array::from_fn(|a| morton3(BLOCK_SIZE - 1, 0, 0) << a);
     for v in voxels {
         let v = v.build_voxel();
-        let p = demorton3(v.morton);
+        let m = v.morton;
         let mut mask = 0u8;
         for f in Face::ALL {
-            let a = f.axis();
+            let axis = masks[f.axis()];
+            let along = m & axis;
             let exposed = if f.sign() < 0 {
-                p[a] == 0 || {
-                    let mut q = p;
-                    q[a] -= 1;
-                    !is_set(q)
-                }
+                along == 0 || !is_set((along.wrapping_sub(1) & axis) | (m & !axis))
             } else {
-                p[a] == BLOCK_SIZE - 1 || {
-                    let mut q = p;
-                    q[a] += 1;
-                    !is_set(q)
-                }
+                along == axis || !is_set(((m | !axis).wrapping_add(1) & axis) | (m & !axis))
             };
             if exposed {
                 mask |= f.bit();
@@ -422,6 +416,43 @@ mod tests {
         assert_eq!(by_pos([11, 10, 10]), 63 & !Face::NegX.bit());
         // On the x = 0 boundary: the -x face stays as a skirt.
         assert_eq!(by_pos([0, 5, 5]) & Face::NegX.bit(), Face::NegX.bit());
+    }
+
+    #[test]
+    fn faces_match_a_coordinate_reference_on_random_blocks() {
+        // Dense and sparse random sets, so every axis, sign and block edge is hit.
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = || {
+            state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+            (state >> 33) as u32
+        };
+        for density in [2u32, 8, 64] {
+            let mut set = std::collections::BTreeSet::new();
+            for _ in 0..20_000 {
+                let p = [next() % BLOCK_SIZE, next() % BLOCK_SIZE, next() % BLOCK_SIZE];
+                if next() % density == 0 || p.iter().any(|&c| c == 0 || c == BLOCK_SIZE - 1) {
+                    set.insert(p);
+                }
+            }
+            let points: Vec<[u32; 3]> = set.iter().copied().collect();
+            let mut b = block_of(BlockKey::new(0, 0, 0, 0), &points);
+            mark_exposed_faces(&mut b);
+            for v in &b.voxels {
+                let p = local_position(v);
+                let mut want = 0u8;
+                for f in Face::ALL {
+                    let a = f.axis();
+                    let q = p[a] as i64 + f.sign() as i64;
+                    let outside = q < 0 || q >= BLOCK_SIZE as i64;
+                    let mut n = p;
+                    n[a] = q.clamp(0, BLOCK_SIZE as i64 - 1) as u32;
+                    if outside || !set.contains(&n) {
+                        want |= f.bit();
+                    }
+                }
+                assert_eq!(v.faces, want, "voxel {p:?} at density 1/{density}");
+            }
+        }
     }
 
     fn cube(lo: u32, hi: u32) -> Vec<[u32; 3]> {
