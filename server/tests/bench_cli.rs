@@ -96,7 +96,12 @@ fn bench_reports_voxstream_and_meshopt_on_the_koala_and_a_synthetic_scan() {
             part("manifest_bytes") + part("page_bytes") + part("block_bytes") + part("other_bytes"),
             bytes as u64
         );
-        assert_eq!(part("block_files"), vox["blocks"].as_u64().unwrap(), "one file a block");
+        // Blocks live in packs, one per hierarchy page (a scene with no pages packs its root alone).
+        assert!(
+            part("block_files") >= 1 && part("block_files") <= part("pages").max(1),
+            "one pack a page: {f}"
+        );
+        assert!(part("block_files") < vox["blocks"].as_u64().unwrap() || vox["blocks"].as_u64() == Some(1));
         assert!(part("manifest_bytes") > 100 && part("manifest_bytes") <= 64 << 10);
         assert_eq!(
             vox["manifest_plus_page_bytes"].as_u64().unwrap(),

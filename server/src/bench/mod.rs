@@ -219,7 +219,8 @@ struct Bench<'a> {
     scratch: PathBuf,
 }
 
-/// The published scene's files by kind: `manifest.json`, `pages/`, `blocks/`, the rest.
+/// The published scene's files by kind: `manifest.json`, `pages/`, the block
+/// bytes (`packs/`, one pack a page; `blocks/` in stores written before packs), the rest.
 pub fn scene_files(scene: &Path) -> std::io::Result<SceneFiles> {
     let mut files = SceneFiles::default();
     for entry in std::fs::read_dir(scene)? {
@@ -227,7 +228,7 @@ pub fn scene_files(scene: &Path) -> std::io::Result<SceneFiles> {
         let path = entry.path();
         let kind = entry.file_type()?;
         let name = entry.file_name();
-        if kind.is_dir() && (name == "pages" || name == "blocks") {
+        if kind.is_dir() && (name == "pages" || name == "packs" || name == "blocks") {
             let (count, bytes) = std::fs::read_dir(&path)?.try_fold((0u64, 0u64), |(n, b), e| {
                 let e = e?;
                 Ok::<_, std::io::Error>(if e.file_type()?.is_file() {
@@ -239,7 +240,8 @@ pub fn scene_files(scene: &Path) -> std::io::Result<SceneFiles> {
             if name == "pages" {
                 (files.pages, files.page_bytes) = (count, bytes);
             } else {
-                (files.block_files, files.block_bytes) = (count, bytes);
+                files.block_files += count;
+                files.block_bytes += bytes;
             }
         } else if kind.is_file() && name == "manifest.json" {
             files.manifest_bytes = entry.metadata()?.len();
@@ -562,12 +564,12 @@ mod tests {
     fn scene_files_are_split_by_kind() {
         let dir = tempfile::tempdir().unwrap();
         let scene = dir.path();
-        std::fs::create_dir_all(scene.join("blocks")).unwrap();
+        std::fs::create_dir_all(scene.join("packs")).unwrap();
         std::fs::create_dir_all(scene.join("pages")).unwrap();
         std::fs::write(scene.join("manifest.json"), [0u8; 100]).unwrap();
         std::fs::write(scene.join("pages/1-0-0-0.vxh"), [0u8; 40]).unwrap();
         for (i, n) in [10usize, 20, 30].into_iter().enumerate() {
-            std::fs::write(scene.join(format!("blocks/0-{i}-0-0.vxb")), vec![0u8; n]).unwrap();
+            std::fs::write(scene.join(format!("packs/{i}.vxp")), vec![0u8; n]).unwrap();
         }
         std::fs::write(scene.join("scene.json"), [0u8; 7]).unwrap();
         let f = scene_files(scene).unwrap();
