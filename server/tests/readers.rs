@@ -546,8 +546,8 @@ fn a_paged_vertex_table_gives_the_same_triangles() {
         let held = read(path, None, None).unwrap();
         assert!(held.bits.len() > 100_000, "{}", path.display());
         // One page of cache (faces across pages take the one-by-one path),
-        // a few pages (evictions), and many.
-        for vertex_memory in [1, 300 << 10, 8 << 20] {
+        // 4 pages of the koala's 13 and 9 of the dragon's 107 (evictions), and all.
+        for vertex_memory in [1, 864 << 10, 16 << 20] {
             let paged = read(path, Some(vertex_memory), Some(dir.path().to_path_buf())).unwrap();
             assert_eq!(paged.layout, held.layout);
             assert!(paged.bits == held.bits, "{} differs paged at {vertex_memory}", path.display());
