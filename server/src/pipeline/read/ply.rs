@@ -1035,6 +1035,30 @@ element vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_head
     }
 
     #[test]
+    fn a_paged_table_gives_the_held_triangles_with_faces_before_or_after() {
+        let before = b"ply\nformat ascii 1.0\nelement face 2\nproperty list uchar int vertex_indices\n\
+element vertex 4\nproperty double x\nproperty float y\nproperty float z\nproperty uchar red\nproperty uchar green\n\
+property uchar blue\nend_header\n4 0 1 2 3\n3 3 2 1\n0 0 0 1 2 3\n1e9 0 0 4 5 6\n1 1 0 7 8 9\n0 1 0 1 1 1\n";
+        for bytes in [ASCII, &before[..]] {
+            let read = |vertex_memory| {
+                let mut sink = super::super::MeshBuilder::default();
+                let opts = ReadOptions { vertex_memory, ..Default::default() };
+                super::super::stream_mesh_bytes(bytes, MeshFormat::Ply, &mut sink, &opts).map(|()| sink.mesh)
+            };
+            let held = read(None).unwrap();
+            assert!(!held.triangles.is_empty());
+            assert_eq!(read(Some(1)).unwrap(), held);
+        }
+        // An index past the vertices is still the error naming it.
+        let bad = String::from_utf8(before.to_vec()).unwrap().replace("3 3 2 1", "3 3 2 4");
+        let mut sink = super::super::MeshBuilder::default();
+        let opts = ReadOptions { vertex_memory: Some(1), ..Default::default() };
+        let e =
+            super::super::stream_mesh_bytes(bad.as_bytes(), MeshFormat::Ply, &mut sink, &opts).unwrap_err();
+        assert!(e.to_string().contains("face 1 uses vertex 4"), "{e}");
+    }
+
+    #[test]
     fn huge_counts_fail_before_allocating() {
         for count in ["4000000000", "18446744073709551615"] {
             let b = format!(
