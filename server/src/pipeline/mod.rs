@@ -53,6 +53,10 @@ pub struct BuildOptions {
     pub memory_budget: u64,
     /// Where the build's temporary directory goes; the store directory when `None`.
     pub temp_dir: Option<PathBuf>,
+    /// Bytes a PLY's vertex table may take in memory before it is paged from
+    /// a temporary file through a cache of half as many; `None`: half the
+    /// budget (the cache then takes a quarter). Tests set it to force paging.
+    pub ply_vertex_memory: Option<u64>,
 }
 
 impl BuildOptions {
@@ -99,6 +103,7 @@ impl Default for BuildOptions {
             cancel: None,
             memory_budget: DEFAULT_MEMORY_BUDGET,
             temp_dir: None,
+            ply_vertex_memory: None,
         }
     }
 }
@@ -400,7 +405,12 @@ pub fn build_scene_reporting(
     // Pass 1: read, streaming valid triangles into chunks.
     progress.stage(Stage::Read, 0.0);
     let input_len = std::fs::metadata(input).map(|m| m.len()).unwrap_or(0).max(1);
-    let read_opts = ReadOptions { memory_budget: opts.memory_budget, ..Default::default() };
+    let read_opts = ReadOptions {
+        memory_budget: opts.memory_budget,
+        temp_dir: Some(temp.path().to_path_buf()),
+        vertex_memory: opts.ply_vertex_memory,
+        ..Default::default()
+    };
     let bytes_read = read_opts.bytes_read.clone();
     let mut on_tick = || {
         if opts.check_cancelled().is_err() {

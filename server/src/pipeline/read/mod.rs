@@ -8,9 +8,11 @@
 //!
 //! What is streamed and what is held (see ARCHITECTURE.md, "Memory"):
 //! - PLY (ASCII, binary little/big endian): the vertex element is held as
-//!   compact arrays (f32 or f64 positions, optional sRGB u8 colour), which
-//!   must fit half the memory budget; faces are streamed. Element counts are
-//!   checked against the file size before anything is reserved.
+//!   compact arrays (f32 or f64 positions, optional sRGB u8 colour) when
+//!   they fit half the memory budget, else spilled as the same records to a
+//!   temporary file and read through a page cache of a quarter of the
+//!   budget; faces are streamed. Element counts are checked against the file
+//!   size before anything is reserved.
 //! - binary STL: streamed record by record.
 //! - ASCII STL, OBJ (tobj) and glTF/GLB: parsed in memory, so the file must
 //!   fit the memory budget (a clear error otherwise), then streamed.
@@ -158,15 +160,27 @@ pub(crate) fn srgb_to_linear(c: f32) -> f32 {
 /// Limits and reporting for a streaming read.
 #[derive(Debug, Clone)]
 pub struct ReadOptions {
-    /// Bytes the reader may hold (PLY vertex table: half of it; whole-file formats: the file must fit).
+    /// Bytes the reader may hold (PLY vertex table: half of it, else a page
+    /// cache of a quarter; whole-file formats: the file must fit).
     pub memory_budget: u64,
+    /// Where the PLY vertex table spills (an unnamed file); the system's temporary directory when `None`.
+    pub temp_dir: Option<std::path::PathBuf>,
+    /// Bytes the PLY vertex table may take in memory before it is paged from
+    /// disk through a cache of half as many; `None`: half the memory budget.
+    /// Tests set it to force the paged path.
+    pub vertex_memory: Option<u64>,
     /// Input bytes consumed so far, updated as the file is read.
     pub bytes_read: Arc<AtomicU64>,
 }
 
 impl Default for ReadOptions {
     fn default() -> Self {
-        Self { memory_budget: 1 << 30, bytes_read: Arc::new(AtomicU64::new(0)) }
+        Self {
+            memory_budget: 1 << 30,
+            bytes_read: Arc::new(AtomicU64::new(0)),
+            temp_dir: None,
+            vertex_memory: None,
+        }
     }
 }
 

@@ -3,14 +3,23 @@
 //! is read one at a time, so faces stream straight into the sink.
 //!
 //! The vertex element is held as compact arrays (f32 positions when x, y, z
-//! are exact in f32, else f64; sRGB u8 colours when red/green/blue exist),
-//! which must fit half the memory budget. Before anything is reserved, every
+//! are exact in f32, else f64; sRGB u8 colours when red/green/blue exist)
+//! when they fit half the memory budget. Otherwise the same compact records
+//! are written to an unnamed temporary file (gone when closed: on success,
+//! error, cancellation and crash) and read back through a page cache of a
+//! quarter of the budget: faces are taken in sub-batches whose vertex pages
+//! fit the cache, the missing pages are read with positioned reads on all
+//! cores (least recently used evicted), and the sub-batch is fanned on all
+//! cores as before. Both paths convert each vertex by the same code, so the
+//! triangles are bit-identical. Before anything is reserved, every
 //! element's count is checked against the bytes the file has left: a header
 //! claiming 4e9 vertices in a 100-byte file fails at once. Vertex normals
 //! and any other property are read past: voxel normals come from the
 //! triangles themselves.
 
-use std::io::BufRead;
+use std::fs::File;
+use std::io::{BufRead, Write};
+use std::os::unix::fs::FileExt;
 
 use ply_rs_bw::parser::{Parser, Reader};
 use ply_rs_bw::ply::{
@@ -121,8 +130,22 @@ impl FaceRecord {
         self.which = 3;
         PropertyAccessResult::Set
     }
+}
 
+/// A polygon's vertex indices: a face as read, or a fanned triangle held
+/// while the vertices are still to come.
+trait Polygon {
     /// The indices, converted; `scratch` holds signed lists after conversion.
+    fn indices<'a>(&'a self, scratch: &'a mut Vec<u32>) -> &'a [u32];
+}
+
+impl Polygon for [u32; 3] {
+    fn indices<'a>(&'a self, _scratch: &'a mut Vec<u32>) -> &'a [u32] {
+        self
+    }
+}
+
+impl Polygon for FaceRecord {
     fn indices<'a>(&'a self, scratch: &'a mut Vec<u32>) -> &'a [u32] {
         match self.which {
             1 => {
@@ -427,12 +450,97 @@ struct VertexTable {
     colors: Option<Vec<[u8; 3]>>,
 }
 
+/// Random access to the vertex table, in memory or paged.
+trait Vertices: Sync {
+    fn len(&self) -> usize;
+    fn has_color(&self) -> bool;
+    /// Vertex `i`'s position; `i` < `len()`.
+    fn position(&self, i: u32) -> [f64; 3];
+    /// Vertex `i`'s linear colour (zeros without colours); `i` < `len()`.
+    fn color(&self, i: u32) -> [f32; 3];
+}
+
 impl VertexTable {
+    fn new(f32_exact: bool, has_color: bool, capacity: usize) -> Self {
+        let positions = if f32_exact {
+            Positions::F32(Vec::with_capacity(capacity))
+        } else {
+            Positions::F64(Vec::with_capacity(capacity))
+        };
+        Self { positions, colors: has_color.then(|| Vec::with_capacity(capacity)) }
+    }
+
+    /// Appends one vertex as read: the only conversion, in memory or spilled.
+    fn push(&mut self, v: &VertexRecord) {
+        match &mut self.positions {
+            Positions::F32(p) => p.push(v.p.map(|c| c as f32)),
+            Positions::F64(p) => p.push(v.p),
+        }
+        if let Some(c) = &mut self.colors {
+            c.push(v.c.map(|x| if x.is_nan() { 0 } else { (x.clamp(0.0, 1.0) * 255.0).round() as u8 }));
+        }
+    }
+
+    fn clear(&mut self) {
+        match &mut self.positions {
+            Positions::F32(p) => p.clear(),
+            Positions::F64(p) => p.clear(),
+        }
+        if let Some(c) = &mut self.colors {
+            c.clear();
+        }
+    }
+
+    /// Appends every vertex as a fixed-size little-endian record (positions, then colour).
+    fn write_records(&self, out: &mut Vec<u8>) {
+        for i in 0..Vertices::len(self) {
+            match &self.positions {
+                Positions::F32(p) => p[i].iter().for_each(|c| out.extend_from_slice(&c.to_le_bytes())),
+                Positions::F64(p) => p[i].iter().for_each(|c| out.extend_from_slice(&c.to_le_bytes())),
+            }
+            if let Some(c) = &self.colors {
+                out.extend_from_slice(&c[i]);
+            }
+        }
+    }
+
+    /// The table of the records [`Self::write_records`] wrote.
+    fn from_records(bytes: &[u8], f32_exact: bool, has_color: bool) -> Self {
+        let at = if f32_exact { 12 } else { 24 };
+        let size = record_size(f32_exact, has_color);
+        let mut t = Self::new(f32_exact, has_color, bytes.len() / size);
+        for r in bytes.chunks_exact(size) {
+            match &mut t.positions {
+                Positions::F32(p) => {
+                    p.push(std::array::from_fn(|a| f32::from_le_bytes([0, 1, 2, 3].map(|k| r[4 * a + k]))))
+                }
+                Positions::F64(p) => p.push(std::array::from_fn(|a| {
+                    f64::from_le_bytes([0, 1, 2, 3, 4, 5, 6, 7].map(|k| r[8 * a + k]))
+                })),
+            }
+            if let Some(c) = &mut t.colors {
+                c.push([r[at], r[at + 1], r[at + 2]]);
+            }
+        }
+        t
+    }
+}
+
+/// Bytes of one compact vertex, in memory and in the spill file.
+fn record_size(f32_exact: bool, has_color: bool) -> usize {
+    (if f32_exact { 12 } else { 24 }) + if has_color { 3 } else { 0 }
+}
+
+impl Vertices for VertexTable {
     fn len(&self) -> usize {
         match &self.positions {
             Positions::F32(v) => v.len(),
             Positions::F64(v) => v.len(),
         }
+    }
+
+    fn has_color(&self) -> bool {
+        self.colors.is_some()
     }
 
     fn position(&self, i: u32) -> [f64; 3] {
@@ -450,6 +558,194 @@ impl VertexTable {
     }
 }
 
+/// log2 of the vertices in a page of the paged table.
+const PAGE_SHIFT: u32 = 12;
+const PAGE: usize = 1 << PAGE_SHIFT;
+
+fn spill_err(source: std::io::Error) -> IngestError {
+    IngestError::Io { path: "the temporary file of the PLY's vertices".into(), source }
+}
+
+/// The vertex table in a temporary file of fixed-size records, read through
+/// a least-recently-used cache of at most `cap` pages of [`PAGE`] vertices.
+struct PagedTable {
+    file: File,
+    len: usize,
+    f32_exact: bool,
+    has_color: bool,
+    cap: usize,
+    /// By page index: the page when resident.
+    pages: Vec<Option<Box<VertexTable>>>,
+    /// By page index: the sub-batch that last used it.
+    last_used: Vec<u64>,
+    /// By page index: `epoch` when the current sub-batch needs it.
+    mark: Vec<u64>,
+    resident: Vec<u32>,
+    epoch: u64,
+}
+
+impl PagedTable {
+    /// Vertices `first..first + n`, read from the file.
+    fn read_range(&self, first: usize, n: usize) -> Result<VertexTable, IngestError> {
+        let size = record_size(self.f32_exact, self.has_color);
+        let mut bytes = vec![0u8; n * size];
+        self.file.read_exact_at(&mut bytes, (first * size) as u64).map_err(spill_err)?;
+        Ok(VertexTable::from_records(&bytes, self.f32_exact, self.has_color))
+    }
+
+    /// The vertices of one polygon (all in range), in its order.
+    fn read_polygon(&self, poly: &[u32]) -> Result<VertexTable, IngestError> {
+        let size = record_size(self.f32_exact, self.has_color);
+        let mut bytes = vec![0u8; poly.len() * size];
+        for (k, &v) in poly.iter().enumerate() {
+            self.file
+                .read_exact_at(&mut bytes[k * size..(k + 1) * size], v as u64 * size as u64)
+                .map_err(spill_err)?;
+        }
+        Ok(VertexTable::from_records(&bytes, self.f32_exact, self.has_color))
+    }
+
+    /// Makes the pages in `need` (at most `cap`) resident: the least recently
+    /// used of the others are dropped first, the missing read on all cores.
+    fn load(&mut self, need: &[u32]) -> Result<(), IngestError> {
+        use rayon::prelude::*;
+        let missing: Vec<u32> = need.iter().copied().filter(|&p| self.pages[p as usize].is_none()).collect();
+        let over = (self.resident.len() + missing.len()).saturating_sub(self.cap);
+        if over > 0 {
+            let (mark, last, epoch) = (&self.mark, &self.last_used, self.epoch);
+            let (mut old, keep): (Vec<u32>, Vec<u32>) =
+                self.resident.iter().partition(|&&p| mark[p as usize] != epoch);
+            old.sort_unstable_by_key(|&p| last[p as usize]);
+            for &p in &old[..over] {
+                self.pages[p as usize] = None;
+            }
+            self.resident = keep;
+            self.resident.extend_from_slice(&old[over..]);
+        }
+        let read: Result<Vec<(u32, VertexTable)>, IngestError> = missing
+            .par_iter()
+            .map(|&p| {
+                let first = (p as usize) << PAGE_SHIFT;
+                Ok((p, self.read_range(first, PAGE.min(self.len - first))?))
+            })
+            .collect();
+        for (p, page) in read? {
+            self.pages[p as usize] = Some(Box::new(page));
+            self.resident.push(p);
+        }
+        for &p in need {
+            self.last_used[p as usize] = self.epoch;
+        }
+        Ok(())
+    }
+
+    fn view(&self) -> PagedView<'_> {
+        PagedView { pages: &self.pages, len: self.len, has_color: self.has_color }
+    }
+}
+
+/// The resident pages of a [`PagedTable`], read-only, for fanning on all cores.
+struct PagedView<'a> {
+    pages: &'a [Option<Box<VertexTable>>],
+    len: usize,
+    has_color: bool,
+}
+
+impl PagedView<'_> {
+    fn page(&self, i: u32) -> &VertexTable {
+        self.pages[(i >> PAGE_SHIFT) as usize]
+            .as_deref()
+            .expect("a sub-batch's pages are loaded before it is fanned")
+    }
+}
+
+impl Vertices for PagedView<'_> {
+    fn len(&self) -> usize {
+        self.len
+    }
+
+    fn has_color(&self) -> bool {
+        self.has_color
+    }
+
+    fn position(&self, i: u32) -> [f64; 3] {
+        self.page(i).position(i & (PAGE as u32 - 1))
+    }
+
+    fn color(&self, i: u32) -> [f32; 3] {
+        self.page(i).color(i & (PAGE as u32 - 1))
+    }
+}
+
+/// The vertex table: in memory, or paged from a temporary file.
+enum Table {
+    Memory(VertexTable),
+    Paged(PagedTable),
+}
+
+impl Table {
+    /// Fans `faces` (the first is face `start`) into `sink` in file order.
+    fn emit<P: Polygon + Sync>(
+        &mut self,
+        faces: &[P],
+        start: usize,
+        sink: &mut dyn TriangleSink,
+    ) -> Result<(), IngestError> {
+        let t = match self {
+            Table::Memory(t) => return emit_faces(faces, start, t, sink),
+            Table::Paged(t) => t,
+        };
+        let mut scratch = Vec::new();
+        let mut need: Vec<u32> = Vec::new();
+        let mut i = 0;
+        while i < faces.len() {
+            // The longest run of faces from i whose pages fit the cache.
+            t.epoch += 1;
+            let epoch = t.epoch;
+            need.clear();
+            let mut j = i;
+            while j < faces.len() {
+                let before = need.len();
+                for &v in faces[j].indices(&mut scratch) {
+                    // Out-of-range indices need no page: fanning reports them.
+                    if (v as usize) < t.len {
+                        let p = (v >> PAGE_SHIFT) as usize;
+                        if t.mark[p] != epoch {
+                            t.mark[p] = epoch;
+                            need.push(p as u32);
+                        }
+                    }
+                }
+                if need.len() > t.cap && j > i {
+                    for p in need.drain(before..) {
+                        t.mark[p as usize] = 0;
+                    }
+                    break;
+                }
+                j += 1;
+                if need.len() > t.cap {
+                    break;
+                }
+            }
+            if need.len() > t.cap {
+                // One face spans more pages than the cache holds: its vertices are read one by one.
+                let poly = faces[i].indices(&mut scratch);
+                check_polygon(poly, t.len, start + i)?;
+                let local = t.read_polygon(poly)?;
+                let order: Vec<u32> = (0..poly.len() as u32).collect();
+                let mut out = Vec::new();
+                fan(&order, &local, start + i, &mut out)?;
+                sink.triangles(&out)?;
+            } else {
+                t.load(&need)?;
+                emit_faces(&faces[i..j], start + i, &t.view(), sink)?;
+            }
+            i = j;
+        }
+        Ok(())
+    }
+}
+
 /// Whether a property type holds every value exactly in f32.
 fn exact_in_f32(t: &PropertyType) -> bool {
     matches!(
@@ -464,8 +760,8 @@ fn read_vertices<R: BufRead>(
     input: &mut ElementReader<R>,
     def: &ElementDef,
     sink: &mut dyn TriangleSink,
-    budget: u64,
-) -> Result<VertexTable, IngestError> {
+    opts: &ReadOptions,
+) -> Result<Table, IngestError> {
     for axis in ["x", "y", "z"] {
         match def.properties.get(axis).map(|p| &p.data_type) {
             Some(PropertyType::Scalar(_)) => {}
@@ -483,50 +779,67 @@ fn read_vertices<R: BufRead>(
         .collect::<std::collections::BTreeSet<_>>()
         .len()
         == 3;
-    let per_vertex = if f32_exact { 12 } else { 24 } + if has_color { 3 } else { 0 };
+    let per_vertex = record_size(f32_exact, has_color) as u64;
     let needed = def.count as u64 * per_vertex;
-    if needed > budget / 2 {
-        return Err(IngestError::TooLarge(format!(
-            "the PLY's {} vertices take {needed} bytes in memory, more than half the memory budget of {budget} \
-             bytes: raise --memory-budget",
-            def.count
-        )));
-    }
-    // Reserving by the count is safe here: it was checked against the file size and the budget.
-    let mut positions = if f32_exact {
-        Positions::F32(Vec::with_capacity(def.count))
-    } else {
-        Positions::F64(Vec::with_capacity(def.count))
-    };
-    let mut colors = has_color.then(|| Vec::with_capacity(def.count));
+    let limit = opts.vertex_memory.unwrap_or(opts.memory_budget / 2);
     let parser = Parser::<VertexRecord>::new();
     let mut batch = Vec::new();
+    if needed <= limit {
+        // Reserving by the count is safe here: it was checked against the file size and the budget.
+        let mut table = VertexTable::new(f32_exact, has_color, def.count);
+        for start in (0..def.count).step_by(BATCH) {
+            input.read_batch(&parser, def, start, BATCH.min(def.count - start), &mut batch)?;
+            batch.iter().for_each(|v| table.push(v));
+            sink.tick()?;
+        }
+        return Ok(Table::Memory(table));
+    }
+    // Too large to hold: spill compact records to an unnamed temporary file.
+    let file = match &opts.temp_dir {
+        Some(dir) => tempfile::tempfile_in(dir),
+        None => tempfile::tempfile(),
+    }
+    .map_err(spill_err)?;
+    let mut out = std::io::BufWriter::with_capacity(1 << 20, &file);
+    let mut chunk = VertexTable::new(f32_exact, has_color, BATCH);
+    let mut bytes = Vec::with_capacity(BATCH * per_vertex as usize);
     for start in (0..def.count).step_by(BATCH) {
         input.read_batch(&parser, def, start, BATCH.min(def.count - start), &mut batch)?;
-        for v in &batch {
-            match &mut positions {
-                Positions::F32(p) => p.push(v.p.map(|c| c as f32)),
-                Positions::F64(p) => p.push(v.p),
-            }
-            if let Some(c) = &mut colors {
-                c.push(v.c.map(|x| if x.is_nan() { 0 } else { (x.clamp(0.0, 1.0) * 255.0).round() as u8 }));
-            }
-        }
+        chunk.clear();
+        batch.iter().for_each(|v| chunk.push(v));
+        bytes.clear();
+        chunk.write_records(&mut bytes);
+        out.write_all(&bytes).map_err(spill_err)?;
         sink.tick()?;
     }
-    Ok(VertexTable { positions, colors })
+    out.flush().map_err(spill_err)?;
+    drop(out);
+    let page_count = def.count.div_ceil(PAGE);
+    let cap = (limit / 2 / (PAGE as u64 * per_vertex)).max(1) as usize;
+    Ok(Table::Paged(PagedTable {
+        file,
+        len: def.count,
+        f32_exact,
+        has_color,
+        cap,
+        pages: (0..page_count).map(|_| None).collect(),
+        last_used: vec![0; page_count],
+        mark: vec![0; page_count],
+        resident: Vec::new(),
+        epoch: 0,
+    }))
 }
 
 /// One triangle for the sink: positions and linear colour.
 type Tri = ([[f64; 3]; 3], [f32; 3]);
 
 /// Fans a polygon into `out`.
-fn fan(poly: &[u32], table: &VertexTable, face: usize, out: &mut Vec<Tri>) -> Result<(), IngestError> {
+fn fan<V: Vertices>(poly: &[u32], table: &V, face: usize, out: &mut Vec<Tri>) -> Result<(), IngestError> {
     check_polygon(poly, table.len(), face)?;
     for k in 1..poly.len().saturating_sub(1) {
         let idx = [poly[0], poly[k], poly[k + 1]];
         let tri = idx.map(|i| table.position(i));
-        let color = if table.colors.is_some() {
+        let color = if table.has_color() {
             let c = idx.map(|i| table.color(i));
             std::array::from_fn(|a| (c[0][a] + c[1][a] + c[2][a]) / 3.0)
         } else {
@@ -540,10 +853,10 @@ fn fan(poly: &[u32], table: &VertexTable, face: usize, out: &mut Vec<Tri>) -> Re
 /// Fans a batch of faces (the first is face `start`) on all cores and hands
 /// the triangles to the sink in file order; the first bad face in file order
 /// is the error.
-fn emit_faces(
-    faces: &[FaceRecord],
+fn emit_faces<P: Polygon + Sync, V: Vertices>(
+    faces: &[P],
     start: usize,
-    table: &VertexTable,
+    table: &V,
     sink: &mut dyn TriangleSink,
 ) -> Result<(), IngestError> {
     use rayon::prelude::*;
@@ -603,21 +916,21 @@ pub(super) fn stream<R: BufRead>(
     sink.begin(RecordLayout { f64_positions: !f32_exact, color: has_color })?;
 
     let mut input = ElementReader { reader, encoding: header.encoding, line: String::new() };
-    let mut table: Option<VertexTable> = None;
+    let mut table: Option<Table> = None;
     // Faces that come before the vertices (rare): their fans are held until the vertices are read.
     let mut early: Vec<[u32; 3]> = Vec::new();
     let mut scratch = Vec::new();
     // Elements must be read in header order.
     for (name, def) in &header.elements {
         match name.as_str() {
-            "vertex" => table = Some(read_vertices(&mut input, def, sink, opts.memory_budget)?),
+            "vertex" => table = Some(read_vertices(&mut input, def, sink, opts)?),
             "face" => {
                 let parser = Parser::<FaceRecord>::new();
                 let mut batch = Vec::new();
                 for start in (0..def.count).step_by(BATCH) {
                     input.read_batch(&parser, def, start, BATCH.min(def.count - start), &mut batch)?;
-                    if let Some(t) = &table {
-                        emit_faces(&batch, start, t, sink)?;
+                    if let Some(t) = &mut table {
+                        t.emit(&batch, start, sink)?;
                         sink.tick()?;
                         continue;
                     }
@@ -653,14 +966,9 @@ pub(super) fn stream<R: BufRead>(
             }
         }
     }
-    if let Some(t) = &table {
-        let mut out = Vec::new();
+    if let Some(t) = &mut table {
         for (c, tris) in early.chunks(BATCH).enumerate() {
-            out.clear();
-            for (k, tri) in tris.iter().enumerate() {
-                fan(tri, t, c * BATCH + k, &mut out)?;
-            }
-            sink.triangles(&out)?;
+            t.emit(tris, c * BATCH, sink)?;
         }
     }
     Ok(())
@@ -724,6 +1032,30 @@ property double z\nelement edge 1\nproperty int a\nelement face 1\nproperty list
 element vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n3 0 1 2\n0 0 0\n1 0 0\n0 1 0\n";
         let m = read(b).unwrap();
         assert_eq!(m.triangle(0), [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]);
+    }
+
+    #[test]
+    fn a_paged_table_gives_the_held_triangles_with_faces_before_or_after() {
+        let before = b"ply\nformat ascii 1.0\nelement face 2\nproperty list uchar int vertex_indices\n\
+element vertex 4\nproperty double x\nproperty float y\nproperty float z\nproperty uchar red\nproperty uchar green\n\
+property uchar blue\nend_header\n4 0 1 2 3\n3 3 2 1\n0 0 0 1 2 3\n1e9 0 0 4 5 6\n1 1 0 7 8 9\n0 1 0 1 1 1\n";
+        for bytes in [ASCII, &before[..]] {
+            let read = |vertex_memory| {
+                let mut sink = super::super::MeshBuilder::default();
+                let opts = ReadOptions { vertex_memory, ..Default::default() };
+                super::super::stream_mesh_bytes(bytes, MeshFormat::Ply, &mut sink, &opts).map(|()| sink.mesh)
+            };
+            let held = read(None).unwrap();
+            assert!(!held.triangles.is_empty());
+            assert_eq!(read(Some(1)).unwrap(), held);
+        }
+        // An index past the vertices is still the error naming it.
+        let bad = String::from_utf8(before.to_vec()).unwrap().replace("3 3 2 1", "3 3 2 4");
+        let mut sink = super::super::MeshBuilder::default();
+        let opts = ReadOptions { vertex_memory: Some(1), ..Default::default() };
+        let e =
+            super::super::stream_mesh_bytes(bad.as_bytes(), MeshFormat::Ply, &mut sink, &opts).unwrap_err();
+        assert!(e.to_string().contains("face 1 uses vertex 4"), "{e}");
     }
 
     #[test]
