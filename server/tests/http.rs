@@ -615,7 +615,14 @@ async fn tus_upload_resumes_after_a_cut_connection() {
 
     // Wrong offset: 409 telling the right one.
     let resp = patch(first, mesh[first..].to_vec()).send().await.unwrap();
-    assert_eq!(resp.headers()["upload-offset"], offset.to_string().as_str());
+    let Some(told) = resp.headers().get("upload-offset").cloned() else {
+        let status = resp.status();
+        panic!(
+            "a PATCH at a wrong offset got {status} without Upload-Offset: {}",
+            resp.text().await.unwrap_or_default()
+        );
+    };
+    assert_eq!(told, offset.to_string().as_str());
     let e = json_error(resp, 409).await;
     assert!(e.contains(&offset.to_string()), "{e}");
     // Wrong content type and past the end.

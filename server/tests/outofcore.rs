@@ -145,7 +145,11 @@ fn a_paged_ply_vertex_table_builds_the_same_scene() {
         files(&report.scene_dir)
     };
     let reference = build(None);
-    assert!(reference.len() > 5 && reference.contains_key("manifest.json"));
+    assert!(
+        reference.contains_key("manifest.json") && reference.keys().any(|k| k.contains("packs")),
+        "{:?}",
+        reference.keys()
+    );
     // One page of cache (faces across pages are read one by one) and 4 of its 13 pages (evictions).
     for vertex_memory in [1, 480 << 10] {
         let got = build(Some(vertex_memory));
