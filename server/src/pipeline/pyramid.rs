@@ -43,6 +43,22 @@ pub struct LodVoxel {
     pub error: f32,
 }
 
+impl LodVoxel {
+    /// Folds a child voxel into this parent voxel: faces OR, sums add, the
+    /// error is the worst child's. Both pyramid paths use it, so their blocks
+    /// stay byte-identical.
+    fn absorb(&mut self, child: &LodVoxel) {
+        self.voxel.faces |= child.voxel.faces;
+        for a in 0..3 {
+            self.voxel.normal_sum[a] += child.voxel.normal_sum[a];
+            self.voxel.color_sum[a] += child.voxel.color_sum[a];
+        }
+        self.voxel.color_weight += child.voxel.color_weight;
+        self.solid += child.solid;
+        self.error = self.error.max(child.error);
+    }
+}
+
 /// One block of any level, voxels in strictly increasing Morton order.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LodBlock {
@@ -154,14 +170,7 @@ pub fn merge_children(key: BlockKey, children: &[&LodBlock]) -> Option<LodBlock>
             let m = morton3(q[0], q[1], q[2]);
             let (slot, mask) = &mut acc[m as usize];
             slot.voxel.morton = m;
-            slot.voxel.faces |= v.voxel.faces;
-            for a in 0..3 {
-                slot.voxel.normal_sum[a] += v.voxel.normal_sum[a];
-                slot.voxel.color_sum[a] += v.voxel.color_sum[a];
-            }
-            slot.voxel.color_weight += v.voxel.color_weight;
-            slot.solid += v.solid;
-            slot.error = slot.error.max(v.error);
+            slot.absorb(v);
             *mask |= 1 << (v.voxel.morton & 7);
             any = true;
         }
@@ -323,14 +332,7 @@ fn downsample(child: &LodBlock, parent: &mut LodBlock, reach: &[f32; 256]) {
         let mut acc = LodVoxel { voxel: BuildVoxel::EMPTY, solid: 0, error: 0.0 };
         let mut mask = 0u8;
         for v in group {
-            acc.voxel.faces |= v.voxel.faces;
-            for a in 0..3 {
-                acc.voxel.normal_sum[a] += v.voxel.normal_sum[a];
-                acc.voxel.color_sum[a] += v.voxel.color_sum[a];
-            }
-            acc.voxel.color_weight += v.voxel.color_weight;
-            acc.solid += v.solid;
-            acc.error = acc.error.max(v.error);
+            acc.absorb(v);
             mask |= 1 << (v.voxel.morton & 7);
         }
         acc.voxel.morton = octant << 15 | group[0].voxel.morton >> 3;
