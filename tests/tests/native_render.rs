@@ -325,8 +325,8 @@ fn camera_path(start: voxstream_viewer::OrbitCamera) -> Vec<voxstream_viewer::Or
 }
 
 /// Renders every view of `path` under `budget` bytes; returns, per frame,
-/// (resident bytes, peak so far, blocks drawn).
-fn walk(scene: &Path, budget: u64) -> (Vec<(u64, u64, u32)>, u64) {
+/// (resident bytes, peak so far, blocks drawn, uploads refused so far).
+fn walk(scene: &Path, budget: u64) -> (Vec<(u64, u64, u32, u32)>, u64) {
     let mut offscreen = open(scene, &RenderOptions::new(256, 256));
     offscreen.scene.set_budget_bytes(budget);
     let fixed_probe = offscreen.render().expect("render");
@@ -336,7 +336,12 @@ fn walk(scene: &Path, budget: u64) -> (Vec<(u64, u64, u32)>, u64) {
     for camera in camera_path(offscreen.scene.camera) {
         offscreen.scene.camera = camera;
         let f = offscreen.render().expect("render on the path");
-        frames.push((f.stats.resident_bytes, f.stats.peak_resident_bytes, f.stats.blocks_drawn));
+        frames.push((
+            f.stats.resident_bytes,
+            f.stats.peak_resident_bytes,
+            f.stats.blocks_drawn,
+            f.stats.uploads_refused,
+        ));
     }
     (frames, fixed)
 }
@@ -352,10 +357,15 @@ fn a_camera_path_never_exceeds_the_gpu_budget() {
     assert!(free_peak > budget, "the control never needed more than the budget");
 
     let (held, _) = walk(&scene, budget);
-    for (i, (resident, peak, drawn)) in held.iter().enumerate() {
-        println!("frame {i}: resident {resident} B, peak {peak} B, {drawn} blocks drawn");
+    for (i, (resident, peak, drawn, refused)) in held.iter().enumerate() {
+        println!(
+            "frame {i}: resident {resident} B, peak {peak} B, {drawn} blocks drawn, {refused} uploads refused"
+        );
         assert!(*peak <= budget, "frame {i}: peak {peak} B over the budget {budget} B");
         assert!(*drawn > 0, "frame {i} drew nothing: the budget must settle for coarser blocks, not none");
+        // The traversal wants at most part of the block budget, so every upload it asks for fits
+        // once blocks it no longer draws are evicted: a refusal means the accounting is off.
+        assert_eq!(*refused, 0, "frame {i}: an upload the traversal wanted was refused");
     }
 }
 

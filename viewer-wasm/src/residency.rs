@@ -221,6 +221,11 @@ impl Residency {
                 b
             }
             None => {
+                // `make_room` counted its victims as gone, but `release` pools their buffers:
+                // other classes are dropped before a new buffer is refused.
+                if self.used_bytes() + class + BLOCK_FIXED_BYTES > self.budget {
+                    self.trim_free();
+                }
                 if self.used_bytes() + class + BLOCK_FIXED_BYTES > self.budget {
                     return None;
                 }

@@ -233,7 +233,9 @@ impl Scene {
             self.viewport,
             self.index.pages_loaded(),
             self.select_params,
-            self.residency.budget(),
+            // The block budget, not the budget: the fixed targets are counted after the first
+            // traversal, whose byte cap must then shrink.
+            self.residency.block_budget(),
             self.failed_pages.len(),
             self.hidden_generation,
             self.fixed_view,
@@ -460,8 +462,9 @@ impl Scene {
     /// into pooled buffers the residency grants within the budget. Returns how
     /// many blocks went up.
     pub fn upload(&mut self, renderer: &Renderer) -> usize {
-        self.update_traversal();
+        // Fixed targets first: they shrink the block budget the traversal plans within.
         self.residency.set_fixed_bytes(self.fixed_gpu_bytes(renderer.occupancy_cells()));
+        self.update_traversal();
         let todo = self.awaiting_upload();
         if todo.is_empty() {
             return 0;
