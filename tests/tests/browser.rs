@@ -258,6 +258,13 @@ fn render_and_check(url: &str, out: &Path, scene_dir: &Path, interact: bool) {
         Some(volumes),
         "the main thread built an AO volume: {stats}"
     );
+    // The main thread's longest task, split into the viewer's own work and its WebGPU calls.
+    let ms = |k: &str| stats[k].as_f64().unwrap_or(f64::NAN);
+    let (task, own, webgpu) = (ms("longestMainTaskMs"), ms("longestOwnTaskMs"), ms("longestWebgpuMs"));
+    println!(
+        "main thread: longest task {task:.1} ms, own work {own:.1} ms, longest in WebGPU calls {webgpu:.1} ms"
+    );
+    assert!(own > 0.0 && own <= task && webgpu <= task, "main-thread split out of order: {stats}");
     if interact {
         check_interactions(&result, out, &silhouette, &view_proj, (w, h));
     }

@@ -110,6 +110,14 @@ pub struct Scene {
     /// A payload waiting to be sent to the worker, and whether an answer is outstanding.
     occupancy_job: Option<Vec<u8>>,
     occupancy_job_in_flight: bool,
+    /// Milliseconds from any fixed origin: splits WebGPU calls off the main
+    /// thread's tasks in the stats (the page sets `performance.now`).
+    pub clock: fn() -> f64,
+}
+
+/// A clock that never moves: natively nobody reads the main-thread split.
+fn no_clock() -> f64 {
+    0.0
 }
 
 impl Scene {
@@ -150,6 +158,7 @@ impl Scene {
             crossfade: Crossfade::default(),
             occupancy_job: None,
             occupancy_job_in_flight: false,
+            clock: no_clock,
         }
     }
 
@@ -490,8 +499,10 @@ impl Scene {
                 self.stats.uploads_refused += 1;
                 break;
             }
-            let Some(buffers) = self.residency.allocate(&renderer.device, key, faces, self.frame_counter)
-            else {
+            let allocate_from = (self.clock)();
+            let buffers = self.residency.allocate(&renderer.device, key, faces, self.frame_counter);
+            self.stats.note_webgpu((self.clock)() - allocate_from);
+            let Some(buffers) = buffers else {
                 self.stats.uploads_refused += 1;
                 break;
             };
@@ -501,6 +512,7 @@ impl Scene {
         if batch.is_empty() {
             return 0;
         }
+        let webgpu_from = (self.clock)();
         let upload = self.upload.get_or_insert_with(|| upload_buffer(&renderer.device));
         batch.write(&renderer.queue, upload);
         self.stats.bytes_uploaded += batch.byte_len();
@@ -515,6 +527,7 @@ impl Scene {
             upload,
         );
         renderer.queue.submit([encoder.finish()]);
+        self.stats.note_webgpu((self.clock)() - webgpu_from);
         let n = blocks.len();
         for g in blocks {
             self.gpu.insert(g.key, g);
@@ -623,16 +636,18 @@ impl Scene {
             ao_strength: self.ao_strength,
         };
         let tests = if self.occlusion_culling { self.occlusion_tests() } else { Vec::new() };
+        let webgpu_from = (self.clock)();
         let mut encoder =
             renderer.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
         renderer.encode_frame(&mut encoder, target, self.viewport, &params, &gpu_blocks);
         let occlusion = self.occlusion.get_or_insert_with(Occlusion::default);
         occlusion.prepare(&renderer.device, self.viewport, params.view_proj, tests, self.frame_counter);
         if let Some(depth) = renderer.depth_texture() {
-            occlusion.encode_copy(&mut encoder, depth);
+            occlusion.encode_copy(&renderer.device, &mut encoder, depth);
         }
         renderer.queue.submit([encoder.finish()]);
         occlusion.after_submit();
+        self.stats.note_webgpu((self.clock)() - webgpu_from);
 
         self.stats.blocks_drawn = drawn.len() as u32;
         self.stats.faces_drawn = faces;
@@ -710,7 +725,9 @@ impl Scene {
         self.occupancy_job_in_flight = false;
         match mips.and_then(|b| OccupancyVolume::from_bytes(self.manifest.grid.resolution, &b)) {
             Ok(volume) if volume.cells == renderer.occupancy_cells() => {
+                let webgpu_from = (self.clock)();
                 renderer.upload_occupancy(&volume);
+                self.stats.note_webgpu((self.clock)() - webgpu_from);
                 self.stats.ao_volumes += 1;
                 self.stats.ao_volumes_from_worker += 1;
             }

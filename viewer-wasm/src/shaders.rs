@@ -4,10 +4,15 @@
 pub const EXPAND_WGSL: &str = include_str!("../../shaders/expand.wgsl");
 pub const VOXEL_WGSL: &str = include_str!("../../shaders/voxel.wgsl");
 pub const AO_WGSL: &str = include_str!("../../shaders/ao.wgsl");
+pub const DEPTH_REDUCE_WGSL: &str = include_str!("../../shaders/depth_reduce.wgsl");
 
 /// Every file in `shaders/`, by name (a test checks that this list is complete).
-pub const SHADER_FILES: &[(&str, &str)] =
-    &[("expand.wgsl", EXPAND_WGSL), ("voxel.wgsl", VOXEL_WGSL), ("ao.wgsl", AO_WGSL)];
+pub const SHADER_FILES: &[(&str, &str)] = &[
+    ("expand.wgsl", EXPAND_WGSL),
+    ("voxel.wgsl", VOXEL_WGSL),
+    ("ao.wgsl", AO_WGSL),
+    ("depth_reduce.wgsl", DEPTH_REDUCE_WGSL),
+];
 
 /// The compute module that expands voxels into face records.
 pub fn expand_module_source() -> &'static str {
@@ -43,6 +48,8 @@ mod tests {
     fn every_pipeline_module_validates_with_naga() {
         let expand = validate("expand.wgsl", expand_module_source());
         assert_eq!(entry_points(&expand), vec![("expand_faces".to_string(), naga::ShaderStage::Compute)]);
+        let reduce = validate("depth_reduce.wgsl", DEPTH_REDUCE_WGSL);
+        assert_eq!(entry_points(&reduce), vec![("reduce_depth".to_string(), naga::ShaderStage::Compute)]);
         let voxel = validate("voxel.wgsl + ao.wgsl", &voxel_module_source());
         assert_eq!(
             entry_points(&voxel),

@@ -32,9 +32,18 @@ pub struct Stats {
     pub bytes_uploaded: u64,
     /// Uploads refused because the budget had no room.
     pub uploads_refused: u32,
-    /// The longest main-thread task of the viewer's own code so far (a frame's
-    /// encoding, a worker result taken in), in ms: WebGPU's own work excluded.
+    /// The longest main-thread task of the viewer so far (a frame, a worker
+    /// result taken in), in ms, with the WebGPU calls it made.
     pub longest_main_task_ms: f64,
+    /// The longest such task less the time spent inside WebGPU calls (surface
+    /// texture, buffer and texture writes, encoding, submit, present): the
+    /// viewer's own work. On a CPU WebGPU the calls hold the rasteriser's setup.
+    pub longest_own_task_ms: f64,
+    /// The longest time a task spent inside WebGPU calls.
+    pub longest_webgpu_ms: f64,
+    /// WebGPU time of the task now running, folded in by `note_main_thread_task`.
+    #[serde(skip)]
+    pub webgpu_ms_in_task: f64,
     /// AO occupancy volumes uploaded so far, and how many of them a worker built.
     pub ao_volumes: u32,
     pub ao_volumes_from_worker: u32,
@@ -49,8 +58,18 @@ pub struct Stats {
 }
 
 impl Stats {
+    /// A main-thread task ended after `ms`; the WebGPU time noted during it is
+    /// split off.
     pub fn note_main_thread_task(&mut self, ms: f64) {
+        let webgpu = std::mem::take(&mut self.webgpu_ms_in_task).min(ms);
         self.longest_main_task_ms = self.longest_main_task_ms.max(ms);
+        self.longest_own_task_ms = self.longest_own_task_ms.max(ms - webgpu);
+        self.longest_webgpu_ms = self.longest_webgpu_ms.max(webgpu);
+    }
+
+    /// `ms` of the running task went to WebGPU calls.
+    pub fn note_webgpu(&mut self, ms: f64) {
+        self.webgpu_ms_in_task += ms.max(0.0);
     }
 
     pub fn record_error(&mut self, message: String) {
@@ -94,7 +113,7 @@ mod tests {
         };
         let v: serde_json::Value = serde_json::to_value(&s).unwrap();
         let keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
-        assert_eq!(keys.len(), 21);
+        assert_eq!(keys.len(), 23);
         for k in [
             "frameMs",
             "blocksDrawn",
@@ -115,6 +134,19 @@ mod tests {
         ] {
             assert!(keys.contains(&k), "missing {k}");
         }
+    }
+
+    #[test]
+    fn webgpu_time_is_split_off_each_task() {
+        let mut s = Stats::default();
+        s.note_webgpu(30.0);
+        s.note_main_thread_task(33.0);
+        // A task without WebGPU calls: all its own.
+        s.note_main_thread_task(5.0);
+        assert_eq!((s.longest_main_task_ms, s.longest_own_task_ms, s.longest_webgpu_ms), (33.0, 5.0, 30.0));
+        // Control: the WebGPU time does not leak into the next task.
+        s.note_main_thread_task(6.0);
+        assert_eq!(s.longest_own_task_ms, 6.0);
     }
 
     #[test]

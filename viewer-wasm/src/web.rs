@@ -243,6 +243,7 @@ async fn run() -> Result<(), String> {
         }
     }
     // Level changes cross-fade over 250 ms; ?fade=0 makes them pop, ?fade=1000 slows them.
+    scene.clock = now_ms;
     scene.crossfade =
         crate::crossfade::Crossfade::new(url_number("fade", 0.0..=5000.0).map_or(250.0, f64::from));
     if url_param("refine").as_deref() == Some("holes") {
@@ -351,7 +352,10 @@ impl App {
         self.resize_if_needed();
         self.start_fetches();
 
-        let texture = match self.surface.get_current_texture() {
+        let webgpu_from = now_ms();
+        let surface_texture = self.surface.get_current_texture();
+        self.scene.stats.note_webgpu(now_ms() - webgpu_from);
+        let texture = match surface_texture {
             wgpu::CurrentSurfaceTexture::Success(t) | wgpu::CurrentSurfaceTexture::Suboptimal(t) => t,
             wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
                 self.surface.configure(&self.renderer.device, &self.config);
@@ -370,7 +374,9 @@ impl App {
             // Same task as the draw: the canvas still holds this frame's image.
             self.save_screenshot();
         }
+        let webgpu_from = now_ms();
         self.renderer.queue.present(texture);
+        self.scene.stats.note_webgpu(now_ms() - webgpu_from);
         if let Some(job) = self.scene.take_occupancy_job() {
             let grid = self.scene.manifest.grid.resolution;
             if let Some(Err(e)) = self.occupancy_worker.as_mut().map(|w| w.submit(grid, job)) {
