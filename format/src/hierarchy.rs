@@ -839,7 +839,7 @@ mod tests {
     use proptest::prelude::*;
 
     use super::*;
-    use crate::{GridFrame, LevelInfo, ResolutionChoice, SourceInfo, morton3};
+    use crate::{LevelInfo, morton3};
 
     fn entry(key: BlockKey) -> BlockEntry {
         let base = key.coord().map(|c| c * BLOCK_SIZE);
@@ -926,27 +926,10 @@ mod tests {
 
     fn manifest_for(root: BlockEntry, root_page: Option<PageRef>, coarsest: u8) -> Manifest {
         let res = 64u32 << coarsest;
-        Manifest {
-            format_version: crate::FORMAT_VERSION,
-            name: "t".into(),
-            source: SourceInfo { file: "t".into(), format: "obj".into(), triangles: 1, skipped_triangles: 0 },
-            grid: GridFrame { origin: [0.0; 3], voxel_size: 1.0, resolution: res, units: None },
-            block_size: BLOCK_SIZE,
-            levels: (0..=coarsest)
-                .map(|l| LevelInfo { level: l, resolution: res >> l, blocks: 0, voxels: 0, bytes: 0 })
-                .collect(),
-            resolution_choice: ResolutionChoice {
-                mode: "explicit".into(),
-                resolution: res,
-                voxel_size: 1.0,
-                median_edge: None,
-                reason: "test".into(),
-            },
-            page_levels: PAGE_LEVELS,
-            root,
-            root_page,
-            root_pack: None,
-        }
+        let levels = (0..=coarsest)
+            .map(|l| LevelInfo { level: l, resolution: res >> l, blocks: 0, voxels: 0, bytes: 0 })
+            .collect();
+        crate::test_support::manifest("t", res, levels, root, root_page)
     }
 
     fn sample_level0() -> Vec<[u32; 3]> {

@@ -11,6 +11,8 @@ mod codec;
 pub mod hierarchy;
 mod key;
 mod manifest;
+#[cfg(any(test, feature = "test-support"))]
+pub mod test_support;
 mod voxel;
 
 pub use codec::{

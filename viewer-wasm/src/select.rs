@@ -246,10 +246,7 @@ pub fn resolve_draw_set(
 pub(crate) mod tests {
     use super::*;
     use crate::camera::OrbitCamera;
-    use voxstream_format::{
-        BLOCK_SIZE, FORMAT_VERSION, GridFrame, LevelInfo, PAGE_LEVELS, PageBuilder, ResolutionChoice,
-        SourceInfo, VoxelBounds, load_scene_index,
-    };
+    use voxstream_format::{BLOCK_SIZE, LevelInfo, PAGE_LEVELS, PageBuilder, VoxelBounds, load_scene_index};
 
     /// A full pyramid over a `res`³ grid where every block is filled edge to
     /// edge, as a fully loaded index (pages built and read back as a viewer would).
@@ -300,25 +297,7 @@ pub(crate) mod tests {
             }
         }
         let (root, root_page) = builder.finish().unwrap();
-        let m = Manifest {
-            format_version: FORMAT_VERSION,
-            name: "pyramid".into(),
-            source: SourceInfo { file: "x".into(), format: "obj".into(), triangles: 0, skipped_triangles: 0 },
-            grid: GridFrame { origin: [0.0; 3], voxel_size: 1.0, resolution: res, units: None },
-            block_size: BLOCK_SIZE,
-            levels,
-            resolution_choice: ResolutionChoice {
-                mode: "explicit".into(),
-                resolution: res,
-                voxel_size: 1.0,
-                median_edge: None,
-                reason: "test".into(),
-            },
-            page_levels: PAGE_LEVELS,
-            root,
-            root_page,
-            root_pack: None,
-        };
+        let m = voxstream_format::test_support::manifest("pyramid", res, levels, root, root_page);
         m.validate().unwrap();
         let index = load_scene_index(&m, |r| {
             pages.get(&r.hash).cloned().ok_or_else(|| std::io::Error::other("missing page"))
