@@ -35,6 +35,14 @@ fi
 
 command -v cargo >/dev/null 2>&1 || die "cargo is missing (bash scripts/setup.sh installs a Rust toolchain)"
 mkdir -p "$TOOLS"
+# Tests start in parallel and each asks for Garage: one compiles, the others wait for it here and
+# then find the binary, instead of compiling it again.
+exec 9>"$TOOLS/garage-$GARAGE_VERSION.lock"
+flock 9 || die "cannot lock $TOOLS/garage-$GARAGE_VERSION.lock"
+if [ -x "$BIN" ] && "$BIN" --version >/dev/null 2>&1; then
+  printf '%s\n' "$BIN"
+  exit 0
+fi
 # A half-finished install (killed compile) never leaves a binary at $BIN: cargo installs into a
 # temporary root that is renamed into place only when the compile succeeded.
 TMP="$DEST.partial.$$"
