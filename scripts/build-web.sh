@@ -4,6 +4,8 @@
 #   dist/index.html, viewer.css,       copied from viewer-wasm/web/ (the viewer page and the
 #   upload.html, upload.js, upload.css upload/catalog page)
 #   dist/pkg/                          wasm-bindgen --target web output (voxstream_viewer.js + _bg.wasm)
+#   dist/vendor/tus.min.js             tus-js-client's browser bundle (and its LICENSE), from the npm
+#                                      package scripts/setup.sh installs in tests/browser
 #
 #   bash scripts/build-web.sh
 #
@@ -86,4 +88,41 @@ for f in "$ROOT"/viewer-wasm/web/*; do
   dest="$DIST/$(basename "$f")"
   cmp -s "$f" "$dest" 2>/dev/null || cp "$f" "$dest"
 done
+# --- 4. vendored tus-js-client for the upload page ----------------------------------------------
+# Its browser bundle (defines window.tus) and LICENSE, at the version and integrity that
+# tests/browser/package-lock.json pins: from node_modules when scripts/setup.sh installed it there,
+# else from the npm registry's tarball, checked against the lockfile's sha512 (the docker build has
+# no npm).
+LOCK="$ROOT/tests/browser/package-lock.json"
+TUS_PKG="$ROOT/tests/browser/node_modules/tus-js-client"
+TUS_BLOCK="$(grep -A3 '"node_modules/tus-js-client"' "$LOCK")"
+TUS_WANT="$(printf '%s\n' "$TUS_BLOCK" | sed -n 's/.*"version": *"\([^"]*\)".*/\1/p')"
+TUS_SRI="$(printf '%s\n' "$TUS_BLOCK" | sed -n 's/.*"integrity": *"sha512-\([^"]*\)".*/\1/p')"
+if [ -z "$TUS_WANT" ] || [ -z "$TUS_SRI" ]; then die "tus-js-client's version or integrity is missing from $LOCK"; fi
+TUS_HAVE=""
+if [ -f "$TUS_PKG/package.json" ]; then
+  TUS_HAVE="$(sed -n 's/^ *"version": *"\([^"]*\)".*/\1/p' "$TUS_PKG/package.json" | head -1)"
+fi
+if [ "$TUS_HAVE" != "$TUS_WANT" ]; then
+  TUS_PKG="${CARGO_TARGET_DIR:-$ROOT/target}/vendor/tus-js-client-$TUS_WANT/package"
+  if [ ! -f "$TUS_PKG/dist/tus.min.js" ]; then
+    TGZ="$(dirname "$TUS_PKG").tgz"
+    mkdir -p "$(dirname "$TUS_PKG")"
+    log "downloading tus-js-client $TUS_WANT from the npm registry"
+    curl -fsSL --retry 3 -o "$TGZ" "https://registry.npmjs.org/tus-js-client/-/tus-js-client-$TUS_WANT.tgz" ||
+      die "cannot download tus-js-client $TUS_WANT (no network? run bash scripts/setup.sh to install it with npm)"
+    GOT="$(openssl dgst -sha512 -binary "$TGZ" | base64 -w0)"
+    [ "$GOT" = "$TUS_SRI" ] || die "tus-js-client-$TUS_WANT.tgz does not match the integrity in $LOCK"
+    tar -xzf "$TGZ" -C "$(dirname "$TUS_PKG")" package/dist/tus.min.js package/LICENSE ||
+      die "cannot unpack tus-js-client-$TUS_WANT.tgz"
+  fi
+fi
+mkdir -p "$DIST/vendor"
+for pair in "dist/tus.min.js:tus.min.js" "LICENSE:tus-js-client.LICENSE"; do
+  src="$TUS_PKG/${pair%%:*}"
+  dest="$DIST/vendor/${pair##*:}"
+  [ -f "$src" ] || die "$src is missing from the tus-js-client package"
+  cmp -s "$src" "$dest" 2>/dev/null || cp "$src" "$dest"
+done
+
 log "bundle ready: ${DIST#"$ROOT"/} ($(du -sh "$PKG/voxstream_viewer_bg.wasm" | cut -f1) wasm)"

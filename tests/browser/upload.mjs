@@ -96,6 +96,10 @@ try {
     }
   });
 
+  // The page uploads through the vendored tus-js-client (window.tus), not code of its own.
+  const tusClient = await page.evaluate(
+    () => typeof window.tus?.Upload === 'function' && typeof window.tus?.isSupported === 'boolean',
+  );
   const bytes = readFileSync(meshPath);
   const name = basename(meshPath);
   console.log(`[upload ${since()}] dropping ${name} (${bytes.length} bytes) onto #drop-zone`);
@@ -192,7 +196,7 @@ try {
   writeFileSync(
     join(outDir, 'upload.json'),
     JSON.stringify(
-      { base, file: name, bytes: bytes.length, chunk: CHUNK, cutPatches: cut, requests, page: page1, viewer, errors, pageErrors, elapsedMs: Date.now() - t0 },
+      { base, file: name, bytes: bytes.length, chunk: CHUNK, tusClient, cutPatches: cut, requests, page: page1, viewer, errors, pageErrors, elapsedMs: Date.now() - t0 },
       null,
       2,
     ),

@@ -395,6 +395,7 @@ fn upload_page_builds_and_opens_scene() {
     // offset the server confirmed.
     let requests = result["requests"].as_array().expect("requests");
     let size = std::fs::metadata(&mesh).unwrap().len();
+    assert_eq!(result["tusClient"], true, "the page did not load the vendored tus-js-client: {result}");
     assert_eq!(result["cutPatches"], 1, "the harness should have cut one PATCH: {result}");
     assert!(
         requests.iter().any(|r| r["method"] == "HEAD" && r["status"] == 200),

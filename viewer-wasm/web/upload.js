@@ -1,19 +1,21 @@
-// voxstream upload page: a dropped mesh goes up with tus 1.0 (resumable: chunks are PATCHed with
-// XHR so the upload bar moves, a lost connection asks the server for its offset with HEAD and
-// continues), its build is followed over server-sent events, and the catalog lists the scenes
-// with thumbnails. Plain JS, no dependencies. Page contract: notes/CONTRACTS.md.
+// voxstream upload page: a dropped mesh goes up with tus 1.0 through the official tus-js-client
+// (vendored by scripts/build-web.sh from its npm package into vendor/tus.min.js: chunks, retries
+// with HEAD after a lost connection, resuming after a reload), its build is followed over
+// server-sent events, and the catalog lists the scenes with thumbnails. Page contract:
+// notes/CONTRACTS.md.
+
+/* global tus */
 
 const $ = (id) => document.getElementById(id);
 
-const TUS_VERSION = '1.0.0';
 /** Bytes per PATCH; `?chunk=<bytes>` (at least 64 KiB) overrides, e.g. to watch small files move. */
 const CHUNK_BYTES = Math.max(Number(new URLSearchParams(window.location.search).get('chunk')) || 8 << 20, 64 << 10);
-/** Consecutive failed attempts to continue an upload before giving up. */
+/** Waits between attempts to continue an upload after a lost connection; then it gives up. */
+const RETRY_DELAYS_MS = [0, 1000, 2000, 4000, 8000, 15000];
+/** Consecutive failed polls of a job before giving up. */
 const MAX_RETRIES = 6;
 const FORMATS = ['ply', 'obj', 'stl', 'glb', 'gltf'];
 const TOKEN_KEY = 'voxstream.token';
-/** File fingerprint -> tus upload URL, so a reloaded page resumes instead of starting over. */
-const UPLOADS_KEY = 'voxstream.uploads';
 
 // ---- small helpers --------------------------------------------------------------------------
 
@@ -22,13 +24,6 @@ const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
 function authHeaders(headers = {}) {
   const token = $('token').value.trim();
   return token ? { ...headers, Authorization: `Bearer ${token}` } : headers;
-}
-
-/** tus Upload-Metadata values are base64 of UTF-8. */
-function base64(text) {
-  let binary = '';
-  for (const b of new TextEncoder().encode(text)) binary += String.fromCharCode(b);
-  return btoa(binary);
 }
 
 function formatBytes(n) {
@@ -103,34 +98,9 @@ function showError(message) {
   el.hidden = !message;
 }
 
-// ---- remembered uploads (resume after a reload) ----------------------------------------------
-
-function fingerprint(file, meta) {
-  return JSON.stringify([file.name, file.size, file.lastModified, meta]);
-}
-
-function rememberedUploads() {
-  try {
-    return JSON.parse(localStorage.getItem(UPLOADS_KEY) || '{}') || {};
-  } catch {
-    return {};
-  }
-}
-
-function remember(key, url) {
-  const all = rememberedUploads();
-  if (url) all[key] = url;
-  else delete all[key];
-  try {
-    localStorage.setItem(UPLOADS_KEY, JSON.stringify(all));
-  } catch {
-    // Private mode or a full quota: resuming after a reload is a bonus, not a requirement.
-  }
-}
-
 // ---- one upload and build ---------------------------------------------------------------------
 
-/** The upload and build in progress: { file, key, url, xhr, jobId, events, cancelled, finished }. */
+/** The upload and build in progress: { file, upload, jobId, events, cancelled, finished }. */
 let current = null;
 
 function uploadMetadata(file) {
@@ -144,117 +114,83 @@ function uploadMetadata(file) {
   return meta;
 }
 
-/** Where the server stands on an upload: { offset, job } or null when it does not know it. */
-async function headUpload(url) {
-  const resp = await fetch(url, { method: 'HEAD', headers: authHeaders({ 'Tus-Resumable': TUS_VERSION }) });
-  if (resp.status === 404 || resp.status === 410) return null;
-  if (!resp.ok) throw errorFromBody(resp.status, '', resp.statusText);
-  const offset = Number(resp.headers.get('Upload-Offset'));
-  if (!Number.isFinite(offset)) throw new Error('the server answered HEAD without Upload-Offset');
-  return { offset, job: resp.headers.get('Voxstream-Job') };
+/** The sentence for a failed tus request: the server's JSON error, or a lost connection. */
+function uploadError(err, confirmed) {
+  const res = err && err.originalResponse;
+  const status = res ? res.getStatus() : 0;
+  if (status > 0) return errorFromBody(status, res.getBody() || '', '');
+  return new Error(
+    `the upload stopped at ${formatBytes(confirmed)}: the server could not be reached ` +
+      `${RETRY_DELAYS_MS.length} times in a row. Drop the same file again to resume.`,
+  );
 }
 
-/** Creates the tus upload, or finds the one a reloaded page had started: { url, offset, job }. */
-async function createOrResume(run) {
-  const meta = uploadMetadata(run.file);
-  run.key = fingerprint(run.file, meta);
-  const known = rememberedUploads()[run.key];
-  if (known) {
-    const state = await headUpload(known).catch(() => null);
-    if (state) return { url: known, ...state };
-    remember(run.key, null);
-  }
-  const resp = await api('POST', '/api/uploads', {
-    headers: {
-      'Tus-Resumable': TUS_VERSION,
-      'Upload-Length': String(run.file.size),
-      'Upload-Metadata': Object.entries(meta)
-        .map(([k, v]) => `${k} ${base64(v)}`)
-        .join(','),
-    },
-  });
-  const location = resp.headers.get('Location');
-  if (!location) throw new Error('the server created the upload but sent no Location');
-  const url = new URL(location, window.location.href).pathname;
-  remember(run.key, url);
-  return { url, offset: 0, job: null };
-}
-
-/** One PATCH of `blob` at `offset`; resolves with the outcome, never rejects. */
-function patchChunk(run, blob, offset, onProgress) {
-  return new Promise((resolve) => {
-    const xhr = new XMLHttpRequest();
-    run.xhr = xhr;
-    xhr.open('PATCH', run.url);
-    const headers = authHeaders({
-      'Tus-Resumable': TUS_VERSION,
-      'Upload-Offset': String(offset),
-      'Content-Type': 'application/offset+octet-stream',
-    });
-    for (const [k, v] of Object.entries(headers)) xhr.setRequestHeader(k, v);
-    xhr.upload.onprogress = (e) => onProgress(offset + e.loaded);
-    xhr.onload = () => {
-      const header = xhr.getResponseHeader('Upload-Offset');
-      resolve({
-        status: xhr.status,
-        offset: header === null ? null : Number(header),
-        job: xhr.getResponseHeader('Voxstream-Job'),
-        text: xhr.responseText,
-        statusText: xhr.statusText,
-      });
-    };
-    xhr.onerror = () => resolve({ status: 0 });
-    xhr.ontimeout = () => resolve({ status: 0 });
-    xhr.onabort = () => resolve({ status: -1 });
-    xhr.send(blob);
-  });
-}
-
-/** Sends the file from `offset` in chunks; returns the job id the finished upload became. */
-async function sendFile(run, offset) {
+/**
+ * Sends the file with tus-js-client, resuming an upload a reloaded page had started. Resolves with
+ * the id of the build job the finished upload became (the server names it in `Voxstream-Job` on the
+ * last PATCH, or on HEAD when the upload was already complete).
+ */
+function sendFile(run) {
   const size = run.file.size;
   const bar = $('upload-progress');
   const started = performance.now();
-  const startOffset = offset;
-  const show = (bytes, note = '') => {
-    // Sent is not stored: 100 % only once the server has confirmed the last byte.
-    setBar(bar, Math.min(bytes / size, 0.999));
+  let confirmed = 0;
+  let firstSent = null;
+  const show = (sent, note = '') => {
+    // The bar shows what the server confirmed, so it never goes back after a lost connection;
+    // 100 % only once the last byte is stored.
+    setBar(bar, Math.min(confirmed / size, 0.999));
+    if (firstSent === null) firstSent = sent;
     const seconds = (performance.now() - started) / 1000;
-    const rate = seconds > 0.5 ? ` · ${formatBytes((bytes - startOffset) / seconds)}/s` : '';
-    $('upload-status').textContent = `${formatBytes(bytes)} of ${formatBytes(size)}${rate}${note}`;
+    const rate = seconds > 0.5 ? ` · ${formatBytes((sent - firstSent) / seconds)}/s` : '';
+    $('upload-status').textContent = `${formatBytes(sent)} of ${formatBytes(size)}${rate}${note}`;
   };
-  let failures = 0;
-  for (;;) {
-    if (run.cancelled) throw new Error('cancelled');
-    const end = Math.min(offset + CHUNK_BYTES, size);
-    const res = await patchChunk(run, run.file.slice(offset, end), offset, show);
-    if (res.status === -1 || run.cancelled) throw new Error('cancelled');
-    if (res.status === 204 && res.offset !== null) {
-      failures = 0;
-      offset = res.offset;
-      show(offset);
-      if (res.job) return res.job;
-      if (offset >= size) throw new Error('the server stored the whole file but started no build');
-      continue;
-    }
-    // Lost connection, server trouble or a disagreement about the offset: ask where to go on.
-    const recoverable = res.status === 0 || res.status >= 500 || res.status === 409 || res.status === 423;
-    if (!recoverable) throw errorFromBody(res.status, res.text, res.statusText);
-    failures += 1;
-    if (failures > MAX_RETRIES) {
-      throw new Error(`the upload stopped at ${formatBytes(offset)}: the server could not be reached ` +
-        `${MAX_RETRIES} times in a row. Drop the same file again to resume.`);
-    }
-    const wait = Math.min(1000 * 2 ** (failures - 1), 15000);
-    show(offset, ` · connection lost, resuming in ${Math.round(wait / 1000)} s`);
-    await sleep(wait);
-    if (run.cancelled) throw new Error('cancelled');
-    const state = await headUpload(run.url).catch(() => undefined);
-    if (state === null) throw new Error('the server no longer knows this upload; drop the file again');
-    if (state === undefined) continue; // still unreachable: try again after the next wait
-    if (state.job) return state.job;
-    offset = state.offset;
-  }
+  const meta = uploadMetadata(run.file);
+  return new Promise((resolve, reject) => {
+    const upload = new tus.Upload(run.file, {
+      endpoint: '/api/uploads',
+      chunkSize: CHUNK_BYTES,
+      retryDelays: RETRY_DELAYS_MS,
+      metadata: meta,
+      headers: authHeaders(),
+      // The same file with other options (id, resolution, replace) is another upload.
+      fingerprint: (file) =>
+        Promise.resolve(`voxstream:${JSON.stringify([file.name, file.size, file.lastModified, meta])}`),
+      removeFingerprintOnSuccess: true,
+      // Retry lost connections, server errors and offset disagreements on PATCH/HEAD; a refused
+      // creation (409: the scene exists) is an answer, not a glitch.
+      onShouldRetry: (err) => {
+        const status = err.originalResponse ? err.originalResponse.getStatus() : 0;
+        const method = err.originalRequest ? err.originalRequest.getMethod() : '';
+        if (status === 0 || status >= 500) return true;
+        return method !== 'POST' && (status === 409 || status === 423);
+      },
+      onProgress: (sent) => show(sent),
+      onChunkComplete: (_chunk, accepted) => {
+        confirmed = accepted;
+        show(accepted);
+      },
+      onAfterResponse: (_req, res) => {
+        const job = res.getHeader('Voxstream-Job');
+        if (job) run.jobId = job;
+        const offset = Number(res.getHeader('Upload-Offset'));
+        if (Number.isFinite(offset) && offset > confirmed) confirmed = offset;
+      },
+      onSuccess: () => {
+        if (run.jobId) resolve(run.jobId);
+        else reject(new Error('the server stored the whole file but started no build'));
+      },
+      onError: (err) => reject(run.cancelled ? new Error('cancelled') : uploadError(err, confirmed)),
+    });
+    run.upload = upload;
+    upload
+      .findPreviousUploads()
+      .then((previous) => {
+        if (previous.length > 0) upload.resumeFromPreviousUpload(previous[0]);
+        if (!run.cancelled) upload.start();
+      })
+      .catch(() => upload.start());
+  });
 }
 
 function showJob(job) {
@@ -346,10 +282,7 @@ async function startUpload(file) {
   $('upload-status').textContent = 'starting…';
   $('build-status').textContent = 'waits for the upload';
   try {
-    const created = await createOrResume(run);
-    run.url = created.url;
-    run.jobId = created.job || (await sendFile(run, created.offset));
-    remember(run.key, null);
+    run.jobId = await sendFile(run);
     setBar($('upload-progress'), 1);
     $('upload-status').textContent = `${formatBytes(file.size)} uploaded`;
     $('build-status').textContent = 'queued';
@@ -388,11 +321,8 @@ async function cancelRun() {
       await api('POST', `/api/jobs/${run.jobId}/cancel`);
     } else {
       run.cancelled = true;
-      run.xhr?.abort();
-      if (run.url) {
-        await fetch(run.url, { method: 'DELETE', headers: authHeaders({ 'Tus-Resumable': TUS_VERSION }) });
-      }
-      if (run.key) remember(run.key, null);
+      // Stops the PATCH in flight and DELETEs the upload on the server (tus termination).
+      await run.upload?.abort(true);
     }
   } catch (e) {
     showError(e.message);
