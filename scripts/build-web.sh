@@ -45,8 +45,9 @@ if command -v rustup >/dev/null 2>&1 && rustup target list --installed 2>/dev/nu
   log "rustup toolchain with $TARGET"
   CARGO_TARGET_DIR="$TARGET_DIR" cargo build --release --target "$TARGET" -p voxstream-viewer "${LOCKED[@]}"
 else
-  [ -x /usr/bin/rustc ] && [ -x /usr/bin/cargo ] ||
+  if [ ! -x /usr/bin/rustc ] || [ ! -x /usr/bin/cargo ]; then
     die "no $TARGET toolchain: run 'rustup target add $TARGET', or bash scripts/setup.sh (Debian rustc-web route)"
+  fi
   WASM_LD="${VOXSTREAM_WASM_LD:-}"
   if [ -z "$WASM_LD" ]; then
     for candidate in /usr/lib/llvm-22/bin/wasm-ld /usr/lib/llvm-*/bin/wasm-ld "$(command -v wasm-ld || true)"; do
