@@ -216,7 +216,9 @@ async fn bad_bucket_configuration_fails_fast_and_clearly() {
     // A port that was free a moment ago: nothing listens there.
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let dead = format!("http://127.0.0.1:{port}");
-    let cases: [(&str, Vec<(&str, String)>, &[&str]); 3] = [
+    // (store, settings over the right ones, what the error must name)
+    type Case<'a> = (&'a str, Vec<(&'a str, String)>, &'a [&'a str]);
+    let cases: [Case; 3] = [
         ("s3://scans/site", vec![("AWS_ENDPOINT_URL", dead.clone())], &[dead.as_str(), "connect"]),
         (
             "s3://scans/site",

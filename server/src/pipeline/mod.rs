@@ -66,7 +66,10 @@ pub struct BuildOptions {
 /// `pages/<key>.<blake3>.vxh`) and its bytes; an error stops the build. It may block: that is the
 /// back-pressure that bounds what a slower consumer holds.
 #[derive(Clone)]
-pub struct FinishedFiles(pub Arc<dyn Fn(&str, Vec<u8>) -> Result<(), String> + Send + Sync>);
+pub struct FinishedFiles(pub Arc<FinishedFile>);
+
+/// Takes one finished file: its name inside the scene and its bytes.
+pub type FinishedFile = dyn Fn(&str, Vec<u8>) -> Result<(), String> + Send + Sync;
 
 impl std::fmt::Debug for FinishedFiles {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
