@@ -11,7 +11,6 @@
 
 use std::path::Path;
 use std::sync::{Arc, Mutex};
-use std::time::Duration;
 
 use anyhow::Context;
 use tokio::task::JoinSet;
@@ -57,7 +56,11 @@ pub fn build_into_bucket(
         .build()
         .context("starting the upload runtime")?;
     // Unreachable endpoint, refused credentials, missing bucket: said before anything is read.
-    let bucket = Arc::new(rt.block_on(crate::objstore::connect(bucket, prefix, Duration::from_secs(10)))?);
+    let bucket = Arc::new(rt.block_on(crate::objstore::connect(
+        bucket,
+        prefix,
+        crate::objstore::START_CHECK_DEADLINE,
+    ))?);
     let scratch_parent = opts.temp_dir.clone().unwrap_or_else(std::env::temp_dir);
     std::fs::create_dir_all(&scratch_parent)
         .with_context(|| format!("cannot create {}", scratch_parent.display()))?;

@@ -368,7 +368,8 @@ pub fn serve_command(args: ServeArgs) -> anyhow::Result<()> {
             crate::objstore::Location::S3 { bucket, prefix } => {
                 // Unreachable endpoint, refused credentials, missing bucket: one error naming the
                 // endpoint and the cause, before anything listens.
-                let bucket = crate::objstore::connect(&bucket, &prefix, BUCKET_CHECK_DEADLINE).await?;
+                let bucket =
+                    crate::objstore::connect(&bucket, &prefix, crate::objstore::START_CHECK_DEADLINE).await?;
                 let bucket = Arc::new(BucketStore::new(bucket, args.cache_size));
                 let state = AppState::start_bucket(config, bucket, shutdown.clone()).await?;
                 tokio::spawn(relist_periodically(
@@ -410,9 +411,6 @@ pub fn serve_command(args: ServeArgs) -> anyhow::Result<()> {
     rt.shutdown_timeout(Duration::from_secs(1));
     result
 }
-
-/// How long a replica waits for its bucket to answer at start.
-const BUCKET_CHECK_DEADLINE: Duration = Duration::from_secs(5);
 
 /// Re-reads a bucket's listing every `every`, so scenes published by other processes appear (and
 /// replaced ones change) on every replica.
