@@ -10,12 +10,14 @@ use std::collections::BTreeMap;
 use std::fs;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, RwLock};
-use std::time::{SystemTime, UNIX_EPOCH};
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use axum::body::Bytes;
 use serde::{Deserialize, Serialize};
+use voxstream_format::Manifest;
 
-use crate::store::{self, StoreError, StoredScene};
+use crate::bucket_store::BucketStore;
+use crate::store::{self, SceneFiles, StoreError, StoredScene};
 
 pub const BUILD_INFO_FILE: &str = "scene.json";
 
@@ -77,7 +79,8 @@ pub struct LoadedScene {
 
 impl LoadedScene {
     fn load(stored: StoredScene) -> LoadedScene {
-        let info = read_build_info(&stored.dir);
+        // A bucket scene has no scene.json (the server does not build into a bucket yet).
+        let info = stored.local_dir().map(read_build_info).unwrap_or_default();
         let manifest_json = Bytes::from(stored.manifest.to_json());
         let meta = scene_meta(&stored, &info, manifest_json.len() as u64);
         LoadedScene { stored, manifest_json, meta }
@@ -152,7 +155,35 @@ pub enum CatalogError {
     Store(#[from] StoreError),
     #[error("{action} {path}: {source}")]
     Io { action: &'static str, path: PathBuf, source: std::io::Error },
+    #[error("{0} is served read-only: {hint}", hint = READ_ONLY_BUCKET_HINT)]
+    ReadOnlyBucket(String),
 }
+
+/// How scenes get into a bucket, for refusals of writes on a replica.
+pub const READ_ONLY_BUCKET_HINT: &str =
+    "this replica serves a bucket read-only; build with `voxstream build --out s3://bucket/prefix`";
+
+/// Where a catalog's scenes live.
+#[derive(Clone)]
+pub enum SceneStore {
+    /// A folder: `<store>/<id>/`, renamed and deleted by this server.
+    Local(PathBuf),
+    /// `s3://bucket/prefix`: listed from the bucket (every replica lists the same scenes), read
+    /// through a bounded cache, never written by the server.
+    Bucket(Arc<BucketStore>),
+}
+
+impl std::fmt::Display for SceneStore {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            SceneStore::Local(dir) => write!(f, "{}", dir.display()),
+            SceneStore::Bucket(b) => write!(f, "{} at {}", b.url(), b.bucket.endpoint),
+        }
+    }
+}
+
+/// How long an id the bucket did not have is answered from memory before the bucket is asked again.
+const UNKNOWN_ID_RECHECK: Duration = Duration::from_secs(2);
 
 pub fn now_unix() -> u64 {
     SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs())
@@ -164,10 +195,18 @@ fn nanos() -> u128 {
 
 /// The published scenes of one store.
 pub struct Catalog {
+    /// The local store folder; for a bucket, the replica's own folder for job and upload state
+    /// (unused: a bucket replica takes no uploads yet).
     store: PathBuf,
+    scenes_at: SceneStore,
     scenes: RwLock<BTreeMap<String, Arc<LoadedScene>>>,
     /// Serialises renames and deletes against each other.
     edits: Mutex<()>,
+    /// Ids a bucket lookup recently did not find, so a stream of requests for an unknown id does
+    /// not become a stream of bucket requests.
+    unknown: moka::future::Cache<String, ()>,
+    /// The manifest bytes each bucket scene was loaded from, to tell a replaced scene on re-listing.
+    manifests: Mutex<BTreeMap<String, Bytes>>,
 }
 
 impl Catalog {
@@ -178,11 +217,123 @@ impl Catalog {
             .into_iter()
             .map(|s| (s.id.clone(), Arc::new(LoadedScene::load(s))))
             .collect();
-        Ok(Catalog { store: store.to_path_buf(), scenes: RwLock::new(scenes), edits: Mutex::new(()) })
+        Ok(Self::with_scenes(store.to_path_buf(), SceneStore::Local(store.to_path_buf()), scenes))
     }
 
+    fn with_scenes(
+        store: PathBuf,
+        scenes_at: SceneStore,
+        scenes: BTreeMap<String, Arc<LoadedScene>>,
+    ) -> Catalog {
+        Catalog {
+            store,
+            scenes_at,
+            scenes: RwLock::new(scenes),
+            edits: Mutex::new(()),
+            unknown: moka::future::Cache::builder()
+                .max_capacity(10_000)
+                .time_to_live(UNKNOWN_ID_RECHECK)
+                .build(),
+            manifests: Mutex::new(BTreeMap::new()),
+        }
+    }
+
+    /// Lists the bucket's scenes and loads every one with a manifest. A listing that fails is an
+    /// error (a replica must not start serving an empty catalog); a scene that cannot be loaded is
+    /// skipped with its cause logged, so one damaged scene does not stop every replica.
+    /// `state_dir` holds the replica's own state.
+    pub async fn open_bucket(bucket: Arc<BucketStore>, state_dir: &Path) -> Result<Catalog, String> {
+        let catalog = Self::with_scenes(state_dir.to_path_buf(), SceneStore::Bucket(bucket), BTreeMap::new());
+        catalog.relist().await?;
+        Ok(catalog)
+    }
+
+    /// Where the scenes live.
+    pub fn scene_store(&self) -> &SceneStore {
+        &self.scenes_at
+    }
+
+    /// The local folder of the store (for a bucket, the replica's own state folder).
     pub fn store(&self) -> &Path {
         &self.store
+    }
+
+    /// Re-reads a bucket's listing: loads new scenes and scenes whose manifest changed, drops
+    /// scenes whose manifest is gone. A scene that fails to load keeps its previous version.
+    /// Nothing to do for a local store (the server is its only writer). Returns the error of the
+    /// listing itself.
+    pub async fn relist(&self) -> Result<(), String> {
+        let SceneStore::Bucket(bucket) = &self.scenes_at else { return Ok(()) };
+        let ids = bucket.list_ids().await?;
+        let mut seen = Vec::new();
+        for id in ids {
+            match self.load_from_bucket(bucket, &id).await {
+                Ok(true) => seen.push(id),
+                Ok(false) => {}
+                Err(e) => {
+                    tracing::error!(scene = %id, error = %e, "scene in the bucket cannot be served");
+                    if self.get(&id).is_some() {
+                        seen.push(id);
+                    }
+                }
+            }
+        }
+        let gone: Vec<String> = {
+            let scenes = self.scenes.read().expect("catalog lock");
+            scenes.keys().filter(|id| !seen.contains(id)).cloned().collect()
+        };
+        for id in gone {
+            tracing::info!(scene = %id, "scene no longer in the bucket");
+            self.scenes.write().expect("catalog lock").remove(&id);
+            self.manifests.lock().expect("manifest lock").remove(&id);
+        }
+        Ok(())
+    }
+
+    /// Loads (or reloads) scene `id` from the bucket when its manifest differs from the one loaded.
+    /// `Ok(false)`: the scene has no manifest.
+    async fn load_from_bucket(&self, bucket: &Arc<BucketStore>, id: &str) -> Result<bool, String> {
+        let Some(bytes) = bucket.manifest(id).await? else { return Ok(false) };
+        if self.manifests.lock().expect("manifest lock").get(id) == Some(&bytes) {
+            return Ok(true);
+        }
+        let manifest = Manifest::from_json(&bytes).map_err(|e| format!("scene {id} is damaged: {e}"))?;
+        let index = bucket.load_index(id, &manifest).await.map_err(|e| e.to_string())?;
+        let stored = StoredScene {
+            id: id.to_string(),
+            files: SceneFiles::Bucket(bucket.clone()),
+            manifest,
+            index: Arc::new(index),
+        };
+        let loaded = Arc::new(LoadedScene::load(stored));
+        self.scenes.write().expect("catalog lock").insert(id.to_string(), loaded);
+        self.manifests.lock().expect("manifest lock").insert(id.to_string(), bytes);
+        tracing::info!(scene = %id, "scene loaded from the bucket");
+        Ok(true)
+    }
+
+    /// A scene, asking the bucket for an id not listed yet (another replica's build may have
+    /// published it since the last listing); unknown ids are remembered for a moment.
+    pub async fn find(&self, id: &str) -> Option<Arc<LoadedScene>> {
+        if let Some(scene) = self.get(id) {
+            return Some(scene);
+        }
+        let SceneStore::Bucket(bucket) = &self.scenes_at else { return None };
+        if self.unknown.contains_key(id) {
+            return None;
+        }
+        match self.load_from_bucket(bucket, id).await {
+            Ok(true) => self.get(id),
+            Ok(false) => {
+                self.unknown.insert(id.to_string(), ()).await;
+                None
+            }
+            Err(e) => {
+                tracing::warn!(scene = %id, error = %e, "scene in the bucket cannot be served");
+                self.unknown.insert(id.to_string(), ()).await;
+                None
+            }
+        }
     }
 
     pub fn list(&self) -> Vec<Arc<LoadedScene>> {
@@ -194,11 +345,18 @@ impl Catalog {
     }
 
     pub fn contains(&self, id: &str) -> bool {
-        self.scenes.read().expect("catalog lock").contains_key(id) || self.store.join(id).exists()
+        self.scenes.read().expect("catalog lock").contains_key(id)
+            || matches!(&self.scenes_at, SceneStore::Local(dir) if dir.join(id).exists())
     }
 
     /// Re-reads one scene from disk after a build published it.
     pub fn refresh(&self, id: &str) -> Result<Arc<LoadedScene>, StoreError> {
+        if let SceneStore::Bucket(b) = &self.scenes_at {
+            return Err(StoreError::Damaged {
+                id: id.to_string(),
+                message: format!("{} is served read-only", b.url()),
+            });
+        }
         let loaded = Arc::new(LoadedScene::load(store::open_scene(&self.store, id)?));
         self.scenes.write().expect("catalog lock").insert(id.to_string(), loaded.clone());
         Ok(loaded)
@@ -214,6 +372,9 @@ impl Catalog {
         let _edits = self.edits.lock().expect("catalog edit lock");
         if self.get(id).is_none() {
             return Err(CatalogError::NotFound(id.into()));
+        }
+        if let SceneStore::Bucket(b) = &self.scenes_at {
+            return Err(CatalogError::ReadOnlyBucket(b.url()));
         }
         let mut current = id.to_string();
         if let Some(to) = new_id.filter(|to| *to != id) {
@@ -250,6 +411,9 @@ impl Catalog {
         let _edits = self.edits.lock().expect("catalog edit lock");
         if self.get(id).is_none() {
             return Err(CatalogError::NotFound(id.into()));
+        }
+        if let SceneStore::Bucket(b) = &self.scenes_at {
+            return Err(CatalogError::ReadOnlyBucket(b.url()));
         }
         let dir = self.store.join(id);
         let trash = self.store.join(format!(".trash-{id}-{}", nanos()));

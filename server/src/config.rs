@@ -10,9 +10,20 @@ use clap::Args;
 /// Flags of `voxstream serve` (each also read from the `VOXSTREAM_*` variable named).
 #[derive(Debug, Clone, Args)]
 pub struct ServeArgs {
-    /// The store directory (scenes, plus .jobs/ and .uploads/ for the server's own state).
+    /// The store: a directory (scenes, plus .jobs/ and .uploads/ for the server's own state), or
+    /// s3://bucket/prefix, served read-only from the bucket (endpoint and credentials from AWS_*
+    /// variables or VOXSTREAM_S3_ENV_FILE; see --cache-size).
     #[arg(long, env = "VOXSTREAM_STORE")]
     pub store: PathBuf,
+    /// With an s3:// store: bytes of hot hierarchy pages and blocks kept in memory (K/M/G
+    /// suffixes: 256MiB, 1G); hits and misses are in /metrics.
+    #[arg(long, env = "VOXSTREAM_CACHE_SIZE", default_value = "256MiB",
+        value_parser = crate::pipeline::parse_byte_size)]
+    pub cache_size: u64,
+    /// With an s3:// store: seconds between listings of the bucket's scenes (an id not listed yet
+    /// is also looked up when asked for).
+    #[arg(long, env = "VOXSTREAM_RELIST_SECS", default_value_t = 5)]
+    pub relist_secs: u64,
     #[arg(long, env = "VOXSTREAM_ADDR", default_value = "127.0.0.1:8080")]
     pub addr: SocketAddr,
     /// Directory of the built viewer (index.html, pkg/, upload.html).

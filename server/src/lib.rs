@@ -11,6 +11,8 @@
 //! [`metrics`]; [`thumbnail`] draws catalog pictures on the CPU.
 
 pub mod bench;
+pub mod bucket_build;
+pub mod bucket_store;
 pub mod catalog;
 pub mod config;
 pub mod http;

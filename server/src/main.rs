@@ -20,7 +20,9 @@ enum Command {
     Build {
         /// The mesh file.
         mesh: PathBuf,
-        /// The store directory; the scene is published as <out>/<name>.
+        /// The store directory; the scene is published as <out>/<name>. Or s3://bucket/prefix:
+        /// packs and pages are uploaded as they are finished and <prefix>/<name>/manifest.json
+        /// last (endpoint and credentials from AWS_* variables or VOXSTREAM_S3_ENV_FILE).
         #[arg(long)]
         out: PathBuf,
         /// Level-0 voxels per edge of the mesh's bounding cube: `auto` (the power of
@@ -41,7 +43,8 @@ enum Command {
         /// Memory the build may hold (bytes, or with a K/M/G suffix: 1GiB, 512M); the rest goes to temp files.
         #[arg(long, default_value = "1GiB", value_parser = parse_byte_size)]
         memory_budget: u64,
-        /// Directory for the build's temporary files (default: inside --out); removed afterwards.
+        /// Directory for the build's temporary files (default: inside --out; the system's temp
+        /// folder for an s3:// --out); removed afterwards.
         #[arg(long)]
         tmp: Option<PathBuf>,
     },
@@ -211,12 +214,12 @@ fn main() -> ExitCode {
     }
 }
 
-/// Stores are local folders for now: an `s3://` store is refused by name instead of being taken
-/// for a folder called "s3:" (only `publish --to` writes to a bucket).
+/// `publish` reads a local store only: an `s3://` store is refused by name instead of being taken
+/// for a folder called "s3:".
 fn no_bucket_store(path: &std::path::Path, flag: &str) -> anyhow::Result<()> {
     if path.to_str().is_some_and(|p| p.contains("://")) {
         anyhow::bail!(
-            "{flag} {}: stores in object storage are not supported yet, only local folders \
+            "{flag} {}: publishing from a bucket is not supported yet, only from a local store \
              (publish --to s3://bucket/prefix writes a static site to a bucket)",
             path.display()
         );
@@ -227,7 +230,8 @@ fn no_bucket_store(path: &std::path::Path, flag: &str) -> anyhow::Result<()> {
 fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Build { mesh, out, resolution, voxel_size, name, topology, memory_budget, tmp } => {
-            no_bucket_store(&out, "build --out")?;
+            let out = voxstream::objstore::parse_location(&out.to_string_lossy())
+                .map_err(|e| anyhow::anyhow!("--out {e}"))?;
             let resolution = voxel_size.map_or(resolution, Resolution::VoxelSize);
             let topology = match topology {
                 TopologyArg::Conservative => Topology::Conservative,
@@ -246,20 +250,31 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 bar.set_position((p.fraction * 1000.0) as u64);
                 bar.set_message(format!("{} {:.2} Mtri/s", p.stage.name(), p.triangles_per_second / 1e6));
             };
-            let result = build_scene_reporting(
-                &mesh,
-                &out,
-                &BuildOptions {
-                    resolution,
-                    name,
-                    topology,
-                    cancel: None,
-                    memory_budget,
-                    temp_dir: tmp,
-                    ..Default::default()
-                },
-                &report,
-            );
+            let opts = BuildOptions {
+                resolution,
+                name,
+                topology,
+                cancel: None,
+                memory_budget,
+                temp_dir: tmp,
+                ..Default::default()
+            };
+            let (result, published_at) = match out {
+                voxstream::objstore::Location::Local(dir) => {
+                    let r = build_scene_reporting(&mesh, &dir, &opts, &report);
+                    let at = r.as_ref().map(|r| r.scene_dir.display().to_string()).unwrap_or_default();
+                    (r.map_err(anyhow::Error::from), at)
+                }
+                voxstream::objstore::Location::S3 { bucket, prefix } => {
+                    match voxstream::bucket_build::build_into_bucket(&mesh, &bucket, &prefix, opts, &report) {
+                        Ok(b) => {
+                            let at = format!("{} ({} objects, {} bytes)", b.url, b.objects, b.bytes);
+                            (Ok(b.report), at)
+                        }
+                        Err(e) => (Err(e), String::new()),
+                    }
+                }
+            };
             bar.finish_and_clear();
             let r = result?;
             println!(
@@ -272,7 +287,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 r.blocks,
                 r.levels,
                 r.bytes,
-                r.scene_dir.display()
+                published_at
             );
             println!("resolution {}: {}", r.resolution_choice.resolution, r.resolution_choice.reason);
             Ok(())
@@ -291,10 +306,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Bench(args) => voxstream::bench::bench_main(&args),
         Command::BenchMeshopt(args) => voxstream::bench::bench_meshopt_main(&args),
-        Command::Serve(args) => {
-            no_bucket_store(&args.store, "serve --store")?;
-            voxstream::http::serve_command(args)
-        }
+        Command::Serve(args) => voxstream::http::serve_command(args),
         Command::Publish { scene, store, to, web } => {
             let viewer = match &web {
                 Some(dir) => voxstream::publish::ViewerFiles::Dir(dir),

@@ -80,6 +80,31 @@ impl Metrics {
         Metrics { registry, ..m }
     }
 
+    /// Registers a bucket replica's cache: hits and misses by kind (page, block), its bound and
+    /// what it holds, in bytes.
+    pub fn register_store_cache(&mut self, cache: &crate::bucket_store::CacheMetrics) {
+        self.registry.register(
+            "store_cache_hits",
+            "Pages and blocks served from the replica's in-process cache, by kind",
+            cache.hits.clone(),
+        );
+        self.registry.register(
+            "store_cache_misses",
+            "Pages and blocks the replica's cache did not hold (read from the bucket), by kind",
+            cache.misses.clone(),
+        );
+        self.registry.register(
+            "store_cache_capacity_bytes",
+            "Bound of the replica's cache of pages and blocks (--cache-size)",
+            cache.capacity_bytes.clone(),
+        );
+        self.registry.register(
+            "store_cache_bytes",
+            "Bytes of pages and blocks in the replica's cache",
+            cache.cached_bytes.clone(),
+        );
+    }
+
     pub fn labels(pairs: &[(&str, &str)]) -> Labels {
         pairs.iter().map(|(k, v)| (k.to_string(), v.to_string())).collect()
     }

@@ -18,6 +18,10 @@ use object_store::aws::{AmazonS3Builder, AmazonS3ConfigKey};
 use object_store::path::Path as ObjectPath;
 use object_store::{Attribute, Attributes, ClientOptions, ObjectStore, PutOptions, PutPayload, RetryConfig};
 
+/// How long `serve --store s3://…` and `build --out s3://…` wait for the bucket to answer at start:
+/// a blackholed endpoint fails within this, not after every connect retry.
+pub const START_CHECK_DEADLINE: Duration = Duration::from_secs(5);
+
 /// Where a command reads or writes.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Location {

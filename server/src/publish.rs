@@ -163,7 +163,7 @@ fn write_site(
     }
     let scene_dir = dir.join("api/scenes").join(id);
     // The manifest as stored (its hash names nothing; it is the scene's one mutable file).
-    let manifest = fs::read(scene.dir.join("manifest.json")).context("cannot read the manifest")?;
+    let manifest = fs::read(scene.dir().join("manifest.json")).context("cannot read the manifest")?;
     add(&scene_dir.join("manifest"), &manifest, &mut report)?;
     for (r, bytes) in &scene_pages(scene)? {
         add(&scene_dir.join("pages").join(format!("{}.{}", r.root, r.hash)), bytes, &mut report)?;
@@ -315,7 +315,7 @@ pub async fn publish_to_bucket(
     report.files += count;
     report.bytes += bytes;
     // 2. The scene's one mutable pointer, then the page that names it.
-    let manifest = fs::read(scene.dir.join("manifest.json")).context("cannot read the manifest")?;
+    let manifest = fs::read(scene.dir().join("manifest.json")).context("cannot read the manifest")?;
     report.bytes += manifest.len() as u64 + index_html.len() as u64;
     bucket.put(&format!("{scene_prefix}/manifest"), manifest, "application/json", REVALIDATE).await?;
     bucket.put("index.html", index_html, "text/html; charset=utf-8", REVALIDATE).await?;

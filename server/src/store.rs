@@ -9,9 +9,17 @@
 
 use std::fs;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
-use voxstream_format::hierarchy::{pack_path, page_path};
+use axum::body::Bytes;
+use futures_util::{StreamExt, TryStreamExt};
+use voxstream_format::hierarchy::{content_hash, pack_path, page_path};
 use voxstream_format::{BlockEntry, BlockKey, Manifest, SceneIndex, load_scene_index};
+
+use crate::bucket_store::{BucketReadError, BucketStore};
+
+/// Blocks of one batch request fetched from a bucket at once.
+const BUCKET_BATCH_FETCHES: usize = 8;
 
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
@@ -60,41 +68,83 @@ pub enum BlockReadError {
     Changed { key: BlockKey },
 }
 
+/// Where a scene's pages and packs are.
+#[derive(Clone)]
+pub enum SceneFiles {
+    /// `<store>/<id>`, a local folder.
+    Dir(PathBuf),
+    /// `<prefix>/<id>/` in a bucket, read through the replica's cache.
+    Bucket(Arc<BucketStore>),
+}
+
+impl std::fmt::Debug for SceneFiles {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            SceneFiles::Dir(dir) => write!(f, "Dir({})", dir.display()),
+            SceneFiles::Bucket(b) => write!(f, "Bucket({})", b.url()),
+        }
+    }
+}
+
 /// A published scene, as the server reads it: the manifest and every page,
 /// checked when opened, so a listed scene's hierarchy is complete.
 #[derive(Debug, Clone)]
 pub struct StoredScene {
     pub id: String,
-    pub dir: PathBuf,
+    pub files: SceneFiles,
     pub manifest: Manifest,
     pub index: std::sync::Arc<SceneIndex>,
 }
 
 impl StoredScene {
+    /// The scene's folder in a local store; `None` in a bucket.
+    pub fn local_dir(&self) -> Option<&Path> {
+        match &self.files {
+            SceneFiles::Dir(dir) => Some(dir),
+            SceneFiles::Bucket(_) => None,
+        }
+    }
+
+    /// The scene's folder in a local store. Panics for a bucket scene: for the CLI and tests,
+    /// which open local stores only.
+    pub fn dir(&self) -> &Path {
+        self.local_dir().expect("a scene of a local store")
+    }
+
     /// The own file of a block stored unpacked (older builds).
     pub fn block_path(&self, key: &BlockKey) -> PathBuf {
-        self.dir.join("blocks").join(format!("{key}.vxb"))
+        self.dir().join("blocks").join(format!("{key}.vxb"))
     }
 
     pub fn pack_path(&self, hash: &str) -> PathBuf {
-        self.dir.join(pack_path(hash))
+        self.dir().join(pack_path(hash))
     }
 
     /// Reads a block's bytes (one positioned read from its pack, or its own
-    /// file) and checks them against the entry's hash. Blocking. Errors name
-    /// the file relative to the scene directory.
+    /// file) and checks them against the entry's hash. Blocking: on a bucket
+    /// scene it waits for the runtime, so call it from a blocking thread
+    /// (`spawn_blocking`), never from async code. Errors name the file
+    /// relative to the scene directory.
     pub fn read_block(&self, entry: &BlockEntry) -> Result<Vec<u8>, BlockReadError> {
         let key = entry.key;
         let unreadable = |detail: String| BlockReadError::Unreadable { key, detail };
+        let dir = match &self.files {
+            SceneFiles::Dir(dir) => dir,
+            SceneFiles::Bucket(bucket) => {
+                let handle = tokio::runtime::Handle::try_current()
+                    .map_err(|_| unreadable("a bucket scene is read inside the server's runtime".into()))?;
+                return handle.block_on(bucket.block(&self.id, &self.index, entry)).map(|b| b.to_vec());
+            }
+        };
         let bytes = match self.index.pack_range(&key) {
             None => {
                 let rel = format!("blocks/{key}.vxb");
-                fs::read(self.dir.join(&rel)).map_err(|e| unreadable(format!("{rel}: {e}")))?
+                fs::read(dir.join(&rel)).map_err(|e| unreadable(format!("{rel}: {e}")))?
             }
             Some(r) => {
                 let rel = pack_path(&r.pack.hash);
-                let file = fs::File::open(self.dir.join(&rel))
-                    .map_err(|e| unreadable(format!("pack {rel}: {e}")))?;
+                let file =
+                    fs::File::open(dir.join(&rel)).map_err(|e| unreadable(format!("pack {rel}: {e}")))?;
                 let mut bytes = vec![0u8; r.bytes as usize];
                 if let Err(e) = read_exact_at(&file, &mut bytes, r.offset) {
                     return Err(unreadable(match file.metadata().map(|m| m.len()) {
@@ -117,7 +167,68 @@ impl StoredScene {
     }
 
     pub fn page_path(&self, root: &BlockKey) -> PathBuf {
-        self.dir.join(page_path(root))
+        self.dir().join(page_path(root))
+    }
+
+    /// [`StoredScene::read_block`] from async code: a blocking read of a local pack on
+    /// tokio's blocking pool, or the bucket's cache and one ranged GET.
+    pub async fn read_block_async(&self, entry: &BlockEntry) -> Result<Bytes, BlockReadError> {
+        match &self.files {
+            SceneFiles::Dir(_) => {
+                let (scene, e) = (self.clone(), entry.clone());
+                tokio::task::spawn_blocking(move || scene.read_block(&e).map(Bytes::from))
+                    .await
+                    .unwrap_or_else(|join| {
+                        Err(BlockReadError::Unreadable { key: entry.key, detail: join.to_string() })
+                    })
+            }
+            SceneFiles::Bucket(bucket) => bucket.block(&self.id, &self.index, entry).await,
+        }
+    }
+
+    /// Several blocks in order: one blocking task for a local store, a few GETs at once from a
+    /// bucket.
+    pub async fn read_blocks(&self, entries: Vec<BlockEntry>) -> Result<Vec<Bytes>, BlockReadError> {
+        match &self.files {
+            SceneFiles::Dir(_) => {
+                let scene = self.clone();
+                let key = entries.first().map_or(self.manifest.root.key, |e| e.key);
+                tokio::task::spawn_blocking(move || {
+                    entries.iter().map(|e| scene.read_block(e).map(Bytes::from)).collect()
+                })
+                .await
+                .unwrap_or_else(|join| Err(BlockReadError::Unreadable { key, detail: join.to_string() }))
+            }
+            SceneFiles::Bucket(bucket) => {
+                futures_util::stream::iter(entries)
+                    .map(|e| async move { bucket.block(&self.id, &self.index, &e).await })
+                    .buffered(BUCKET_BATCH_FETCHES)
+                    .try_collect()
+                    .await
+            }
+        }
+    }
+
+    /// A hierarchy page's bytes if they are the ones `hash` names; `None` when the scene has no such
+    /// page (any more).
+    pub async fn read_page(&self, root: &BlockKey, hash: &str) -> Result<Option<Bytes>, String> {
+        match &self.files {
+            SceneFiles::Dir(_) => {
+                let path = self.page_path(root);
+                let bytes = tokio::task::spawn_blocking(move || fs::read(path))
+                    .await
+                    .map_err(|e| e.to_string())?
+                    .ok();
+                // Checked on every read, as blocks are: a replaced scene must not answer an old URL
+                // with new bytes.
+                Ok(bytes.filter(|b| content_hash(b) == hash).map(Bytes::from))
+            }
+            SceneFiles::Bucket(bucket) => match bucket.page(&self.id, root, hash).await {
+                Ok(bytes) => Ok(Some(bytes)),
+                Err(BucketReadError::Missing(_)) => Ok(None),
+                Err(e) => Err(e.to_string()),
+            },
+        }
     }
 
     /// Every block entry, sorted by key.
@@ -173,7 +284,12 @@ pub fn open_scene(store: &Path, id: &str) -> Result<StoredScene, StoreError> {
     let damaged = |message: String| StoreError::Damaged { id: id.to_string(), message };
     let manifest = Manifest::from_json(&bytes).map_err(|e| damaged(e.to_string()))?;
     let index = read_scene_index(&dir, &manifest).map_err(damaged)?;
-    Ok(StoredScene { id: id.to_string(), dir, manifest, index: std::sync::Arc::new(index) })
+    Ok(StoredScene {
+        id: id.to_string(),
+        files: SceneFiles::Dir(dir),
+        manifest,
+        index: std::sync::Arc::new(index),
+    })
 }
 
 #[cfg(test)]

@@ -280,8 +280,10 @@ pub fn cache_key(scene: &LoadedScene) -> String {
     h.finalize().to_hex()[..16].to_string()
 }
 
-pub fn cache_path(scene: &LoadedScene) -> PathBuf {
-    scene.stored.dir.join(format!("thumbnail-{}.png", cache_key(scene)))
+/// Where the PNG is cached: beside the manifest of a local scene; a bucket scene's is rendered per
+/// request (a replica does not write to the bucket).
+pub fn cache_path(scene: &LoadedScene) -> Option<PathBuf> {
+    Some(scene.stored.local_dir()?.join(format!("thumbnail-{}.png", cache_key(scene))))
 }
 
 /// Writes `bytes` to `path` through a uniquely named temp file and a rename.
@@ -297,11 +299,13 @@ fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
 /// The cached PNG, or a fresh render that is cached when the store is writable.
 pub fn thumbnail_png(scene: &LoadedScene) -> Result<Vec<u8>, ThumbnailError> {
     let path = cache_path(scene);
-    if let Ok(bytes) = std::fs::read(&path) {
+    if let Some(bytes) = path.as_ref().and_then(|p| std::fs::read(p).ok()) {
         return Ok(bytes);
     }
     let png = render_scene(&scene.stored)?;
-    if let Err(e) = write_atomic(&path, &png) {
+    if let Some(path) = path
+        && let Err(e) = write_atomic(&path, &png)
+    {
         tracing::debug!(path = %path.display(), error = %e, "thumbnail not cached");
     }
     Ok(png)
@@ -318,8 +322,11 @@ pub async fn get_thumbnail(
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     validate_id(&id).map_err(|e| ApiError::bad_request(e.to_string()))?;
-    let scene =
-        state.catalog.get(&id).ok_or_else(|| ApiError::not_found(format!("no scene with id {id:?}")))?;
+    let scene = state
+        .catalog
+        .find(&id)
+        .await
+        .ok_or_else(|| ApiError::not_found(format!("no scene with id {id:?}")))?;
     let etag = HeaderValue::from_str(&format!("\"{}\"", cache_key(&scene))).expect("hex");
     let cache = HeaderValue::from_static("no-cache");
     if headers

@@ -131,7 +131,8 @@ fn publish_writes_a_static_site_and_refuses_bad_targets() {
 
 /// Bad object-storage configuration is one clear error and a non-zero exit within seconds, naming
 /// the endpoint and the cause and never the secret: no credentials, an endpoint nobody listens
-/// on, a malformed bucket URL, and a store URL where only a folder works. Negative control: a
+/// on (for publish, serve and build), a malformed bucket URL, and a store URL where only a folder
+/// works. Negative control: a
 /// `publish --to s3://` that hung on the dead endpoint (connect retries without a deadline) fails
 /// the time bound; one that printed the secret fails the last check.
 #[test]
@@ -188,10 +189,12 @@ fn object_store_misconfiguration_fails_fast_and_clearly() {
         (vec!["publish", "tri", "--store", s, "--to", "s3://A_B/x"], "bucket name"),
         (vec!["publish", "tri", "--store", s, "--to", "gs://bucket/x"], "not supported"),
         (vec!["publish", "tri", "--store", "s3://scans/store", "--to", "site"], "not supported yet"),
-        (vec!["serve", "--store", "s3://scans/store"], "not supported yet"),
-        (vec!["build", &mesh, "--out", "s3://scans/store"], "not supported yet"),
+        (vec!["serve", "--store", "s3://scans/store", "--addr", "127.0.0.1:0"], "connect"),
+        (vec!["build", &mesh, "--out", "s3://scans/store"], "connect"),
     ] {
-        let (ok, err, _) = run(&keys, &args);
+        let (ok, err, took) = run(&keys, &args);
         assert!(!ok && err.contains(expected), "{args:?}: expected {expected:?} in {err:?}");
+        assert!(took < std::time::Duration::from_secs(30), "{args:?} took {took:?}: {err}");
+        assert!(!err.contains(secret), "the secret was printed: {err}");
     }
 }

@@ -255,7 +255,7 @@ fn check_packs(store: &Path, id: &str) {
         let bytes = scene.read_block(e).unwrap();
         assert_eq!(voxstream_format::decode_block(&bytes).unwrap().key, e.key);
     }
-    let on_disk: Vec<String> = std::fs::read_dir(scene.dir.join("packs"))
+    let on_disk: Vec<String> = std::fs::read_dir(scene.dir().join("packs"))
         .unwrap()
         .map(|e| e.unwrap().file_name().into_string().unwrap())
         .collect();
@@ -266,7 +266,7 @@ fn check_packs(store: &Path, id: &str) {
     assert_eq!(on_disk_sorted, named, "{id}: packs on disk and packs named");
     for (hash, mut r) in ranges {
         r.sort();
-        let bytes = std::fs::read(scene.dir.join(format!("packs/{hash}.vxp"))).unwrap();
+        let bytes = std::fs::read(scene.dir().join(format!("packs/{hash}.vxp"))).unwrap();
         assert_eq!(blake3::hash(&bytes).to_hex().as_str(), hash, "{id}: a pack is named by its hash");
         assert_eq!(r[0].0, 0, "{id}");
         assert!(r.windows(2).all(|w| w[0].1 == w[1].0), "{id}: ranges tile the pack");

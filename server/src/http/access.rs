@@ -39,6 +39,9 @@ impl FromRequestParts<AppState> for WriteAccess {
     type Rejection = ApiError;
 
     async fn from_request_parts(parts: &mut Parts, state: &AppState) -> Result<Self, ApiError> {
+        if let crate::catalog::SceneStore::Bucket(_) = state.catalog.scene_store() {
+            return Err(ApiError::new(StatusCode::FORBIDDEN, crate::catalog::READ_ONLY_BUCKET_HINT));
+        }
         if state.config.read_only {
             return Err(ApiError::new(StatusCode::FORBIDDEN, "this server is read-only (--read-only)"));
         }

@@ -32,7 +32,8 @@ use tower_http::cors::{AllowOrigin, CorsLayer};
 use tower_http::services::ServeDir;
 use tower_http::trace::TraceLayer;
 
-use crate::catalog::{Catalog, LoadedScene, remove_stale};
+use crate::bucket_store::BucketStore;
+use crate::catalog::{Catalog, LoadedScene, SceneStore, remove_stale};
 use crate::config::{ServeArgs, ServerConfig};
 use crate::jobs::JobManager;
 use crate::metrics::Metrics;
@@ -56,6 +57,8 @@ pub struct Shared {
     pub shutdown: CancellationToken,
     /// Serialises tus PATCH/HEAD/DELETE on one upload.
     pub upload_locks: std::sync::Mutex<std::collections::HashMap<String, Arc<tokio::sync::Mutex<()>>>>,
+    /// A bucket replica's own state folder (job records), removed with the server.
+    _state_dir: Option<tempfile::TempDir>,
 }
 
 impl std::ops::Deref for AppState {
@@ -77,9 +80,22 @@ impl AppState {
 
     fn build(config: ServerConfig, shutdown: CancellationToken) -> anyhow::Result<AppState> {
         let catalog = Arc::new(Catalog::open(&config.store)?);
-        let metrics = Arc::new(Metrics::new());
+        Ok(Self::with_catalog(config, catalog, shutdown, None))
+    }
+
+    fn with_catalog(
+        config: ServerConfig,
+        catalog: Arc<Catalog>,
+        shutdown: CancellationToken,
+        state_dir: Option<tempfile::TempDir>,
+    ) -> AppState {
+        let mut metrics = Metrics::new();
+        if let SceneStore::Bucket(bucket) = catalog.scene_store() {
+            metrics.register_store_cache(&bucket.metrics);
+        }
+        let metrics = Arc::new(metrics);
         let jobs = JobManager::new(catalog.clone(), metrics.clone(), config.build_workers, shutdown.clone());
-        Ok(AppState(Arc::new(Shared {
+        AppState(Arc::new(Shared {
             upload_limiter: access::RateLimiter::new(config.uploads_per_minute),
             uploads: Uploads::new(&config.store),
             config,
@@ -88,7 +104,25 @@ impl AppState {
             metrics,
             shutdown,
             upload_locks: Default::default(),
-        })))
+            _state_dir: state_dir,
+        }))
+    }
+
+    /// A replica over the scenes of a bucket: read-only (writes answer 403 naming how to build
+    /// into the bucket), its catalog listed from the bucket. Fails when the first listing does.
+    pub async fn start_bucket(
+        mut config: ServerConfig,
+        bucket: Arc<BucketStore>,
+        shutdown: CancellationToken,
+    ) -> anyhow::Result<AppState> {
+        config.read_only = true;
+        let state_dir = tempfile::Builder::new()
+            .prefix("voxstream-replica-")
+            .tempdir()
+            .map_err(|e| anyhow::anyhow!("cannot create the replica's state folder: {e}"))?;
+        config.store = state_dir.path().to_path_buf();
+        let catalog = Catalog::open_bucket(bucket, state_dir.path()).await.map_err(anyhow::Error::msg)?;
+        Ok(Self::with_catalog(config, Arc::new(catalog), shutdown, Some(state_dir)))
     }
 
     /// The full server for `config`: removes what interrupted builds left,
@@ -117,9 +151,9 @@ impl AppState {
     }
 
     /// A published scene; a malformed id is a 400, an unknown one a 404.
-    fn scene(&self, id: &str) -> Result<Arc<LoadedScene>, ApiError> {
+    async fn scene(&self, id: &str) -> Result<Arc<LoadedScene>, ApiError> {
         validate_id(id).map_err(|e| ApiError::bad_request(e.to_string()))?;
-        self.catalog.get(id).ok_or_else(|| ApiError::not_found(format!("no scene with id {id:?}")))
+        self.catalog.find(id).await.ok_or_else(|| ApiError::not_found(format!("no scene with id {id:?}")))
     }
 }
 
@@ -289,7 +323,12 @@ async fn record_metrics(State(state): State<AppState>, req: Request, next: Next)
 #[utoipa::path(get, path = "/healthz", tag = "operations",
     responses((status = 200, description = "The server runs and its store is readable")))]
 pub async fn healthz(State(state): State<AppState>) -> Response {
-    match std::fs::metadata(state.catalog.store()) {
+    let store = match state.catalog.scene_store() {
+        // The bucket answered at start and its listing is re-read every few seconds.
+        SceneStore::Bucket(_) => Ok(()),
+        SceneStore::Local(dir) => std::fs::metadata(dir).map(|_| ()),
+    };
+    match store {
         Ok(_) => axum::Json(json!({ "status": "ok", "scenes": state.catalog.list().len() })).into_response(),
         Err(e) => {
             ApiError::new(StatusCode::SERVICE_UNAVAILABLE, format!("store unreadable: {e}")).into_response()
@@ -312,6 +351,8 @@ pub async fn metrics(_read: access::ReadAccess, State(state): State<AppState>) -
 /// start) and waits for both at most `--shutdown-secs`.
 pub fn serve_command(args: ServeArgs) -> anyhow::Result<()> {
     args.check_exposure().map_err(anyhow::Error::msg)?;
+    let location = crate::objstore::parse_location(&args.store.to_string_lossy())
+        .map_err(|e| anyhow::anyhow!("--store {e}"))?;
     let config = args.config();
     if let Some(w) = &config.web
         && !w.join("index.html").is_file()
@@ -322,8 +363,24 @@ pub fn serve_command(args: ServeArgs) -> anyhow::Result<()> {
     let timeout = config.shutdown_timeout;
     let result = rt.block_on(async move {
         let shutdown = CancellationToken::new();
-        let state = AppState::start(config, shutdown.clone())?;
-        tracing::info!(store = %state.catalog.store().display(), scenes = ?state.scene_ids(), "catalog loaded");
+        let state = match location {
+            crate::objstore::Location::Local(_) => AppState::start(config, shutdown.clone())?,
+            crate::objstore::Location::S3 { bucket, prefix } => {
+                // Unreachable endpoint, refused credentials, missing bucket: one error naming the
+                // endpoint and the cause, before anything listens.
+                let bucket =
+                    crate::objstore::connect(&bucket, &prefix, crate::objstore::START_CHECK_DEADLINE).await?;
+                let bucket = Arc::new(BucketStore::new(bucket, args.cache_size));
+                let state = AppState::start_bucket(config, bucket, shutdown.clone()).await?;
+                tokio::spawn(relist_periodically(
+                    state.catalog.clone(),
+                    Duration::from_secs(args.relist_secs.max(1)),
+                    shutdown.clone(),
+                ));
+                state
+            }
+        };
+        tracing::info!(store = %state.catalog.scene_store(), scenes = ?state.scene_ids(), "catalog loaded");
         let listener = tokio::net::TcpListener::bind(args.addr)
             .await
             .map_err(|e| anyhow::anyhow!("cannot listen on {}: {e}", args.addr))?;
@@ -353,6 +410,23 @@ pub fn serve_command(args: ServeArgs) -> anyhow::Result<()> {
     // Builds cut short by shutdown check their cancel flag between stages; do not wait on them forever.
     rt.shutdown_timeout(Duration::from_secs(1));
     result
+}
+
+/// Re-reads a bucket's listing every `every`, so scenes published by other processes appear (and
+/// replaced ones change) on every replica.
+async fn relist_periodically(catalog: Arc<Catalog>, every: Duration, shutdown: CancellationToken) {
+    let mut tick = tokio::time::interval(every);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    tick.tick().await;
+    loop {
+        tokio::select! {
+            _ = tick.tick() => {}
+            () = shutdown.cancelled() => return,
+        }
+        if let Err(e) = catalog.relist().await {
+            tracing::warn!(error = %e, "bucket listing failed; serving the scenes listed before");
+        }
+    }
 }
 
 async fn wait_for_signal() {

@@ -41,7 +41,7 @@ pub async fn get_scene(
     State(state): State<AppState>,
     UrlPath(id): UrlPath<String>,
 ) -> Result<axum::Json<SceneMeta>, ApiError> {
-    Ok(axum::Json(state.scene(&id)?.meta.clone()))
+    Ok(axum::Json(state.scene(&id).await?.meta.clone()))
 }
 
 #[derive(Debug, Deserialize, utoipa::ToSchema)]
@@ -63,7 +63,7 @@ pub async fn patch_scene(
     UrlPath(id): UrlPath<String>,
     body: Body,
 ) -> Result<axum::Json<SceneMeta>, ApiError> {
-    state.scene(&id)?;
+    state.scene(&id).await?;
     let update: SceneUpdate = read_json(body, JSON_BODY_LIMIT).await?;
     if let Some(new_id) = &update.id {
         validate_id(new_id).map_err(|e| ApiError::bad_request(e.to_string()))?;
@@ -102,6 +102,7 @@ fn catalog_error(e: CatalogError) -> ApiError {
     match &e {
         CatalogError::NotFound(_) => ApiError::not_found(e.to_string()),
         CatalogError::Exists(_) => ApiError::new(StatusCode::CONFLICT, e.to_string()),
+        CatalogError::ReadOnlyBucket(_) => ApiError::new(StatusCode::FORBIDDEN, e.to_string()),
         CatalogError::Store(crate::store::StoreError::BadId(_)) => ApiError::bad_request(e.to_string()),
         _ => {
             tracing::error!(error = %e, "catalog change failed");
@@ -118,7 +119,7 @@ pub async fn delete_scene(
     State(state): State<AppState>,
     UrlPath(id): UrlPath<String>,
 ) -> Result<StatusCode, ApiError> {
-    state.scene(&id)?;
+    state.scene(&id).await?;
     if state.jobs.building(&id) {
         return Err(ApiError::new(
             StatusCode::CONFLICT,
@@ -142,7 +143,7 @@ pub async fn get_manifest(
     State(state): State<AppState>,
     UrlPath(id): UrlPath<String>,
 ) -> Result<Response, ApiError> {
-    let scene = state.scene(&id)?;
+    let scene = state.scene(&id).await?;
     Ok((
         [(header::CONTENT_TYPE, "application/json"), (header::CACHE_CONTROL, MANIFEST_CACHE_CONTROL)],
         scene.manifest_json.clone(),
@@ -185,10 +186,10 @@ fn find_block<'a>(scene: &'a LoadedScene, name: &str) -> Result<(&'a BlockEntry,
     Ok((entry, hash.is_some()))
 }
 
-/// Reads a block (a range of its page's pack) and checks it is the content its hash names.
-fn read_block(scene: &LoadedScene, entry: &BlockEntry) -> Result<Vec<u8>, ApiError> {
+/// A block read error as a response: a damaged store is a 500, changed bytes a 404.
+fn block_error(scene: &LoadedScene, entry: &BlockEntry, e: BlockReadError) -> ApiError {
     let id = &scene.stored.id;
-    scene.stored.read_block(entry).map_err(|e| match e {
+    match e {
         BlockReadError::Unreadable { .. } => {
             tracing::error!(scene = %id, error = %e, "block listed in the hierarchy cannot be read");
             ApiError::internal(format!("scene {id:?}: {e}"))
@@ -200,7 +201,7 @@ fn read_block(scene: &LoadedScene, entry: &BlockEntry) -> Result<Vec<u8>, ApiErr
                 entry.key
             ))
         }
-    })
+    }
 }
 
 #[utoipa::path(get, path = "/api/scenes/{id}/blocks/{block}", tag = "scenes",
@@ -217,7 +218,7 @@ pub async fn get_block(
     UrlPath((id, block)): UrlPath<(String, String)>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
-    let scene = state.scene(&id)?;
+    let scene = state.scene(&id).await?;
     let (entry, addressed) = find_block(&scene, &block)?;
     let etag = HeaderValue::from_str(&format!("\"{}\"", entry.hash))
         .map_err(|_| ApiError::internal(format!("scene {id:?} has a malformed block hash")))?;
@@ -226,11 +227,7 @@ pub async fn get_block(
     if etag_matches(&headers, &etag) {
         return Ok(not_modified(etag, cache));
     }
-    let entry = entry.clone();
-    let scene2 = scene.clone();
-    let bytes = tokio::task::spawn_blocking(move || read_block(&scene2, &entry))
-        .await
-        .map_err(|e| ApiError::internal(e.to_string()))??;
+    let bytes = scene.stored.read_block_async(entry).await.map_err(|e| block_error(&scene, entry, e))?;
     state.metrics.blocks_served.inc();
     state.metrics.block_bytes_served.inc_by(bytes.len() as u64);
     Ok(octet_stream(etag, cache, bytes))
@@ -241,7 +238,7 @@ fn not_modified(etag: HeaderValue, cache: HeaderValue) -> Response {
 }
 
 /// Encoded bytes (a block or a page) with their strong ETag and cache policy.
-fn octet_stream(etag: HeaderValue, cache: HeaderValue, bytes: Vec<u8>) -> Response {
+fn octet_stream(etag: HeaderValue, cache: HeaderValue, bytes: Bytes) -> Response {
     (
         [
             (header::CONTENT_TYPE, HeaderValue::from_static("application/octet-stream")),
@@ -267,7 +264,7 @@ pub async fn get_page(
     UrlPath((id, page)): UrlPath<(String, String)>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
-    let scene = state.scene(&id)?;
+    let scene = state.scene(&id).await?;
     let malformed = || ApiError::bad_request("page URLs are <level-x-y-z>.<blake3 hex>".to_string());
     let (key_text, hash) = page.split_once('.').ok_or_else(malformed)?;
     let root: BlockKey = key_text.parse().map_err(|_| malformed())?;
@@ -276,17 +273,19 @@ pub async fn get_page(
     }
     let etag = HeaderValue::from_str(&format!("\"{hash}\"")).map_err(|_| malformed())?;
     let cache = HeaderValue::from_static(BLOCK_CACHE_CONTROL);
-    let path = scene.stored.page_path(&root);
-    let bytes = tokio::task::spawn_blocking(move || std::fs::read(path))
+    let bytes = scene
+        .stored
+        .read_page(&root, hash)
         .await
-        .map_err(|e| ApiError::internal(e.to_string()))?
-        .map_err(|_| ApiError::not_found(format!("scene {id:?} has no hierarchy page {root}")))?;
-    // Checked on every read, as blocks are: a replaced scene must not answer an old URL with new bytes.
-    if voxstream_format::hierarchy::content_hash(&bytes) != hash {
-        return Err(ApiError::not_found(format!(
-            "scene {id:?} has no page {root} with hash {hash:?} (rebuilt? fetch the manifest again)"
-        )));
-    }
+        .map_err(|e| {
+            tracing::error!(scene = %id, page = %root, error = %e, "hierarchy page cannot be read");
+            ApiError::internal(format!("scene {id:?}: hierarchy page {root}: {e}"))
+        })?
+        .ok_or_else(|| {
+            ApiError::not_found(format!(
+                "scene {id:?} has no page {root} with hash {hash:?} (rebuilt? fetch the manifest again)"
+            ))
+        })?;
     if etag_matches(&headers, &etag) {
         return Ok(not_modified(etag, cache));
     }
@@ -313,7 +312,7 @@ pub async fn post_batch(
     UrlPath(id): UrlPath<String>,
     body: Body,
 ) -> Result<Response, ApiError> {
-    let scene = state.scene(&id)?;
+    let scene = state.scene(&id).await?;
     let request: BatchRequest = read_json(body, JSON_BODY_LIMIT).await?;
     let max = state.config.batch_max;
     if request.blocks.is_empty() || request.blocks.len() > max {
@@ -333,18 +332,18 @@ pub async fn post_batch(
             "the batch would be {total} bytes; at most {BATCH_MAX_BYTES}: ask for fewer blocks"
         )));
     }
-    let scene2 = scene.clone();
-    let body = tokio::task::spawn_blocking(move || {
-        let mut out = Vec::with_capacity(total as usize);
-        for e in &entries {
-            let bytes = read_block(&scene2, e)?;
-            out.extend_from_slice(&(bytes.len() as u32).to_le_bytes());
-            out.extend_from_slice(&bytes);
-        }
-        Ok::<_, ApiError>(out)
-    })
-    .await
-    .map_err(|e| ApiError::internal(e.to_string()))??;
+    let blocks = scene.stored.read_blocks(entries.clone()).await.map_err(|e| {
+        let key = match &e {
+            BlockReadError::Unreadable { key, .. } | BlockReadError::Changed { key } => *key,
+        };
+        let entry = entries.iter().find(|x| x.key == key).unwrap_or(&entries[0]);
+        block_error(&scene, entry, e)
+    })?;
+    let mut body = Vec::with_capacity(total as usize);
+    for bytes in &blocks {
+        body.extend_from_slice(&(bytes.len() as u32).to_le_bytes());
+        body.extend_from_slice(bytes);
+    }
     state.metrics.blocks_served.inc_by(request.blocks.len() as u64);
     state.metrics.block_bytes_served.inc_by(body.len() as u64);
     Ok((

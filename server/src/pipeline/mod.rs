@@ -57,6 +57,24 @@ pub struct BuildOptions {
     /// a temporary file through a cache of half as many; `None`: half the
     /// budget (the cache then takes a quarter). Tests set it to force paging.
     pub ply_vertex_memory: Option<u64>,
+    /// Told of every pack and page as it is finished (a build into a bucket uploads them from
+    /// there); an error stops the build.
+    pub finished_files: Option<FinishedFiles>,
+}
+
+/// Called with a finished file's name inside the scene (`packs/<blake3>.vxp`,
+/// `pages/<key>.<blake3>.vxh`) and its bytes; an error stops the build. It may block: that is the
+/// back-pressure that bounds what a slower consumer holds.
+#[derive(Clone)]
+pub struct FinishedFiles(pub Arc<FinishedFile>);
+
+/// Takes one finished file: its name inside the scene and its bytes.
+pub type FinishedFile = dyn Fn(&str, Vec<u8>) -> Result<(), String> + Send + Sync;
+
+impl std::fmt::Debug for FinishedFiles {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("FinishedFiles")
+    }
 }
 
 impl BuildOptions {
@@ -104,6 +122,7 @@ impl Default for BuildOptions {
             memory_budget: DEFAULT_MEMORY_BUDGET,
             temp_dir: None,
             ply_vertex_memory: None,
+            finished_files: None,
         }
     }
 }
@@ -484,6 +503,7 @@ pub fn build_scene_reporting(
 
     // Pass 3: voxelize, build the pyramid and write, streaming.
     let mut writer = BlockWriter::create(store_dir, &id, frame.resolution, plan.writer_pending())?;
+    writer.finished_files = opts.finished_files.clone();
     voxelize_pyramid(&bins, &frame, opts, &plan, &progress, &mut writer)?;
     let skipped = bins.skipped + read_skipped;
     let triangles = bins.triangles + skipped;

@@ -226,14 +226,14 @@ impl OpenPack {
     }
 
     /// Syncs the pack once and renames it to its content address in `scene_dir`.
-    fn close(self, scene_dir: &Path) -> Result<PackRef, StoreError> {
+    fn close(self, scene_dir: &Path) -> Result<(PackRef, PathBuf), StoreError> {
         let file = self.file.into_inner().map_err(|e| io("write", &self.path)(e.into_error()))?;
         file.sync_all().map_err(io("sync", &self.path))?;
         drop(file);
         let pack = PackRef { hash: self.hasher.finalize().to_hex().to_string(), bytes: self.len };
         let dest = scene_dir.join(pack_path(&pack.hash));
         fs::rename(&self.path, &dest).map_err(io("rename", &self.path))?;
-        Ok(pack)
+        Ok((pack, dest))
     }
 }
 
@@ -276,6 +276,8 @@ pub struct BlockWriter {
     written: usize,
     levels: Vec<LevelInfo>,
     published: bool,
+    /// Told of each pack and page as it is finished.
+    pub finished_files: Option<crate::pipeline::FinishedFiles>,
 }
 
 impl BlockWriter {
@@ -306,6 +308,7 @@ impl BlockWriter {
                 .map(|l| LevelInfo { level: l, resolution: resolution >> l, blocks: 0, voxels: 0, bytes: 0 })
                 .collect(),
             published: false,
+            finished_files: None,
         };
         for d in [&writer.packs_dir, &writer.tmp.join("pages")] {
             fs::create_dir_all(d).map_err(io("create directory", d))?;
@@ -358,7 +361,17 @@ impl BlockWriter {
             e.location = BlockLocation { pack: 0, offset: pack.append(&bytes)? };
             let roots_page = is_page_root_level(key.level, self.coarsest, PAGE_LEVELS);
             let closed = if roots_page || key.level == self.coarsest {
-                self.packs.remove(&key).map(|p| p.close(&self.tmp)).transpose()?
+                match self.packs.remove(&key).map(|p| p.close(&self.tmp)).transpose()? {
+                    Some((pack, path)) => {
+                        if let Some(sink) = &self.finished_files {
+                            // Read back from the page cache: the writer holds no pack in memory.
+                            let bytes = fs::read(&path).map_err(io("read", &path))?;
+                            (sink.0)(&pack_path(&pack.hash), bytes).map_err(|e| self.sink_failed(e))?;
+                        }
+                        Some(pack)
+                    }
+                    None => None,
+                }
             } else {
                 None
             };
@@ -368,9 +381,17 @@ impl BlockWriter {
             let page_pack = if roots_page { closed } else { None };
             if let Some((page_ref, bytes)) = self.pages.add_packed(e, page_pack).map_err(page_err)? {
                 write_unsynced(&self.tmp.join(page_path(&page_ref.root)), &bytes)?;
+                if let Some(sink) = &self.finished_files {
+                    let name = crate::bucket_store::bucket_page_path(&page_ref.root, &page_ref.hash);
+                    (sink.0)(&name, bytes).map_err(|e| self.sink_failed(e))?;
+                }
             }
         }
         Ok(())
+    }
+
+    fn sink_failed(&self, message: String) -> StoreError {
+        StoreError::Damaged { id: self.id.clone(), message }
     }
 
     /// Packs being appended to now.

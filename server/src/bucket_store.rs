@@ -1,0 +1,250 @@
+//! Scenes in a bucket (S3-compatible object storage, through `object_store`), as a replica reads
+//! them: `<prefix>/<id>/manifest.json` (the scene's one mutable object, written last by a build),
+//! `<prefix>/<id>/pages/<key>.<blake3>.vxh` and `<prefix>/<id>/packs/<blake3>.vxp`. Pages and packs
+//! are content-addressed, so replacing a scene never overwrites an object that a reader of the
+//! previous manifest still needs.
+//!
+//! Every page and block read goes through one bounded in-process cache ([`moka`], weighed in
+//! bytes), keyed by content hash: a block is one ranged GET of its pack (`get_range`), checked
+//! against its hash before it is cached, so the cache only ever holds verified bytes.
+
+use axum::body::Bytes;
+use futures_util::StreamExt;
+use object_store::ObjectStore;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use voxstream_format::hierarchy::{HierarchyPage, content_hash, pack_path};
+use voxstream_format::{BlockEntry, BlockKey, Manifest, PageRef, SceneIndex};
+
+use crate::objstore::Bucket;
+use crate::store::{BlockReadError, StoreError, validate_id};
+
+/// Pages fetched at once while a scene's hierarchy is loaded.
+const PAGE_FETCHES: usize = 8;
+
+/// The bucket-side name of a hierarchy page: content-addressed, unlike the local `pages/<key>.vxh`
+/// (a local scene is replaced by one directory rename; a bucket scene object by object).
+pub fn bucket_page_path(root: &BlockKey, hash: &str) -> String {
+    format!("pages/{root}.{hash}.vxh")
+}
+
+/// What the cache holds, by content hash (the same bytes under any scene share one entry).
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+enum CacheKey {
+    Page(String),
+    Block(String),
+}
+
+impl CacheKey {
+    fn kind(&self) -> &'static str {
+        match self {
+            CacheKey::Page(_) => "page",
+            CacheKey::Block(_) => "block",
+        }
+    }
+}
+
+type Labels = Vec<(String, String)>;
+
+/// The cache's counters, registered in the server's metrics.
+#[derive(Clone, Default)]
+pub struct CacheMetrics {
+    /// By kind (page, block).
+    pub hits: Family<Labels, Counter>,
+    pub misses: Family<Labels, Counter>,
+    /// The cache's bound and what it holds now, in bytes.
+    pub capacity_bytes: Gauge,
+    pub cached_bytes: Gauge,
+}
+
+impl CacheMetrics {
+    fn count(&self, key: &CacheKey, hit: bool) {
+        let labels = vec![("kind".to_string(), key.kind().to_string())];
+        let family = if hit { &self.hits } else { &self.misses };
+        family.get_or_create(&labels).inc();
+    }
+}
+
+/// A bucket's scenes and the replica's cache of their hot pages and blocks.
+pub struct BucketStore {
+    pub bucket: Bucket,
+    cache: moka::future::Cache<CacheKey, Bytes>,
+    pub metrics: CacheMetrics,
+}
+
+/// Why a bucket read failed: missing (404 from the bucket) or anything else.
+#[derive(Debug, thiserror::Error)]
+pub enum BucketReadError {
+    #[error("{0} is not in the bucket")]
+    Missing(String),
+    #[error("{0}")]
+    Failed(String),
+}
+
+impl BucketStore {
+    /// A store over `bucket` whose cache holds at most `cache_bytes` (each entry weighs its bytes).
+    pub fn new(bucket: Bucket, cache_bytes: u64) -> Self {
+        let metrics = CacheMetrics::default();
+        metrics.capacity_bytes.set(cache_bytes.min(i64::MAX as u64) as i64);
+        let cache = moka::future::Cache::builder()
+            .max_capacity(cache_bytes)
+            .weigher(|_k: &CacheKey, v: &Bytes| v.len().try_into().unwrap_or(u32::MAX))
+            .build();
+        Self { bucket, cache, metrics }
+    }
+
+    /// `s3://bucket/prefix`, for messages.
+    pub fn url(&self) -> String {
+        if self.bucket.prefix.is_empty() {
+            format!("s3://{}", self.bucket.bucket)
+        } else {
+            format!("s3://{}/{}", self.bucket.bucket, self.bucket.prefix)
+        }
+    }
+
+    fn describe(&self, rel: &str) -> String {
+        format!("s3://{}/{} at {}", self.bucket.bucket, self.bucket.path(rel), self.bucket.endpoint)
+    }
+
+    fn failed(&self, rel: &str, e: object_store::Error) -> BucketReadError {
+        match e {
+            object_store::Error::NotFound { .. } => BucketReadError::Missing(self.describe(rel)),
+            e => BucketReadError::Failed(format!("reading {}: {e}", self.describe(rel))),
+        }
+    }
+
+    /// The scene ids under the prefix (folders named like a scene id), sorted. Whether each has a
+    /// manifest yet is for [`BucketStore::manifest`] to say.
+    pub async fn list_ids(&self) -> Result<Vec<String>, String> {
+        let prefix = (!self.bucket.prefix.is_empty())
+            .then(|| object_store::path::Path::from(self.bucket.prefix.as_str()));
+        let listing = self
+            .bucket
+            .store
+            .list_with_delimiter(prefix.as_ref())
+            .await
+            .map_err(|e| format!("listing {} at {}: {e}", self.url(), self.bucket.endpoint))?;
+        let mut ids: Vec<String> = listing
+            .common_prefixes
+            .iter()
+            .filter_map(|p| p.filename().map(str::to_string))
+            .filter(|id| validate_id(id).is_ok())
+            .collect();
+        ids.sort();
+        Ok(ids)
+    }
+
+    /// The manifest object of scene `id`, or `None` when it has none (never published, being
+    /// published for the first time, or deleted).
+    pub async fn manifest(&self, id: &str) -> Result<Option<Bytes>, String> {
+        let rel = format!("{id}/manifest.json");
+        match self.bucket.store.get(&self.bucket.path(&rel)).await {
+            Ok(r) => match r.bytes().await {
+                Ok(b) => Ok(Some(b)),
+                Err(e) => Err(self.failed(&rel, e).to_string()),
+            },
+            Err(object_store::Error::NotFound { .. }) => Ok(None),
+            Err(e) => Err(self.failed(&rel, e).to_string()),
+        }
+    }
+
+    /// Reads every hierarchy page of a scene (several at once, through the cache), checking
+    /// each as the local store does, so a listed scene's hierarchy is whole.
+    pub async fn load_index(&self, id: &str, manifest: &Manifest) -> Result<SceneIndex, StoreError> {
+        let damaged = |message: String| StoreError::Damaged { id: id.to_string(), message };
+        let mut index = SceneIndex::new(manifest);
+        loop {
+            let wanted: Vec<PageRef> = index.missing_pages().cloned().collect();
+            if wanted.is_empty() {
+                break;
+            }
+            let pages: Vec<_> = futures_util::stream::iter(wanted)
+                .map(|r| async move {
+                    let bytes = self.page(id, &r.root, &r.hash).await;
+                    (r, bytes)
+                })
+                .buffer_unordered(PAGE_FETCHES)
+                .collect()
+                .await;
+            for (r, bytes) in pages {
+                let bytes = bytes.map_err(|e| damaged(format!("hierarchy page {}: {e}", r.root)))?;
+                let page = HierarchyPage::decode(&bytes, &r)
+                    .map_err(|e| damaged(format!("hierarchy page {}: {e}", r.root)))?;
+                index.insert_page(page).map_err(|e| damaged(format!("hierarchy page {}: {e}", r.root)))?;
+            }
+        }
+        Ok(index)
+    }
+
+    /// A hierarchy page's bytes, checked against `hash` (a page named by a hash it does not have is
+    /// missing: the scene was replaced).
+    pub async fn page(&self, id: &str, root: &BlockKey, hash: &str) -> Result<Bytes, BucketReadError> {
+        let key = CacheKey::Page(hash.to_string());
+        if let Some(bytes) = self.cache.get(&key).await {
+            self.metrics.count(&key, true);
+            return Ok(bytes);
+        }
+        self.metrics.count(&key, false);
+        let rel = format!("{id}/{}", bucket_page_path(root, hash));
+        let bytes = self.get(&rel).await?;
+        if content_hash(&bytes) != hash {
+            return Err(BucketReadError::Missing(format!("{} with hash {hash}", self.describe(&rel))));
+        }
+        self.insert(key, bytes.clone()).await;
+        Ok(bytes)
+    }
+
+    /// A block's bytes: one ranged GET of its pack (or the whole object of a block stored as its
+    /// own file), checked against the entry's hash before it is cached.
+    pub async fn block(
+        &self,
+        id: &str,
+        index: &SceneIndex,
+        entry: &BlockEntry,
+    ) -> Result<Bytes, BlockReadError> {
+        let key = CacheKey::Block(entry.hash.clone());
+        if let Some(bytes) = self.cache.get(&key).await {
+            self.metrics.count(&key, true);
+            return Ok(bytes);
+        }
+        self.metrics.count(&key, false);
+        let unreadable = |detail: String| BlockReadError::Unreadable { key: entry.key, detail };
+        let bytes = match index.pack_range(&entry.key) {
+            None => self
+                .get(&format!("{id}/blocks/{}.vxb", entry.key))
+                .await
+                .map_err(|e| unreadable(e.to_string()))?,
+            Some(r) => {
+                let rel = format!("{id}/{}", pack_path(&r.pack.hash));
+                self.bucket.store.get_range(&self.bucket.path(&rel), r.offset..r.end()).await.map_err(
+                    |e| {
+                        unreadable(format!(
+                            "pack {}: bytes {}..{}: {}",
+                            self.describe(&rel),
+                            r.offset,
+                            r.end(),
+                            self.failed(&rel, e)
+                        ))
+                    },
+                )?
+            }
+        };
+        if blake3::hash(&bytes).to_hex().as_str() != entry.hash {
+            return Err(BlockReadError::Changed { key: entry.key });
+        }
+        self.insert(key, bytes.clone()).await;
+        Ok(bytes)
+    }
+
+    async fn get(&self, rel: &str) -> Result<Bytes, BucketReadError> {
+        let path = self.bucket.path(rel);
+        let result = self.bucket.store.get(&path).await.map_err(|e| self.failed(rel, e))?;
+        result.bytes().await.map_err(|e| self.failed(rel, e))
+    }
+
+    async fn insert(&self, key: CacheKey, bytes: Bytes) {
+        self.cache.insert(key, bytes).await;
+        self.metrics.cached_bytes.set(self.cache.weighted_size().min(i64::MAX as u64) as i64);
+    }
+}
