@@ -5,6 +5,10 @@
 #   bash scripts/cluster.sh stop [DIR]      stop every process it started
 #   bash scripts/cluster.sh build MESH [DIR] [voxstream build options...]
 #                                           build a mesh into the cluster's bucket
+#   bash scripts/cluster.sh restart replica|garage I [DIR]
+#                                           start a killed replica or Garage node again
+#   bash scripts/cluster.sh tools           install Garage and nginx only (scripts/test.sh does,
+#                                           before the tests that start clusters)
 #
 # What runs, all on loopback ports that were free at start:
 #   - three Garage nodes (S3-compatible object store, `scripts/garage.sh` installs it), one zone
@@ -296,5 +300,10 @@ case "$action" in
     fi
     cmd_build "$mesh" "$@"
     ;;
-  *) die "usage: bash scripts/cluster.sh start|stop|restart|build … (see the top of this script)" ;;
+  tools)
+    bash "$ROOT/scripts/garage.sh" >/dev/null || die "scripts/garage.sh failed"
+    ensure_nginx
+    log "garage and nginx are installed"
+    ;;
+  *) die "usage: bash scripts/cluster.sh start|stop|restart|build|tools … (see the top of this script)" ;;
 esac
