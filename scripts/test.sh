@@ -8,7 +8,8 @@
 #   3. cargo clippy -D warnings  all targets of the workspace
 #      cargo check fuzz/          the fuzz targets still compile (not run: scripts/fuzz.sh)
 #   4. scripts/build-web.sh      wasm viewer bundle into viewer-wasm/dist (the browser test serves it)
-#   5. cargo test --workspace    unit, property, server integration, native render on lavapipe,
+#   5. scripts/cluster.sh tools  Garage (compiled once, cached outside the clone) and nginx-light
+#      cargo test --workspace    unit, property, server integration, native render on lavapipe,
 #                                browser end-to-end (headless Chromium, SwiftShader WebGPU)
 #   6. scripts/schemathesis.sh   the HTTP API against its OpenAPI document: schemathesis' coverage,
 #                                fuzzing and stateful phases on a fresh server, zero failures, plus a
@@ -106,6 +107,9 @@ step "clippy" cargo clippy --workspace --all-targets "${LOCKED[@]}" -- -D warnin
 # (stable rustc, no libFuzzer C++ build: see DEVELOPERS.md, "Fuzzing"). Running them is scripts/fuzz.sh.
 # Not --locked: fuzz/Cargo.lock follows the server's dependencies, which change without it.
 step "fuzz targets compile" cargo check --manifest-path fuzz/Cargo.toml --no-default-features --bins
+# Garage (compiled once into ~/.cache/voxstream-tools: about 9 minutes cold on 2 cores, instant warm)
+# and nginx-light, which the object-store and cluster tests start as real processes.
+step "cluster tools (garage, nginx)" bash scripts/cluster.sh tools
 step "cargo test" cargo test --workspace "${LOCKED[@]}" "${PROFILE_ARGS[@]}" "$@"
 # After cargo test, on the voxstream binary it built: `cargo build` alone would compile it again
 # (without the dev-dependencies' features, which cargo test unifies in). --no-run is a no-op here.
