@@ -9,8 +9,9 @@
 // weights), so V = 1 - sum_i weight_i * occlusion_i. Along a cone,
 // front-to-back opacity alpha accumulates; a step adds
 // (1 - alpha) * alpha_step * w(d), d the distance from p to the sample (grid
-// units, the same units as R). Appended to voxel.wgsl, whose `frame`,
-// `occupancy` and `occupancy_sampler` bindings it reads.
+// units, the same units as R). Part of the trace pass's module (after
+// frame.wgsl, whose `frame`, `occupancy` and `occupancy_sampler` bindings it
+// reads; ao_trace.wgsl calls `ambient_visibility`).
 
 // Occlusion (0 = open, 1 = blocked, weighted by w(d)) seen by one cone from p.
 //

@@ -49,6 +49,7 @@ fn render(
         ao,
         max_distance,
         timing_runs: 0,
+        ao_frames: 1,
     };
     render_view(&req).unwrap_or_else(|e| {
         panic!(

@@ -103,6 +103,7 @@ fn cornell_box_matches_the_ray_traced_reference() {
         ao,
         max_distance,
         timing_runs: 0,
+        ao_frames: 1,
     };
     let out = render_view(&request(AoSettings::default(), None)).expect("render");
     let bvh = MeshBvh::new(&mesh, out.info.grid_origin);

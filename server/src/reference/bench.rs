@@ -46,32 +46,42 @@ pub struct Point {
     pub settings: AoSettings,
     /// Image scale relative to --width/--height.
     pub scale: u32,
+    /// Frames of the still view accumulated (1: one frame).
+    pub frames: u32,
 }
 
 fn sweep() -> Vec<Point> {
     let d = AoSettings::default();
     let mut points = Vec::new();
     for cones in [3, 5, 6, 8, 16] {
-        points.push(Point { label: format!("{cones} cones"), settings: AoSettings { cones, ..d }, scale: 1 });
+        points.push(Point {
+            label: format!("{cones} cones"),
+            settings: AoSettings { cones, ..d },
+            scale: 1,
+            frames: 1,
+        });
     }
     for cones in [6, 16] {
         points.push(Point {
             label: format!("{cones} cones, step 0.5"),
             settings: AoSettings { cones, step: 0.5, ..d },
             scale: 1,
+            frames: 1,
         });
     }
     points.push(Point {
         label: "6 cones, aperture x1.5".into(),
         settings: AoSettings { aperture_deg: Some(d.aperture() * 1.5), ..d },
         scale: 1,
+        frames: 1,
     });
     points.push(Point {
         label: "6 cones, empty skip".into(),
         settings: AoSettings { empty_skip: true, ..d },
         scale: 1,
+        frames: 1,
     });
-    points.push(Point { label: "6 cones, 2x resolution".into(), settings: d, scale: 2 });
+    points.push(Point { label: "6 cones, 2x resolution".into(), settings: d, scale: 2, frames: 1 });
     points
 }
 
@@ -201,6 +211,7 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
                 ao: point.settings,
                 max_distance: None,
                 timing_runs: 3,
+                ao_frames: point.frames,
             })?;
             let bvh = bvh.get_or_insert_with(|| MeshBvh::new(&mesh, out.info.grid_origin));
             if !references.iter().any(|r| r.scale == point.scale) {

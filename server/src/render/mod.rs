@@ -140,8 +140,18 @@ pub struct AoRecord {
     /// Finest occupancy cells per grid edge and the cell edge in source units.
     pub occupancy_cells: u32,
     pub occupancy_cell_size: f64,
-    /// Cone axes in the local frame (x, y tangent, z normal), equal weights.
+    /// Cone axes in the local frame (x, y tangent, z normal), equal weights
+    /// (frame 0's set; with jitter each later frame turns it).
     pub cone_directions: Vec<[f32; 3]>,
+    /// AO traced for one pixel of each f×f block (1: every pixel).
+    pub trace_downscale: u32,
+    /// "bilateral" (joint, depth and normal guided) or "bilinear".
+    pub upsample: voxstream_viewer::ao::Upsample,
+    /// The cone set turned (and the traced pixel moved) every frame.
+    pub jitter: bool,
+    /// Frames of the still view drawn from a fresh history and averaged
+    /// (temporal accumulation with weight 1/frames); 1: a single frame.
+    pub frames: u32,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -150,7 +160,7 @@ pub struct Timings {
     pub frame_ms: Option<f64>,
     /// Median frame of the same view with AO off (ms).
     pub frame_no_ao_ms: Option<f64>,
-    /// frame_ms − frame_no_ao_ms: the AO is traced in the fragment shader, so its pass is this difference.
+    /// frame_ms − frame_no_ao_ms: the AO passes (trace, upsample, temporal) and the G-buffer's extra cost.
     pub ao_pass_ms: Option<f64>,
     /// ao_pass_ms / frame_no_ao_ms.
     pub ao_over_frame: Option<f64>,
@@ -200,6 +210,9 @@ pub struct RenderRequest {
     pub max_distance: Option<f64>,
     /// Timed frames per setting (0: no timing).
     pub timing_runs: usize,
+    /// Frames of the still view accumulated (jittered when `ao.jitter`): the
+    /// AO written is their average. 1: one frame.
+    pub ao_frames: u32,
 }
 
 /// Largest image edge `render` accepts.
@@ -240,8 +253,10 @@ pub fn render_view(req: &RenderRequest) -> anyhow::Result<RenderOutput> {
         eye: eye.as_vec3(),
         focal_pixels: (h as f64 / (2.0 * (req.camera.fov_y_deg.to_radians() * 0.5).tan())) as f32,
     });
+    let frames = req.ao_frames.clamp(1, voxstream_viewer::ao::MAX_TEMPORAL_FRAMES);
+    ao.temporal_frames = frames;
     offscreen.renderer.ao = ao;
-    let g = offscreen.render_gbuffer()?;
+    let g = offscreen.render_gbuffer(frames)?;
     if !g.frame.failures.is_empty() {
         bail!("blocks failed to load: {:?}", g.frame.failures);
     }
@@ -307,6 +322,10 @@ pub fn render_view(req: &RenderRequest) -> anyhow::Result<RenderOutput> {
             occupancy_cells: cells,
             occupancy_cell_size: cell_size,
             cone_directions: cone_directions(ao.cone_count()),
+            trace_downscale: ao.downscale(),
+            upsample: ao.upsample,
+            jitter: ao.jitter,
+            frames,
         },
         timings,
         adapter: g.frame.adapter.clone(),
@@ -498,6 +517,10 @@ mod tests {
                     occupancy_cells: 64,
                     occupancy_cell_size: 0.1,
                     cone_directions: vec![],
+                    trace_downscale: 2,
+                    upsample: voxstream_viewer::ao::Upsample::Bilateral,
+                    jitter: true,
+                    frames: 8,
                 },
                 timings: Timings {
                     frame_ms: None,
