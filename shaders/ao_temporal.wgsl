@@ -1,8 +1,9 @@
 // Pass 3 of the AO (only when frames are accumulated, N > 1): temporal
 // accumulation. The pixel's surface point is reprojected with the previous
 // frame's view_proj; the history there (V, frames) is kept when the previous
-// frame saw the same surface there (position within `surface_tolerance`,
-// normals within about 25°), else dropped (disocclusion, a camera jump). The
+// frame saw the same surface there (its point within `surface_tolerance` of
+// this pixel's tangent plane and within 8 of them in all, normals within about
+// 25°), else dropped (disocclusion, a camera jump). The
 // blend is exponential with a weight that falls to 1/N:
 //
 //   frames' = min(frames + 1, N),  V' = V_history + (V - V_history) / frames'
@@ -45,7 +46,12 @@ fn fs_temporal(@builtin(position) clip: vec4<f32>) -> @location(0) vec4<f32> {
     let before = load_surface(previous_position, previous_normal, previous_pixel);
     var keep = before.surface && h.y >= 1.0;
     if frame.ao_temporal.z > 0.5 {
-        keep = keep && distance(before.position, here.position) <= surface_tolerance(here.position)
+        // Off the pixel's tangent plane: another surface (disocclusion). Along
+        // it the nearest previous pixel may lie a footprint away on a grazing
+        // surface, which is the same surface: allowed up to 8 tolerances.
+        let tolerance = surface_tolerance(here.position);
+        let offset = before.position - here.position;
+        keep = keep && abs(dot(offset, here.normal)) <= tolerance && length(offset) <= 8.0 * tolerance
             && dot(before.normal, here.normal) > 0.9;
     }
     if !keep {

@@ -282,14 +282,28 @@ impl Offscreen {
     /// the settings ask for it) and reads back the last one: the image, the
     /// G-buffer's positions and normals and the final visibilities.
     pub fn render_gbuffer(&mut self, ao_frames: u32) -> Result<GBufferFrame, OffscreenError> {
-        let mut frame = self.render()?;
+        let frame = self.render()?;
         self.renderer.ao_passes.reset_history();
+        self.draw_frames(ao_frames.max(1))?;
+        self.read_gbuffer(frame)
+    }
+
+    /// Draws the current view `frames` times (the AO history carries over
+    /// from frame to frame and from earlier calls), waiting for each.
+    pub fn draw_frames(&mut self, frames: u32) -> Result<(), OffscreenError> {
         let view = self.target.create_view(&Default::default());
-        for _ in 0..ao_frames.max(1) {
+        for _ in 0..frames {
             self.scene.draw(&mut self.renderer, &view, 0.0);
             wait_idle(&self.renderer.device)?;
         }
+        Ok(())
+    }
+
+    /// The last frame drawn with its G-buffer and final visibilities; `frame`
+    /// gives the rest (its pixels are replaced by the last frame's).
+    pub fn read_gbuffer(&self, mut frame: OffscreenFrame) -> Result<GBufferFrame, OffscreenError> {
         frame.pixels = read_texture(&self.renderer, &self.target)?;
+        frame.view_proj = self.scene.view_proj().to_cols_array();
         let (position, normal, visibility) = self
             .renderer
             .ao_passes

@@ -117,6 +117,27 @@ impl CameraSpec {
     }
 }
 
+impl CameraSpec {
+    /// The viewer's fixed view (grid units) for a `width`×`height` image of a
+    /// scene whose grid frame is `origin` and `voxel_size`.
+    pub fn fixed_view(
+        &self,
+        origin: [f64; 3],
+        voxel_size: f64,
+        width: u32,
+        height: u32,
+    ) -> anyhow::Result<FixedView> {
+        let view_proj = self.view_proj_grid(origin, voxel_size, width, height);
+        ensure!(view_proj.is_finite(), "camera: the view matrix is not finite in grid units");
+        let eye = (DVec3::from(self.eye) - DVec3::from(origin)) / voxel_size;
+        Ok(FixedView {
+            view_proj: Mat4::from_cols_array(&view_proj.to_cols_array().map(|v| v as f32)),
+            eye: eye.as_vec3(),
+            focal_pixels: (height as f64 / (2.0 * (self.fov_y_deg.to_radians() * 0.5).tan())) as f32,
+        })
+    }
+}
+
 /// The AO settings of a render, in source units, as recorded in render.json.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct AoRecord {
@@ -245,14 +266,7 @@ pub fn render_view(req: &RenderRequest) -> anyhow::Result<RenderOutput> {
     }
     let (w, h) = (req.width, req.height);
     let mut offscreen = Offscreen::open(&req.scene_dir, &RenderOptions::new(w, h))?;
-    let view_proj = req.camera.view_proj_grid(grid.origin, grid.voxel_size, w, h);
-    ensure!(view_proj.is_finite(), "camera: the view matrix is not finite in grid units");
-    let eye = (DVec3::from(req.camera.eye) - DVec3::from(grid.origin)) / grid.voxel_size;
-    offscreen.scene.fixed_view = Some(FixedView {
-        view_proj: Mat4::from_cols_array(&view_proj.to_cols_array().map(|v| v as f32)),
-        eye: eye.as_vec3(),
-        focal_pixels: (h as f64 / (2.0 * (req.camera.fov_y_deg.to_radians() * 0.5).tan())) as f32,
-    });
+    offscreen.scene.fixed_view = Some(req.camera.fixed_view(grid.origin, grid.voxel_size, w, h)?);
     let frames = req.ao_frames.clamp(1, voxstream_viewer::ao::MAX_TEMPORAL_FRAMES);
     ao.temporal_frames = frames;
     offscreen.renderer.ao = ao;
