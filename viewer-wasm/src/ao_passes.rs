@@ -105,6 +105,15 @@ pub enum VisibilityTexture {
     History(usize),
 }
 
+/// What the last frame left in the targets.
+pub struct LastFrame<'a> {
+    pub position: &'a wgpu::Texture,
+    pub normal: &'a wgpu::Texture,
+    /// The final V (in the first f32 of each texel) and the bytes of a texel;
+    /// `None` with AO off.
+    pub visibility: Option<(&'a wgpu::Texture, u32)>,
+}
+
 /// The uniform values the AO passes read beside the settings.
 #[derive(Debug, Clone, Copy)]
 pub struct AoFrameState {
@@ -297,9 +306,14 @@ impl AoPasses {
         frame_group: &wgpu::BindGroup,
         inputs: &[&wgpu::Texture],
         output: &wgpu::TextureView,
-        clear: wgpu::Color,
     ) {
         let (pipeline, layout) = self.pass(pass);
+        // Every pixel is written; the clear only matters to a reader of an unwritten target.
+        let clear = match pass {
+            AoPass::Trace | AoPass::Upsample => wgpu::Color::WHITE,
+            AoPass::Temporal => wgpu::Color::TRANSPARENT,
+            AoPass::Composite => crate::render::background_color(),
+        };
         let views: Vec<wgpu::TextureView> =
             inputs.iter().map(|t| t.create_view(&Default::default())).collect();
         let entries: Vec<wgpu::BindGroupEntry> = views
@@ -351,7 +365,6 @@ impl AoPasses {
         let mut accumulated = false;
         if let Some(s) = settings {
             let traced_view = t.traced.create_view(&Default::default());
-            let white = wgpu::Color::WHITE;
             self.run(
                 device,
                 encoder,
@@ -359,13 +372,12 @@ impl AoPasses {
                 frame_group,
                 &[&t.position[cur], &t.normal[cur]],
                 &traced_view,
-                white,
             );
             let mut current = (&t.traced, VisibilityTexture::Traced);
             if s.downscale() > 1 {
                 let view = t.upsampled.create_view(&Default::default());
                 let inputs = [&t.position[cur], &t.normal[cur], &t.traced];
-                self.run(device, encoder, AoPass::Upsample, frame_group, &inputs, &view, white);
+                self.run(device, encoder, AoPass::Upsample, frame_group, &inputs, &view);
                 current = (&t.upsampled, VisibilityTexture::Upsampled);
             }
             if s.accumulated_frames() > 1 {
@@ -378,15 +390,7 @@ impl AoPasses {
                     &t.normal[prev],
                     &t.history[prev],
                 ];
-                self.run(
-                    device,
-                    encoder,
-                    AoPass::Temporal,
-                    frame_group,
-                    &inputs,
-                    &view,
-                    wgpu::Color::TRANSPARENT,
-                );
+                self.run(device, encoder, AoPass::Temporal, frame_group, &inputs, &view);
                 current = (&t.history[cur], VisibilityTexture::History(cur));
                 accumulated = true;
             }
@@ -398,15 +402,7 @@ impl AoPasses {
             _ => &t.traced,
         };
         let inputs = [&t.normal[cur], &t.colour, v];
-        self.run(
-            device,
-            encoder,
-            AoPass::Composite,
-            frame_group,
-            &inputs,
-            target,
-            crate::render::background_color(),
-        );
+        self.run(device, encoder, AoPass::Composite, frame_group, &inputs, target);
         self.last_visibility = visibility;
         self.history_valid = accumulated;
         self.accumulating =
@@ -416,17 +412,16 @@ impl AoPasses {
         self.current = prev;
     }
 
-    /// The textures the last frame wrote: position, normal and its final V
-    /// with the bytes of one texel (`None` before a frame, or with AO off).
-    pub fn last_frame(&self) -> Option<(&wgpu::Texture, &wgpu::Texture, Option<(&wgpu::Texture, u32)>)> {
+    /// The textures the last frame wrote (`None` before the first frame).
+    pub fn last_frame(&self) -> Option<LastFrame<'_>> {
         let t = self.targets.as_ref()?;
         let last = 1 - self.current;
-        let v = self.last_visibility.map(|v| match v {
+        let visibility = self.last_visibility.map(|v| match v {
             VisibilityTexture::Traced => (&t.traced, 4),
             VisibilityTexture::Upsampled => (&t.upsampled, 4),
             VisibilityTexture::History(i) => (&t.history[i], 16),
         });
-        Some((&t.position[last], &t.normal[last], v))
+        Some(LastFrame { position: &t.position[last], normal: &t.normal[last], visibility })
     }
 
     /// Whether the last frame accumulated fewer frames than N: the viewer

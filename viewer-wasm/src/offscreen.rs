@@ -304,7 +304,7 @@ impl Offscreen {
     pub fn read_gbuffer(&self, mut frame: OffscreenFrame) -> Result<GBufferFrame, OffscreenError> {
         frame.pixels = read_texture(&self.renderer, &self.target)?;
         frame.view_proj = self.scene.view_proj().to_cols_array();
-        let (position, normal, visibility) = self
+        let crate::ao_passes::LastFrame { position, normal, visibility } = self
             .renderer
             .ao_passes
             .last_frame()
