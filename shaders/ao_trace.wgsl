@@ -15,5 +15,13 @@ fn fs_trace(@builtin(position) clip: vec4<f32>) -> @location(0) vec4<f32> {
     if !s.surface {
         return vec4<f32>(1.0, 0.0, 0.0, 1.0);
     }
-    return vec4<f32>(ambient_visibility(s.position, s.normal), 0.0, 0.0, 1.0);
+    // Interleaved sampling: each texel turns the frame's cone set further by
+    // its own interleaved-gradient-noise fraction, so neighbouring texels (which
+    // the upsample and the eye average) see different cone sets.
+    var turn = 0.0;
+    if frame.ao_temporal.w > 0.5 {
+        let texel = floor(clip.xy);
+        turn = fract(52.9829189 * fract(dot(texel, vec2<f32>(0.06711056, 0.00583715))));
+    }
+    return vec4<f32>(ambient_visibility(s.position, s.normal, turn), 0.0, 0.0, 1.0);
 }

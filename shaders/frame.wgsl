@@ -32,7 +32,8 @@ struct Frame {
     // x: N, the frames the history averages (a new frame's weight falls to
     // 1/N; 1 = no accumulation), y: 1 = the history holds the previous frame,
     // z: 1 = reject history where position or normal disagree (disocclusion),
-    // w: unused.
+    // w: 1 = interleaved sampling (each traced texel turns the cone set by its
+    // own angle).
     ao_temporal: vec4<f32>,
 }
 

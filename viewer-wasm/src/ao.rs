@@ -58,6 +58,10 @@ pub struct AoSettings {
     /// resolution, move the traced pixel within its block), from a
     /// low-discrepancy sequence; frame 0 is the fixed set.
     pub jitter: bool,
+    /// Interleaved sampling: each traced pixel also turns the cone set by its
+    /// own angle (interleaved gradient noise), so neighbours, which the
+    /// upsample and the temporal history average, see different cone sets.
+    pub interleave: bool,
     /// N: frames the temporal history averages (a new frame's weight falls to
     /// 1/N); 1 = no accumulation.
     pub temporal_frames: u32,
@@ -93,6 +97,7 @@ impl Default for AoSettings {
             trace_downscale: 1,
             upsample: Upsample::Bilateral,
             jitter: true,
+            interleave: false,
             temporal_frames: 1,
             keep_disoccluded_history: false,
         }

@@ -277,7 +277,7 @@ impl AoPasses {
                 s.accumulated_frames() as f32,
                 if self.history_valid { 1.0 } else { 0.0 },
                 if s.keep_disoccluded_history { 0.0 } else { 1.0 },
-                0.0,
+                if s.interleave { 1.0 } else { 0.0 },
             ],
             index: self.frame_index,
         }

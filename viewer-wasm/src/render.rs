@@ -30,7 +30,7 @@ pub struct FrameUniform {
     pub prev_view_proj: [f32; 16],
     /// Trace downscale, traced pixel offset x and y, 1 = bilateral upsampling.
     pub ao_sparse: [f32; 4],
-    /// Frames averaged (N), history valid, reject disoccluded history, unused.
+    /// Frames averaged (N), history valid, reject disoccluded history, interleaved sampling.
     pub ao_temporal: [f32; 4],
 }
 

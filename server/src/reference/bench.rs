@@ -91,6 +91,13 @@ fn sparse_temporal_sweep(frames: &[u32]) -> Vec<Point> {
             points.push(point(format!("1/{f} res + bilateral, {n} frames jittered"), s, n));
         }
     }
+    let interleaved = AoSettings { trace_downscale: 2, interleave: true, ..d };
+    points.push(point("1/2 res + bilateral, interleaved, 1 frame".into(), interleaved, 1));
+    for &n in &counts {
+        points.push(point(format!("1/2 res + bilateral, interleaved, {n} frames jittered"), interleaved, n));
+    }
+    let interleaved_full = AoSettings { interleave: true, ..d };
+    points.push(point("full res, interleaved, 1 frame".into(), interleaved_full, 1));
     points.push(point(
         "1/2 res + bilinear, 1 frame".into(),
         AoSettings { trace_downscale: 2, upsample: Upsample::Bilinear, ..d },
