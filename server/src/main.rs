@@ -162,7 +162,8 @@ struct AoArgs {
     /// Upsampling of a reduced-resolution trace.
     #[arg(long, value_enum, default_value_t = UpsampleArg::Bilateral)]
     ao_upsample: UpsampleArg,
-    /// Keep the cone set fixed from frame to frame (no rotation with --ao-frames).
+    /// Keep the cone set fixed: no rotation from frame to frame (with
+    /// --ao-frames) and none from pixel to pixel (interleaved sampling).
     #[arg(long)]
     no_jitter: bool,
 }
@@ -216,6 +217,7 @@ impl AoArgs {
                 UpsampleArg::Bilinear => voxstream_viewer::ao::Upsample::Bilinear,
             },
             jitter: !self.no_jitter,
+            interleave: !self.no_jitter,
             ..voxstream_viewer::ao::AoSettings::default()
         })
     }

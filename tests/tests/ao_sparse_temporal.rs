@@ -111,7 +111,7 @@ fn bilateral_upsampling_keeps_a_depth_edge_sharp() {
     let store = tempfile::tempdir().unwrap();
     let scene = plate_before_wall();
     let dir = build(&scene, store.path());
-    let fixed = AoSettings { jitter: false, ..AoSettings::default() };
+    let fixed = AoSettings { jitter: false, interleave: false, ..AoSettings::default() };
     let full = render(&dir, scene.camera, AoSettings { trace_downscale: 1, ..fixed }, 1);
     let bilateral = render(&dir, scene.camera, AoSettings { trace_downscale: 2, ..fixed }, 1);
     let bilinear = render(
@@ -151,8 +151,10 @@ fn accumulating_jittered_frames_lowers_the_error_against_exact_values() {
     let scene =
         analytic::scenes().into_iter().find(|s| s.name == "sphere_on_plane").expect("sphere on a plane");
     let dir = build(&scene, store.path());
-    // Three cones: few enough that one fixed set misses much of the hemisphere.
-    let settings = AoSettings { cones: 3, ..AoSettings::default() };
+    // Three cones: few enough that one fixed set misses much of the
+    // hemisphere; full resolution and no per-pixel turn, so only the per-frame
+    // jitter differs between the frames.
+    let settings = AoSettings { cones: 3, trace_downscale: 1, interleave: false, ..AoSettings::default() };
     let frames = 16;
     let one = render(&dir, scene.camera, settings, 1);
     let exact = exact_image(&scene.shapes, &one, 48);

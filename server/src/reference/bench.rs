@@ -72,7 +72,13 @@ pub struct Point {
 /// and plain bilinear upsampling.
 fn sparse_temporal_sweep(frames: &[u32]) -> Vec<Point> {
     use voxstream_viewer::ao::Upsample;
-    let d = AoSettings { trace_downscale: 1, jitter: true, temporal_frames: 1, ..AoSettings::default() };
+    let d = AoSettings {
+        trace_downscale: 1,
+        jitter: true,
+        interleave: false,
+        temporal_frames: 1,
+        ..AoSettings::default()
+    };
     let point =
         |label: String, settings: AoSettings, frames: u32| Point { label, settings, scale: 1, frames };
     let counts: Vec<u32> =
@@ -107,7 +113,8 @@ fn sparse_temporal_sweep(frames: &[u32]) -> Vec<Point> {
 }
 
 fn sweep() -> Vec<Point> {
-    let d = AoSettings { trace_downscale: 1, temporal_frames: 1, ..AoSettings::default() };
+    // The cone tracer alone: full resolution, one frame, the fixed cone set.
+    let d = AoSettings { trace_downscale: 1, interleave: false, temporal_frames: 1, ..AoSettings::default() };
     let mut points = Vec::new();
     for cones in [3, 5, 6, 8, 16] {
         points.push(Point {

@@ -170,6 +170,8 @@ pub struct AoRecord {
     pub upsample: voxstream_viewer::ao::Upsample,
     /// The cone set turned (and the traced pixel moved) every frame.
     pub jitter: bool,
+    /// Each traced pixel turns the cone set by its own angle as well.
+    pub interleave: bool,
     /// Frames of the still view drawn from a fresh history and averaged
     /// (temporal accumulation with weight 1/frames); 1: a single frame.
     pub frames: u32,
@@ -339,6 +341,7 @@ pub fn render_view(req: &RenderRequest) -> anyhow::Result<RenderOutput> {
             trace_downscale: ao.downscale(),
             upsample: ao.upsample,
             jitter: ao.jitter,
+            interleave: ao.interleave,
             frames,
         },
         timings,
@@ -534,6 +537,7 @@ mod tests {
                     trace_downscale: 2,
                     upsample: voxstream_viewer::ao::Upsample::Bilateral,
                     jitter: true,
+                    interleave: true,
                     frames: 8,
                 },
                 timings: Timings {
