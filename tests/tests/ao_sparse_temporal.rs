@@ -224,8 +224,13 @@ fn reprojection_drops_history_after_a_camera_jump() {
         offscreen.scene.fixed_view = Some(front.fixed_view(origin, voxel, WIDTH, HEIGHT).unwrap());
         let template = offscreen.render().expect("render");
         frames_at(&mut offscreen, &template, front, origin, voxel, 4);
+        // 6 frames of the still view so far (2 in `render`), N = 8: the viewer would draw on.
+        assert!(offscreen.renderer.ao_accumulating(), "6 of 8 frames in, yet not accumulating");
+        offscreen.draw_frames(2).unwrap();
+        assert!(!offscreen.renderer.ao_accumulating(), "8 of 8 frames in, yet still accumulating");
         // The jump: the first frame at the back camera.
         let jumped = frames_at(&mut offscreen, &template, back, origin, voxel, 1);
+        assert!(offscreen.renderer.ao_accumulating(), "a moved view must accumulate again");
         // The same view from a fresh history: what one frame there gives.
         offscreen.renderer.ao_passes.reset_history();
         offscreen.draw_frames(1).unwrap();

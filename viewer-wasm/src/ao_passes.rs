@@ -132,6 +132,9 @@ pub struct AoPasses {
     current: usize,
     /// Frames since the history was reset: the jitter index.
     frame_index: u32,
+    /// Frames drawn with the current view unchanged (pixels disoccluded while
+    /// the camera moved have that many frames in their history at least).
+    still_frames: u32,
     /// The pair not written next holds a usable previous frame.
     history_valid: bool,
     prev_view_proj: Mat4,
@@ -225,6 +228,7 @@ impl AoPasses {
             targets: None,
             current: 0,
             frame_index: 0,
+            still_frames: 0,
             history_valid: false,
             prev_view_proj: Mat4::IDENTITY,
             last_settings: None,
@@ -405,8 +409,12 @@ impl AoPasses {
         self.run(device, encoder, AoPass::Composite, frame_group, &inputs, target);
         self.last_visibility = visibility;
         self.history_valid = accumulated;
-        self.accumulating =
-            accumulated && settings.is_some_and(|s| self.frame_index + 1 < s.accumulated_frames());
+        self.still_frames =
+            if accumulated && view_proj == self.prev_view_proj { self.still_frames + 1 } else { 0 };
+        // Every pixel of a still view has N frames in once N frames were drawn
+        // since the view last changed (or the history was reset).
+        let since = self.still_frames.min(self.frame_index);
+        self.accumulating = accumulated && settings.is_some_and(|s| since + 1 < s.accumulated_frames());
         self.frame_index = self.frame_index.wrapping_add(1);
         self.prev_view_proj = view_proj;
         self.current = prev;
@@ -424,8 +432,9 @@ impl AoPasses {
         Some(LastFrame { position: &t.position[last], normal: &t.normal[last], visibility })
     }
 
-    /// Whether the last frame accumulated fewer frames than N: the viewer
-    /// keeps drawing a still view until its AO has converged.
+    /// Whether fewer than N frames were drawn since the view last changed (or
+    /// the history was reset): the viewer keeps drawing a still view until
+    /// every pixel's AO has its N frames.
     pub fn accumulating(&self) -> bool {
         self.accumulating
     }
