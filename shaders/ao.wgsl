@@ -9,8 +9,9 @@
 // weights), so V = 1 - sum_i weight_i * occlusion_i. Along a cone,
 // front-to-back opacity alpha accumulates; a step adds
 // (1 - alpha) * alpha_step * w(d), d the distance from p to the sample (grid
-// units, the same units as R). Appended to voxel.wgsl, whose `frame`,
-// `occupancy` and `occupancy_sampler` bindings it reads.
+// units, the same units as R). Part of the trace pass's module (after
+// frame.wgsl, whose `frame`, `occupancy` and `occupancy_sampler` bindings it
+// reads; ao_trace.wgsl calls `ambient_visibility`).
 
 // Occlusion (0 = open, 1 = blocked, weighted by w(d)) seen by one cone from p.
 //
@@ -74,8 +75,9 @@ fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, cell: f32, max_mip: f3
     return occlusion;
 }
 
-// V(p, n) in [0, 1] at grid position `p` with unit normal `n`.
-fn ambient_visibility(p: vec3<f32>, n_in: vec3<f32>) -> f32 {
+// V(p, n) in [0, 1] at grid position `p` with unit normal `n`, the cone set
+// (frame.ao_dirs) turned about n by `turn` (a fraction of a full turn).
+fn ambient_visibility(p: vec3<f32>, n_in: vec3<f32>, turn: f32) -> f32 {
     if frame.volume.w <= 0.0 {
         return 1.0;
     }
@@ -88,7 +90,10 @@ fn ambient_visibility(p: vec3<f32>, n_in: vec3<f32>) -> f32 {
     let cell = grid / frame.volume.y;
     let max_mip = frame.volume.z - 1.0;
     let helper = select(vec3<f32>(0.0, 1.0, 0.0), vec3<f32>(1.0, 0.0, 0.0), abs(n.y) > 0.9);
-    let t = normalize(cross(helper, n));
+    let t0 = normalize(cross(helper, n));
+    let b0 = cross(n, t0);
+    let angle = 6.283185307 * turn;
+    let t = cos(angle) * t0 + sin(angle) * b0;
     let b = cross(n, t);
     let cones = u32(frame.ao_cone.x);
     var occluded = 0.0;

@@ -1,27 +1,10 @@
 // Draws the face records written by expand.wgsl: 6 vertices per face, no
 // vertex buffers (vertex pulling). Everything is in grid units (level-0 voxels).
-// The cone-traced ambient occlusion lives in ao.wgsl, which the viewer appends
-// to this file to form one module.
-
-struct Frame {
-    // Grid units -> clip space, wgpu depth 0..1.
-    view_proj: mat4x4<f32>,
-    // xyz: camera position in grid units.
-    eye: vec4<f32>,
-    // xyz: unit direction towards the key light.
-    key_light: vec4<f32>,
-    // x: grid edge in grid units, y: occupancy cells per edge at mip 0,
-    // z: occupancy mip count, w: AO strength (0 disables).
-    volume: vec4<f32>,
-    // x: cone count, y: tan(half aperture), z: step (fraction of the cone's
-    // diameter), w: start offset along the normal (grid units).
-    ao_cone: vec4<f32>,
-    // x: R (grid units), y: falloff lambda, z: 1 = empty-space skipping,
-    // w: 1 = ignore the normal (negative control).
-    ao_range: vec4<f32>,
-    // Cone axes in the local frame (x, y tangent, z normal), w: weight.
-    ao_dirs: array<vec4<f32>, 16>,
-}
+// The viewer prepends frame.wgsl (the `Frame` uniform, group 0). This pass
+// writes the G-buffer: position, normal and the lit colour without AO; the
+// cone-traced ambient occlusion runs afterwards in its own passes
+// (ao_trace.wgsl with ao.wgsl, ao_upsample, ao_temporal) and ao_composite.wgsl
+// multiplies it in.
 
 struct BlockInfo {
     // Grid-unit position of the block's corner.
@@ -36,10 +19,6 @@ struct FaceRecord {
     // sRGB8 r | g << 8 | b << 16 | 255 << 24, or 0 when the block has no colour.
     color: u32,
 }
-
-@group(0) @binding(0) var<uniform> frame: Frame;
-@group(0) @binding(1) var occupancy: texture_3d<f32>;
-@group(0) @binding(2) var occupancy_sampler: sampler;
 
 @group(1) @binding(0) var<uniform> block: BlockInfo;
 @group(1) @binding(1) var<storage, read> faces: array<FaceRecord>;
@@ -139,10 +118,10 @@ fn vs_main(@builtin(vertex_index) vertex_index: u32) -> VertexOut {
 const BASE_COLOUR: vec3<f32> = vec3<f32>(0.86, 0.80, 0.72);
 
 struct Shaded {
+    // Lit colour, AO not applied yet (ao_composite.wgsl multiplies V in).
     colour: vec4<f32>,
     // The unit normal of the AO hemisphere.
     normal: vec3<f32>,
-    visibility: f32,
 }
 
 fn shade(in: VertexOut) -> Shaded {
@@ -158,22 +137,41 @@ fn shade(in: VertexOut) -> Shaded {
     let headlight = max(dot(n, to_eye), 0.0);
     let key = max(dot(n, frame.key_light.xyz), 0.0);
     let diffuse = 0.65 * headlight + 0.35 * key;
-    let visibility = ambient_visibility(in.grid_pos, n);
-    // Ambient and direct light both scaled by the visibility, no floor: a fully
-    // occluded crease is black. Shaded voxels still never take the background
-    // colour (20, 24, 36): a warm or grey base scaled by one factor keeps
-    // red >= blue, which the background does not have.
-    let light = visibility * (0.3 + 0.7 * diffuse);
+    // Ambient and direct light are both scaled by the visibility later, with
+    // no floor. Shaded voxels still never take the background colour (20, 24,
+    // 36): a warm or grey base scaled by one factor keeps red >= blue, which
+    // the background does not have.
+    let light = 0.3 + 0.7 * diffuse;
     var out: Shaded;
     out.colour = vec4<f32>(in.base_colour * light, 1.0);
     out.normal = n;
-    out.visibility = visibility;
     return out;
 }
 
+// Colour last: with a 16-byte-aligned f32 target first, the three fit
+// WebGPU's 32 bytes of colour attachments per sample (16 + 8 + 8).
+struct GBufferOut {
+    // xyz: the grid position the AO is computed for, w: 1.
+    @location(0) position: vec4<f32>,
+    // xyz: the AO hemisphere's unit normal, w: 1 (0 = background).
+    @location(1) normal: vec4<f32>,
+    // The lit colour without AO.
+    @location(2) colour: vec4<f32>,
+}
+
+fn gbuffer(in: VertexOut) -> GBufferOut {
+    let s = shade(in);
+    var out: GBufferOut;
+    out.colour = s.colour;
+    out.position = vec4<f32>(in.grid_pos, 1.0);
+    out.normal = vec4<f32>(s.normal, 1.0);
+    return out;
+}
+
+// The draw of every frame, in the browser and natively.
 @fragment
-fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
-    return shade(in).colour;
+fn fs_gbuffer(in: VertexOut) -> GBufferOut {
+    return gbuffer(in);
 }
 
 // Interleaved gradient noise (Jimenez 2014): a per-pixel threshold in [0, 1)
@@ -186,31 +184,10 @@ fn dither(pixel: vec2<f32>) -> f32 {
 // A block in a cross-fade: a newcomer keeps the pixels whose threshold is below
 // t, a leaver the others, so each pixel shows exactly one of the two levels.
 @fragment
-fn fs_fade(in: VertexOut) -> @location(0) vec4<f32> {
+fn fs_fade(in: VertexOut) -> GBufferOut {
     let mine = dither(in.clip.xy) < fade.value.x;
     if (mine != (fade.value.y > 0.5)) {
         discard;
     }
-    return shade(in).colour;
-}
-
-// Colour last: with a 16-byte-aligned f32 target first, the three fit
-// WebGPU's 32 bytes of colour attachments per sample (16 + 8 + 4).
-struct GBufferOut {
-    // xyz: the grid position the AO was computed for, w: visibility V.
-    @location(0) position_ao: vec4<f32>,
-    // xyz: the AO hemisphere's unit normal, w: 1 (0 = background).
-    @location(1) normal: vec4<f32>,
-    @location(2) colour: vec4<f32>,
-}
-
-// The native `voxstream render` pass: the same shading plus what the AO saw.
-@fragment
-fn fs_gbuffer(in: VertexOut) -> GBufferOut {
-    let s = shade(in);
-    var out: GBufferOut;
-    out.colour = s.colour;
-    out.position_ao = vec4<f32>(in.grid_pos, s.visibility);
-    out.normal = vec4<f32>(s.normal, 1.0);
-    return out;
+    return gbuffer(in);
 }

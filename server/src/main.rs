@@ -125,6 +125,11 @@ struct RenderArgs {
     /// Timed frames with and without AO (median reported; 0: no timing).
     #[arg(long, default_value_t = 3)]
     timing_runs: usize,
+    /// Frames of the still camera to accumulate (temporal accumulation from a
+    /// fresh history, each frame's cone set jittered unless --no-jitter): the
+    /// AO written is their average.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=256))]
+    ao_frames: u32,
 }
 
 /// Cone-traced AO settings (defaults in viewer-wasm/src/ao.rs, `AoSettings`).
@@ -154,6 +159,31 @@ struct AoArgs {
     /// Negative control: lay the cones around +Z whatever the surface normal.
     #[arg(long, hide = true)]
     ignore_normal: bool,
+    /// Trace AO for one pixel of each f×f block and upsample (1 = every pixel, 2, 4).
+    #[arg(long, default_value_t = 1, value_parser = parse_downscale)]
+    ao_downscale: u32,
+    /// Upsampling of a reduced-resolution trace.
+    #[arg(long, value_enum, default_value_t = UpsampleArg::Bilateral)]
+    ao_upsample: UpsampleArg,
+    /// Keep the cone set fixed: no rotation from frame to frame (with
+    /// --ao-frames) and none from pixel to pixel (interleaved sampling).
+    #[arg(long)]
+    no_jitter: bool,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum UpsampleArg {
+    /// Joint bilateral: bilinear weights times depth and normal likeness.
+    Bilateral,
+    /// Plain bilinear (blurs across depth edges; for comparison).
+    Bilinear,
+}
+
+fn parse_downscale(s: &str) -> Result<u32, String> {
+    match s.parse::<u32>() {
+        Ok(n @ (1 | 2 | 4)) => Ok(n),
+        _ => Err("must be 1, 2 or 4".into()),
+    }
 }
 
 fn parse_cones(s: &str) -> Result<u32, String> {
@@ -184,6 +214,14 @@ impl AoArgs {
             falloff: self.falloff,
             empty_skip: !self.no_empty_skip,
             ignore_normal: self.ignore_normal,
+            trace_downscale: self.ao_downscale,
+            upsample: match self.ao_upsample {
+                UpsampleArg::Bilateral => voxstream_viewer::ao::Upsample::Bilateral,
+                UpsampleArg::Bilinear => voxstream_viewer::ao::Upsample::Bilinear,
+            },
+            jitter: !self.no_jitter,
+            interleave: !self.no_jitter,
+            ..voxstream_viewer::ao::AoSettings::default()
         })
     }
 }
@@ -354,6 +392,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 ao: args.ao.settings()?,
                 max_distance: args.ao.max_distance,
                 timing_runs: args.timing_runs,
+                ao_frames: args.ao_frames,
             };
             let out = voxstream::render::render_view(&request)?;
             voxstream::render::write_outputs(&args.out, &out)?;

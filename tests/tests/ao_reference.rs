@@ -4,11 +4,16 @@
 //! `voxstream reference-ao`'s code (obvhs BVH over the original triangles,
 //! 1024 cosine-weighted rays per pixel) at the render's own points.
 //!
+//! The default setting is rendered as the viewer shows a still view: traced
+//! at half resolution, bilaterally upsampled, its `temporal_frames` (4)
+//! jittered frames accumulated.
+//!
 //! Goals (issue 9): RMSE ≤ 0.05, |mean bias| ≤ 0.02, equal-error rays ≥ 32.
 //! The first two are asserted. Equal-error rays ≥ 32 means RMSE ≤ √(σ²/32),
-//! about 0.02 here; the default setting reaches about 8 (RMSE 0.041, most of it
-//! over-occlusion within a few occupancy cells of concave edges), so the test
-//! holds it to a regression bound of 6 and the miss is reported, not hidden.
+//! about 0.022 here; the default setting reaches about 10 (RMSE 0.041, most of
+//! it over-occlusion within a few occupancy cells of concave edges, which
+//! accumulating frames does not remove), so the test holds it to a regression
+//! bound of 8 and the miss is reported, not hidden.
 //! Negative controls: the same check fails for cones that ignore the normal
 //! and for R ten times too small (the reference keeping the true R).
 
@@ -33,12 +38,11 @@ fn cornell() -> Option<PathBuf> {
 }
 
 /// Equal-error rays the default setting is held to (the goal is 32; see above).
-const MIN_EQUAL_ERROR_RAYS: f64 = 6.0;
-/// The goal is RMSE ≤ 0.05. Since the streaming traversal (1 px, finer blocks
-/// drawn) merged, the default measures 0.0502 here: held to this regression
-/// bound and reported as a miss, not hidden. The R/10 control (0.091) and the
-/// ignore-the-normal control (0.53) stay far outside it.
-const MAX_RMSE: f64 = 0.055;
+const MIN_EQUAL_ERROR_RAYS: f64 = 8.0;
+/// The goal, RMSE ≤ 0.05: the default measures 0.0407 here (one full-resolution
+/// frame measured 0.0502). The R/10 control (0.091) and the ignore-the-normal
+/// control (0.53) stay far outside it.
+const MAX_RMSE: f64 = GOAL_RMSE;
 const GOAL_RMSE: f64 = 0.05;
 
 fn passes(c: &Comparison) -> bool {
@@ -103,6 +107,8 @@ fn cornell_box_matches_the_ray_traced_reference() {
         ao,
         max_distance,
         timing_runs: 0,
+        // The setting as the viewer shows a still view: its frames accumulated.
+        ao_frames: ao.temporal_frames,
     };
     let out = render_view(&request(AoSettings::default(), None)).expect("render");
     let bvh = MeshBvh::new(&mesh, out.info.grid_origin);

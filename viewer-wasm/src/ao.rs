@@ -49,7 +49,39 @@ pub struct AoSettings {
     pub empty_skip: bool,
     /// Test only: cones laid around +Z whatever the normal (a deliberately wrong AO).
     pub ignore_normal: bool,
+    /// Trace one pixel of each f×f block (f = 1, 2 or 4; others are rounded
+    /// down to one of these) and upsample to full resolution (seed 001).
+    pub trace_downscale: u32,
+    /// How a reduced-resolution trace is brought to full resolution.
+    pub upsample: Upsample,
+    /// Rotate the cone set about the normal every frame (and, at reduced
+    /// resolution, move the traced pixel within its block), from a
+    /// low-discrepancy sequence; frame 0 is the fixed set.
+    pub jitter: bool,
+    /// Interleaved sampling: each traced pixel also turns the cone set by its
+    /// own angle (interleaved gradient noise), so neighbours, which the
+    /// upsample and the temporal history average, see different cone sets.
+    pub interleave: bool,
+    /// N: frames the temporal history averages (a new frame's weight falls to
+    /// 1/N); 1 = no accumulation.
+    pub temporal_frames: u32,
+    /// Test only: keep the history where the reprojected surface disagrees (a
+    /// deliberately wrong accumulation).
+    pub keep_disoccluded_history: bool,
 }
+
+/// Upsampling of a reduced-resolution trace.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Upsample {
+    /// Joint bilateral: bilinear weights times depth (plane distance) and normal likeness.
+    Bilateral,
+    /// Plain bilinear (comparison: it blurs across depth edges).
+    Bilinear,
+}
+
+/// Most frames the temporal accumulation averages.
+pub const MAX_TEMPORAL_FRAMES: u32 = 256;
 
 impl Default for AoSettings {
     fn default() -> Self {
@@ -62,6 +94,17 @@ impl Default for AoSettings {
             falloff: 1.0,
             empty_skip: false,
             ignore_normal: false,
+            // Measured (docs/ao-benchmark.md, "Reduced resolution and
+            // temporal accumulation"): half resolution with bilateral
+            // upsampling, jittered and interleaved, 4 frames accumulated, has
+            // the lowest converged error on the Cornell box at a quarter of
+            // the full-resolution trace's cost.
+            trace_downscale: 2,
+            upsample: Upsample::Bilateral,
+            jitter: true,
+            interleave: true,
+            temporal_frames: 4,
+            keep_disoccluded_history: false,
         }
     }
 }
@@ -85,12 +128,46 @@ pub fn supported_cones(cones: u32) -> u32 {
 /// projected solid angle, so the directions are cosine-weighted and every cone
 /// has the weight 1/cones.
 pub fn cone_directions(cones: u32) -> Vec<[f32; 3]> {
+    cone_directions_jittered(cones, ConeJitter::NONE)
+}
+
+/// One frame's rotation of the cone set: `turn` (0..1 of a full turn about
+/// the normal) and `radial` (0..1, where in its equal-area ring band each cone
+/// sits; 0.5 is the band's middle).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ConeJitter {
+    pub turn: f64,
+    pub radial: f64,
+}
+
+impl ConeJitter {
+    /// The fixed set ([`cone_directions`]).
+    pub const NONE: ConeJitter = ConeJitter { turn: 0.0, radial: 0.5 };
+
+    /// Frame `index`'s jitter: a turn about the normal from the golden-ratio
+    /// sequence (frac(k/φ), the 1D low-discrepancy sequence), frame 0 being
+    /// [`ConeJitter::NONE`]; any N consecutive frames spread their turns
+    /// evenly. The cones stay in the middle of their equal-area bands: moving
+    /// them within the bands as well (the R2 sequence's second coordinate)
+    /// was measured to bias short runs (4 frames whose band positions average
+    /// 0.35, not 0.5, tilted the set towards the normal: parallel plates MAE
+    /// 0.085 → 0.100).
+    pub fn for_frame(index: u32) -> Self {
+        const INVERSE_GOLDEN: f64 = 0.618_033_988_749_894_8;
+        ConeJitter { turn: (index as f64 * INVERSE_GOLDEN).fract(), radial: 0.5 }
+    }
+}
+
+/// [`cone_directions`] turned by `jitter`: still cosine-weighted with equal
+/// weights (each cone stays inside its own equal-area band).
+pub fn cone_directions_jittered(cones: u32, jitter: ConeJitter) -> Vec<[f32; 3]> {
     let n = cones.max(1);
     let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+    let radial = jitter.radial.clamp(0.0, 1.0);
     (0..n)
         .map(|i| {
-            let r = ((i as f64 + 0.5) / n as f64).sqrt();
-            let phi = i as f64 * golden;
+            let r = ((i as f64 + radial) / n as f64).sqrt();
+            let phi = i as f64 * golden + std::f64::consts::TAU * jitter.turn;
             let z = (1.0 - r * r).max(0.0).sqrt();
             [(r * phi.cos()) as f32, (r * phi.sin()) as f32, z as f32]
         })
@@ -136,12 +213,37 @@ impl AoSettings {
         finite_or(self.offset_cells, 1.5).clamp(0.0, 8.0) * cell
     }
 
-    /// The shader's uniform. Every value is finite and in range whatever the
-    /// settings hold: NaN or degenerate settings never reach the shader.
+    /// 1, 2 or 4: the requested downscale rounded down to one of these.
+    pub fn downscale(&self) -> u32 {
+        match self.trace_downscale {
+            0 | 1 => 1,
+            2 | 3 => 2,
+            _ => 4,
+        }
+    }
+
+    /// N of the temporal accumulation, in 1..=[`MAX_TEMPORAL_FRAMES`].
+    pub fn accumulated_frames(&self) -> u32 {
+        self.temporal_frames.clamp(1, MAX_TEMPORAL_FRAMES)
+    }
+
+    /// The cone set's jitter in frame `index` of an accumulation.
+    pub fn jitter_for_frame(&self, index: u32) -> ConeJitter {
+        if self.jitter { ConeJitter::for_frame(index) } else { ConeJitter::NONE }
+    }
+
+    /// The shader's uniform for the fixed cone set. Every value is finite and
+    /// in range whatever the settings hold: NaN or degenerate settings never
+    /// reach the shader.
     pub fn uniform(&self, grid_resolution: u32) -> AoUniform {
+        self.uniform_jittered(grid_resolution, ConeJitter::NONE)
+    }
+
+    /// [`AoSettings::uniform`] with the cone set turned by `jitter`.
+    pub fn uniform_jittered(&self, grid_resolution: u32, jitter: ConeJitter) -> AoUniform {
         let cones = self.cone_count();
         let mut dirs = [[0.0; 4]; MAX_CONES];
-        for (d, axis) in dirs.iter_mut().zip(cone_directions(cones)) {
+        for (d, axis) in dirs.iter_mut().zip(cone_directions_jittered(cones, jitter)) {
             *d = [axis[0], axis[1], axis[2], 1.0 / cones as f32];
         }
         AoUniform {
@@ -412,6 +514,44 @@ fn fill_enclosed(density: &mut [f32], normals: &[[f32; 3]], n: usize) {
     }
 }
 
+/// The pixel of each f×f block that frame `index` traces, as an offset in the
+/// block: always (0, 0) without jitter; with it, the blocks' pixels in the
+/// order of an f×f Bayer matrix, so any f² consecutive frames trace each pixel
+/// once and consecutive ones lie far apart.
+pub fn traced_pixel_offset(downscale: u32, index: u32, jitter: bool) -> [u32; 2] {
+    let f = downscale.max(1);
+    if !jitter || f == 1 {
+        return [0, 0];
+    }
+    let rank = index % (f * f);
+    (0..f * f)
+        .map(|i| [i % f, i / f])
+        .find(|&[x, y]| bayer_rank(x, y, f) == rank)
+        .expect("a Bayer matrix ranks every pixel once")
+}
+
+/// The rank of (x, y) in the f×f Bayer (ordered-dither) matrix, f a power of two.
+fn bayer_rank(x: u32, y: u32, f: u32) -> u32 {
+    let mut rank = 0;
+    let mut size = f;
+    let (mut x, mut y) = (x, y);
+    while size > 1 {
+        size /= 2;
+        let (bx, by) = (x / size, y / size);
+        // 2×2 ranks: (0,0) 0, (1,1) 1, (1,0) 2, (0,1) 3.
+        let quadrant = match (bx, by) {
+            (0, 0) => 0,
+            (1, 1) => 1,
+            (1, 0) => 2,
+            _ => 3,
+        };
+        rank = rank * 4 + quadrant;
+        x %= size;
+        y %= size;
+    }
+    rank
+}
+
 /// The next mip: a cell's opacity to a ray crossing it, estimated as twice the
 /// mean of its 2×2×2 children (values clamped to 1 first, as the texture stores
 /// them), clamped to 1. A surface sheet through a cell fills 4 of its 8
@@ -558,6 +698,44 @@ mod tests {
         }
         assert_eq!(supported_cones(7), 6);
         assert_eq!(supported_cones(100), 16);
+    }
+
+    #[test]
+    fn jittered_cone_sets_stay_cosine_weighted_and_frame_zero_is_the_fixed_set() {
+        assert_eq!(cone_directions_jittered(6, ConeJitter::for_frame(0)), cone_directions(6));
+        let mut mean_z = 0.0;
+        let frames = 64;
+        for k in 0..frames {
+            let j = ConeJitter::for_frame(k);
+            assert!((0.0..1.0).contains(&j.turn) && j.radial == 0.5);
+            for d in cone_directions_jittered(3, j) {
+                let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                assert!((len - 1.0).abs() < 1e-5 && d[2] >= 0.0);
+                mean_z += d[2] as f64 / (3 * frames) as f64;
+            }
+        }
+        // Over many frames 3 cones sample the cosine-weighted hemisphere: E[cos θ] = 2/3.
+        assert!((mean_z - 2.0 / 3.0).abs() < 0.01, "mean cos {mean_z}");
+        // Control: without jitter every frame has the same set.
+        let fixed = AoSettings { jitter: false, ..AoSettings::default() };
+        assert_eq!(fixed.jitter_for_frame(5), ConeJitter::NONE);
+        assert_ne!(AoSettings::default().jitter_for_frame(5), ConeJitter::NONE);
+    }
+
+    #[test]
+    fn traced_pixel_offsets_visit_every_pixel_of_the_block() {
+        for f in [2u32, 4] {
+            let mut seen: Vec<[u32; 2]> = (0..f * f).map(|k| traced_pixel_offset(f, k, true)).collect();
+            assert_eq!(seen[0], [0, 0]);
+            seen.sort();
+            seen.dedup();
+            assert_eq!(seen.len(), (f * f) as usize, "f = {f}");
+        }
+        assert_eq!(traced_pixel_offset(2, 1, true), [1, 1]);
+        assert_eq!(traced_pixel_offset(2, 3, false), [0, 0]);
+        assert_eq!(traced_pixel_offset(1, 3, true), [0, 0]);
+        let s = AoSettings { trace_downscale: 3, temporal_frames: 0, ..AoSettings::default() };
+        assert_eq!((s.downscale(), s.accumulated_frames()), (2, 1));
     }
 
     #[test]

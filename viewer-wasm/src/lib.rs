@@ -12,6 +12,7 @@
 //! camera, [`select`] the LOD geometry and [`scene`] the thin driver.
 
 pub mod ao;
+pub mod ao_passes;
 pub mod camera;
 pub mod crossfade;
 pub mod decode;

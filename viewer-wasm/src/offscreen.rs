@@ -58,8 +58,8 @@ pub struct OffscreenFrame {
     pub adapter: String,
 }
 
-/// A frame drawn with the G-buffer pass (`fs_gbuffer`): the shaded image plus,
-/// per pixel (rows top to bottom), what the AO was computed for.
+/// A frame with its G-buffer: the shaded image plus, per pixel (rows top to
+/// bottom), what the AO was computed for and the visibility it got.
 #[derive(Debug, Clone)]
 pub struct GBufferFrame {
     pub frame: OffscreenFrame,
@@ -67,6 +67,9 @@ pub struct GBufferFrame {
     pub position_ao: Vec<[f32; 4]>,
     /// xyz: the AO hemisphere's unit normal (f16 precision), w: 1 on a surface, 0 on the background.
     pub normal: Vec<[f32; 4]>,
+    /// With temporal accumulation, the frames each pixel's history holds (0 on
+    /// the background, 1 where the history was dropped).
+    pub history_frames: Option<Vec<f32>>,
 }
 
 /// A native device and queue.
@@ -274,38 +277,62 @@ impl Offscreen {
         })
     }
 
-    /// Loads what the view wants and draws it with the G-buffer pass, reading
-    /// back the image, positions, normals and visibilities.
-    pub fn render_gbuffer(&mut self) -> Result<GBufferFrame, OffscreenError> {
-        let (width, height) = (self.target.width(), self.target.height());
-        let make = |label, format| {
-            self.renderer.device.create_texture(&wgpu::TextureDescriptor {
-                label: Some(label),
-                size: wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: wgpu::TextureDimension::D2,
-                format,
-                usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
-                view_formats: &[],
-            })
-        };
-        let position = make("g-buffer position + visibility", crate::render::GBUFFER_POSITION_FORMAT);
-        let normal = make("g-buffer normal", crate::render::GBUFFER_NORMAL_FORMAT);
-        self.renderer
-            .set_gbuffer(position.create_view(&Default::default()), normal.create_view(&Default::default()));
-        let frame = self.render();
-        self.renderer.clear_gbuffer();
-        let frame = frame?;
-        let position_ao = read_texture_bytes(&self.renderer, &position, 16)?
+    /// Loads what the view wants, draws it, then draws `ao_frames` frames of
+    /// the still view from a fresh AO history (jittered frames accumulate when
+    /// the settings ask for it) and reads back the last one: the image, the
+    /// G-buffer's positions and normals and the final visibilities.
+    pub fn render_gbuffer(&mut self, ao_frames: u32) -> Result<GBufferFrame, OffscreenError> {
+        let frame = self.render()?;
+        self.renderer.ao_passes.reset_history();
+        self.draw_frames(ao_frames.max(1))?;
+        self.read_gbuffer(frame)
+    }
+
+    /// Draws the current view `frames` times (the AO history carries over
+    /// from frame to frame and from earlier calls), waiting for each.
+    pub fn draw_frames(&mut self, frames: u32) -> Result<(), OffscreenError> {
+        let view = self.target.create_view(&Default::default());
+        for _ in 0..frames {
+            self.scene.draw(&mut self.renderer, &view, 0.0);
+            wait_idle(&self.renderer.device)?;
+        }
+        Ok(())
+    }
+
+    /// The last frame drawn with its G-buffer and final visibilities; `frame`
+    /// gives the rest (its pixels are replaced by the last frame's).
+    pub fn read_gbuffer(&self, mut frame: OffscreenFrame) -> Result<GBufferFrame, OffscreenError> {
+        frame.pixels = read_texture(&self.renderer, &self.target)?;
+        frame.view_proj = self.scene.view_proj().to_cols_array();
+        let crate::ao_passes::LastFrame { position, normal, visibility } = self
+            .renderer
+            .ao_passes
+            .last_frame()
+            .ok_or_else(|| OffscreenError::Readback("no frame was drawn".into()))?;
+        let positions: Vec<[f32; 4]> = read_texture_bytes(&self.renderer, position, 16)?
             .chunks_exact(16)
             .map(bytemuck::pod_read_unaligned)
             .collect();
-        let normal = read_texture_bytes(&self.renderer, &normal, 8)?
+        let normal = read_texture_bytes(&self.renderer, normal, 8)?
             .chunks_exact(8)
             .map(|t| std::array::from_fn(|i| f16_to_f32(u16::from_le_bytes([t[2 * i], t[2 * i + 1]]))))
             .collect();
-        Ok(GBufferFrame { position_ao, normal, frame })
+        // V in the first f32 of each texel (and, in the history, the frames in the second).
+        let (visibility, history_frames) = match visibility {
+            Some((texture, texel)) => {
+                let bytes = read_texture_bytes(&self.renderer, texture, texel)?;
+                let first = |k: usize| -> Vec<f32> {
+                    bytes
+                        .chunks_exact(texel as usize)
+                        .map(|t| f32::from_le_bytes(t[4 * k..4 * k + 4].try_into().expect("4")))
+                        .collect()
+                };
+                (first(0), (texel == 16).then(|| first(1)))
+            }
+            None => (vec![1.0; positions.len()], None),
+        };
+        let position_ao = positions.iter().zip(&visibility).map(|(p, v)| [p[0], p[1], p[2], *v]).collect();
+        Ok(GBufferFrame { position_ao, normal, history_frames, frame })
     }
 
     /// Median milliseconds of `runs` frames of the loaded view at `ao_strength`

@@ -1,11 +1,14 @@
 //! The draw: one render pass, one indirect draw per block, 6 vertices per face
-//! pulled from the face buffer (shaders/voxel.wgsl + ao.wgsl), depth-tested,
-//! cleared to [`crate::BACKGROUND_RGBA8`].
+//! pulled from the face buffer (shaders/voxel.wgsl), depth-tested, into the
+//! G-buffer; then the AO's full-screen passes and the composite into the
+//! frame's target ([`crate::ao_passes`]), cleared to [`crate::BACKGROUND_RGBA8`].
 
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec3};
 
 use crate::ao::{AoSettings, AoUniform, OccupancyTexture, OccupancyVolume};
+use crate::ao_passes::AoPasses;
+pub use crate::ao_passes::{GBUFFER_COLOUR_FORMAT, GBUFFER_NORMAL_FORMAT, GBUFFER_POSITION_FORMAT};
 use crate::crossfade::{FADE_SLOT_BYTES, Fade, MAX_FADES};
 use crate::expand::{Expander, GpuBlock, block_bind_group_layout};
 use crate::shaders;
@@ -21,14 +24,15 @@ pub struct FrameUniform {
     pub key_light: [f32; 4],
     /// Grid edge (grid units), occupancy cells per edge, occupancy mips, AO strength.
     pub volume: [f32; 4],
-    /// `ao_cone`, `ao_range`, `ao_dirs`.
+    /// `ao_cone`, `ao_range`, `ao_dirs` (this frame's jittered cone set).
     pub ao: AoUniform,
+    /// The previous frame's view_proj (temporal reprojection).
+    pub prev_view_proj: [f32; 16],
+    /// Trace downscale, traced pixel offset x and y, 1 = bilateral upsampling.
+    pub ao_sparse: [f32; 4],
+    /// Frames averaged (N), history valid, reject disoccluded history, interleaved sampling.
+    pub ao_temporal: [f32; 4],
 }
-
-/// Format of the G-buffer's position + visibility target.
-pub const GBUFFER_POSITION_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
-/// Format of the G-buffer's normal target.
-pub const GBUFFER_NORMAL_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
 
 /// What one frame is drawn with.
 #[derive(Debug, Clone, Copy)]
@@ -59,6 +63,7 @@ pub struct Renderer {
     pub color_format: wgpu::TextureFormat,
     pub expander: Expander,
     pub block_layout: wgpu::BindGroupLayout,
+    /// The voxel draw into the G-buffer (`fs_gbuffer`).
     pipeline: wgpu::RenderPipeline,
     frame_uniform: wgpu::Buffer,
     frame_group: wgpu::BindGroup,
@@ -66,13 +71,8 @@ pub struct Renderer {
     depth: Option<DepthTarget>,
     /// The cone tracer's settings, read at every frame.
     pub ao: AoSettings,
-    module: wgpu::ShaderModule,
-    layout: wgpu::PipelineLayout,
-    gbuffer_pipeline: Option<wgpu::RenderPipeline>,
-    /// When set, frames are drawn with `fs_gbuffer` into these two and the
-    /// colour target: position + visibility ([`GBUFFER_POSITION_FORMAT`]) and
-    /// normal (w = 1 on a surface, [`GBUFFER_NORMAL_FORMAT`]).
-    gbuffer: Option<[wgpu::TextureView; 2]>,
+    /// The G-buffer, the AO passes and their history.
+    pub ao_passes: AoPasses,
     /// `fs_fade` with group 2: one uniform slot per fading block (dynamic offset).
     fade_pipeline: wgpu::RenderPipeline,
     fade_buffer: wgpu::Buffer,
@@ -155,7 +155,13 @@ impl Renderer {
             bind_group_layouts: &[Some(&frame_layout), Some(&block_layout)],
             immediate_size: 0,
         });
-        let pipeline = voxel_pipeline(&device, &module, &layout, &[Some(color_format.into())], "fs_main");
+        let gbuffer_targets = [
+            Some(GBUFFER_POSITION_FORMAT.into()),
+            Some(GBUFFER_NORMAL_FORMAT.into()),
+            Some(GBUFFER_COLOUR_FORMAT.into()),
+        ];
+        let pipeline = voxel_pipeline(&device, &module, &layout, &gbuffer_targets, "fs_gbuffer");
+        let ao_passes = AoPasses::new(&device, &frame_layout, color_format);
         let fade_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("fade"),
             entries: &[wgpu::BindGroupLayoutEntry {
@@ -192,8 +198,7 @@ impl Renderer {
             bind_group_layouts: &[Some(&frame_layout), Some(&block_layout), Some(&fade_layout)],
             immediate_size: 0,
         });
-        let fade_pipeline =
-            voxel_pipeline(&device, &module, &fade_layout, &[Some(color_format.into())], "fs_fade");
+        let fade_pipeline = voxel_pipeline(&device, &module, &fade_layout, &gbuffer_targets, "fs_fade");
         Self {
             device,
             queue,
@@ -206,34 +211,16 @@ impl Renderer {
             occupancy,
             depth: None,
             ao: AoSettings::default(),
-            module,
-            layout,
-            gbuffer_pipeline: None,
-            gbuffer: None,
+            ao_passes,
             fade_pipeline,
             fade_buffer,
             fade_group,
         }
     }
 
-    /// Draws the following frames into the G-buffer targets `position_ao` and
-    /// `normal` (the colour target's size) as well.
-    pub fn set_gbuffer(&mut self, position_ao: wgpu::TextureView, normal: wgpu::TextureView) {
-        if self.gbuffer_pipeline.is_none() {
-            let targets = [
-                Some(GBUFFER_POSITION_FORMAT.into()),
-                Some(GBUFFER_NORMAL_FORMAT.into()),
-                Some(self.color_format.into()),
-            ];
-            self.gbuffer_pipeline =
-                Some(voxel_pipeline(&self.device, &self.module, &self.layout, &targets, "fs_gbuffer"));
-        }
-        self.gbuffer = Some([position_ao, normal]);
-    }
-
-    /// Back to drawing the colour target only.
-    pub fn clear_gbuffer(&mut self) {
-        self.gbuffer = None;
+    /// Whether the view's AO is still accumulating frames (draw again even without input).
+    pub fn ao_accumulating(&self) -> bool {
+        self.ao_passes.accumulating()
     }
 }
 
@@ -324,7 +311,8 @@ impl Renderer {
         &self.depth.as_ref().expect("just created").view
     }
 
-    /// Records the frame into `encoder`: clear, then one indirect draw per block.
+    /// Records the frame into `encoder`: the G-buffer cleared, one indirect
+    /// draw per block, then the AO passes and the composite into `target`.
     pub fn encode_frame(
         &mut self,
         encoder: &mut wgpu::CommandEncoder,
@@ -335,6 +323,12 @@ impl Renderer {
     ) {
         // A key light from above and to the side of the viewer; the headlight is implicit.
         let key_light = (Vec3::new(0.4, 1.0, 0.3)).normalize();
+        let (width, height) = (size.0.max(1), size.1.max(1));
+        let ao_on = params.ao_strength > 0.0;
+        let settings = ao_on.then_some(self.ao);
+        self.ao_passes.targets(&self.device, (width, height), if ao_on { self.ao.downscale() } else { 1 });
+        let state = self.ao_passes.begin_frame(settings.as_ref());
+        let jitter = self.ao.jitter_for_frame(state.index);
         let uniform = FrameUniform {
             view_proj: params.view_proj.to_cols_array(),
             eye: params.eye.extend(1.0).to_array(),
@@ -345,27 +339,43 @@ impl Renderer {
                 self.occupancy.mip_count() as f32,
                 params.ao_strength,
             ],
-            ao: self.ao.uniform(params.grid_resolution as u32),
+            ao: self.ao.uniform_jittered(params.grid_resolution as u32, jitter),
+            prev_view_proj: state.prev_view_proj.to_cols_array(),
+            ao_sparse: state.sparse,
+            ao_temporal: state.temporal,
         };
         self.queue.write_buffer(&self.frame_uniform, 0, bytemuck::bytes_of(&uniform));
-        let (width, height) = (size.0.max(1), size.1.max(1));
         let depth = self.depth_view(width, height).clone();
-        let (attachments, pipeline) = match (&self.gbuffer, &self.gbuffer_pipeline) {
-            (Some([position, normal]), Some(pipeline)) => (
-                vec![
-                    attachment(position, wgpu::Color::TRANSPARENT),
-                    attachment(normal, wgpu::Color::TRANSPARENT),
-                    attachment(target, background_color()),
-                ],
-                pipeline,
-            ),
-            _ => (vec![attachment(target, background_color())], &self.pipeline),
-        };
+        let [position, normal, colour] = self.ao_passes.gbuffer_views();
+        self.encode_voxels(encoder, &depth, [&position, &normal, &colour], blocks);
+        self.ao_passes.encode(
+            &self.device,
+            encoder,
+            &self.frame_group,
+            settings.as_ref(),
+            target,
+            params.view_proj,
+        );
+    }
+
+    /// The voxel draw into the G-buffer: the blocks not fading, then the fading ones through `fs_fade`.
+    fn encode_voxels(
+        &mut self,
+        encoder: &mut wgpu::CommandEncoder,
+        depth: &wgpu::TextureView,
+        [position, normal, colour]: [&wgpu::TextureView; 3],
+        blocks: &[(&GpuBlock, Option<Fade>)],
+    ) {
+        let attachments = [
+            attachment(position, wgpu::Color::TRANSPARENT),
+            attachment(normal, wgpu::Color::TRANSPARENT),
+            attachment(colour, background_color()),
+        ];
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("voxels"),
             color_attachments: &attachments,
             depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                view: &depth,
+                view: depth,
                 depth_ops: Some(wgpu::Operations {
                     load: wgpu::LoadOp::Clear(1.0),
                     // Kept for the occlusion feedback's readback.
@@ -377,15 +387,11 @@ impl Renderer {
             occlusion_query_set: None,
             multiview_mask: None,
         });
-        pass.set_pipeline(pipeline);
+        pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, &self.frame_group, &[]);
         for (block, _) in blocks.iter().filter(|(_, fade)| fade.is_none()) {
             pass.set_bind_group(1, &block.bind_group, &[]);
             pass.draw_indirect(&block.buffers.draw_args, 0);
-        }
-        // The G-buffer pass (native renders) never fades: its blocks are drawn above or not at all.
-        if self.gbuffer.is_some() {
-            return;
         }
         let fading: Vec<(&GpuBlock, Fade)> =
             blocks.iter().filter_map(|(b, f)| f.map(|f| (*b, f))).take(MAX_FADES).collect();

@@ -213,14 +213,17 @@ impl Scene {
     }
 
     /// GPU bytes of the frame's own targets: colour and depth at the viewport
-    /// size, the occupancy volume with its mips, uniforms, the upload buffer.
-    fn fixed_gpu_bytes(&self, occupancy_cells: u32) -> u64 {
+    /// size, the G-buffer and AO targets, the occupancy volume with its mips,
+    /// uniforms, the upload buffer.
+    fn fixed_gpu_bytes(&self, occupancy_cells: u32, ao_downscale: u32) -> u64 {
         let pixels = self.viewport.0 as u64 * self.viewport.1 as u64;
+        let frame_targets = crate::ao_passes::target_bytes(self.viewport.0, self.viewport.1, ao_downscale);
         let occupancy: u64 =
             (0..=occupancy_cells.max(1).ilog2()).map(|m| ((occupancy_cells >> m) as u64).pow(3)).sum();
         pixels * 4 * 2
             + occupancy
-            + 256
+            + frame_targets
+            + 512
             + UPLOAD_BYTES_PER_FRAME
             + occlusion_gpu_bytes(self.viewport.0, self.viewport.1)
             + FADE_BUFFER_BYTES
@@ -472,7 +475,8 @@ impl Scene {
     /// many blocks went up.
     pub fn upload(&mut self, renderer: &Renderer) -> usize {
         // Fixed targets first: they shrink the block budget the traversal plans within.
-        self.residency.set_fixed_bytes(self.fixed_gpu_bytes(renderer.occupancy_cells()));
+        self.residency
+            .set_fixed_bytes(self.fixed_gpu_bytes(renderer.occupancy_cells(), renderer.ao.downscale()));
         self.update_traversal();
         let todo = self.awaiting_upload();
         if todo.is_empty() {

@@ -2,27 +2,76 @@
 //! compiled into the viewer for both targets.
 
 pub const EXPAND_WGSL: &str = include_str!("../../shaders/expand.wgsl");
+pub const FRAME_WGSL: &str = include_str!("../../shaders/frame.wgsl");
+pub const SCREEN_WGSL: &str = include_str!("../../shaders/screen.wgsl");
 pub const VOXEL_WGSL: &str = include_str!("../../shaders/voxel.wgsl");
 pub const AO_WGSL: &str = include_str!("../../shaders/ao.wgsl");
 pub const DEPTH_REDUCE_WGSL: &str = include_str!("../../shaders/depth_reduce.wgsl");
+pub const AO_TRACE_WGSL: &str = include_str!("../../shaders/ao_trace.wgsl");
+pub const AO_UPSAMPLE_WGSL: &str = include_str!("../../shaders/ao_upsample.wgsl");
+pub const AO_TEMPORAL_WGSL: &str = include_str!("../../shaders/ao_temporal.wgsl");
+pub const AO_COMPOSITE_WGSL: &str = include_str!("../../shaders/ao_composite.wgsl");
 
 /// Every file in `shaders/`, by name (a test checks that this list is complete).
 pub const SHADER_FILES: &[(&str, &str)] = &[
     ("expand.wgsl", EXPAND_WGSL),
+    ("frame.wgsl", FRAME_WGSL),
+    ("screen.wgsl", SCREEN_WGSL),
     ("voxel.wgsl", VOXEL_WGSL),
     ("ao.wgsl", AO_WGSL),
+    ("ao_trace.wgsl", AO_TRACE_WGSL),
+    ("ao_upsample.wgsl", AO_UPSAMPLE_WGSL),
+    ("ao_temporal.wgsl", AO_TEMPORAL_WGSL),
+    ("ao_composite.wgsl", AO_COMPOSITE_WGSL),
     ("depth_reduce.wgsl", DEPTH_REDUCE_WGSL),
 ];
+
+/// The AO's full-screen passes, one shader (and one module) a pass, in frame order.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AoPass {
+    /// Cone tracing at 1/f resolution (ao_trace.wgsl with ao.wgsl).
+    Trace,
+    /// Joint bilateral upsampling to full resolution (ao_upsample.wgsl).
+    Upsample,
+    /// Reprojection and exponential accumulation (ao_temporal.wgsl).
+    Temporal,
+    /// Colour × V into the frame's target (ao_composite.wgsl).
+    Composite,
+}
+
+impl AoPass {
+    pub const ALL: [AoPass; 4] = [AoPass::Trace, AoPass::Upsample, AoPass::Temporal, AoPass::Composite];
+
+    /// The fragment entry point (the vertex one is `vs_fullscreen`).
+    pub fn entry_point(self) -> &'static str {
+        match self {
+            AoPass::Trace => "fs_trace",
+            AoPass::Upsample => "fs_upsample",
+            AoPass::Temporal => "fs_temporal",
+            AoPass::Composite => "fs_composite",
+        }
+    }
+
+    /// The pass's module: frame.wgsl and screen.wgsl, then its own file
+    /// (the trace pass with ao.wgsl before it).
+    pub fn module_source(self) -> String {
+        match self {
+            AoPass::Trace => format!("{FRAME_WGSL}\n{SCREEN_WGSL}\n{AO_WGSL}\n{AO_TRACE_WGSL}"),
+            AoPass::Upsample => format!("{FRAME_WGSL}\n{SCREEN_WGSL}\n{AO_UPSAMPLE_WGSL}"),
+            AoPass::Temporal => format!("{FRAME_WGSL}\n{SCREEN_WGSL}\n{AO_TEMPORAL_WGSL}"),
+            AoPass::Composite => format!("{FRAME_WGSL}\n{SCREEN_WGSL}\n{AO_COMPOSITE_WGSL}"),
+        }
+    }
+}
 
 /// The compute module that expands voxels into face records.
 pub fn expand_module_source() -> &'static str {
     EXPAND_WGSL
 }
 
-/// The draw module: voxel.wgsl with the ambient-occlusion functions of ao.wgsl
-/// appended (WGSL has no includes).
+/// The draw module: frame.wgsl then voxel.wgsl (WGSL has no includes).
 pub fn voxel_module_source() -> String {
-    format!("{VOXEL_WGSL}\n{AO_WGSL}")
+    format!("{FRAME_WGSL}\n{VOXEL_WGSL}")
 }
 
 #[cfg(all(test, not(target_arch = "wasm32")))]
@@ -50,16 +99,25 @@ mod tests {
         assert_eq!(entry_points(&expand), vec![("expand_faces".to_string(), naga::ShaderStage::Compute)]);
         let reduce = validate("depth_reduce.wgsl", DEPTH_REDUCE_WGSL);
         assert_eq!(entry_points(&reduce), vec![("reduce_depth".to_string(), naga::ShaderStage::Compute)]);
-        let voxel = validate("voxel.wgsl + ao.wgsl", &voxel_module_source());
+        let voxel = validate("frame.wgsl + voxel.wgsl", &voxel_module_source());
         assert_eq!(
             entry_points(&voxel),
             vec![
                 ("vs_main".to_string(), naga::ShaderStage::Vertex),
-                ("fs_main".to_string(), naga::ShaderStage::Fragment),
+                ("fs_gbuffer".to_string(), naga::ShaderStage::Fragment),
                 ("fs_fade".to_string(), naga::ShaderStage::Fragment),
-                ("fs_gbuffer".to_string(), naga::ShaderStage::Fragment)
             ]
         );
+        for pass in AoPass::ALL {
+            let module = validate(pass.entry_point(), &pass.module_source());
+            assert_eq!(
+                entry_points(&module),
+                vec![
+                    ("vs_fullscreen".to_string(), naga::ShaderStage::Vertex),
+                    (pass.entry_point().to_string(), naga::ShaderStage::Fragment),
+                ]
+            );
+        }
     }
 
     #[test]
@@ -81,7 +139,7 @@ mod tests {
 
     #[test]
     fn a_broken_shader_is_caught() {
-        let broken = voxel_module_source().replace("fn ambient_visibility", "fn ambient_visibilty");
+        let broken = AoPass::Trace.module_source().replace("fn ambient_visibility", "fn ambient_visibilty");
         assert!(naga::front::wgsl::parse_str(&broken).is_err(), "a missing function must not validate");
     }
 }

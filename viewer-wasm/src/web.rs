@@ -390,8 +390,9 @@ impl App {
                 self.camera_moved();
             }
         }
-        if self.scene.needs_another_frame() {
-            // Blocks wait for the per-frame upload cap, or occlusion feedback is settling.
+        if self.scene.needs_another_frame() || self.renderer.ao_accumulating() {
+            // Blocks wait for the per-frame upload cap, occlusion feedback is
+            // settling, or the AO of a still view is still accumulating frames.
             REDRAW_AFTER_FLIGHT.with(|r| r.set(true));
         }
         self.last_view_proj = frame.view_proj.to_cols_array();

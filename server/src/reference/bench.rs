@@ -37,6 +37,23 @@ pub struct AoBenchArgs {
     /// Scene resolution the views are built at.
     #[arg(long, default_value_t = 256)]
     pub resolution: u32,
+    /// Only these views (repeatable; default: every view present).
+    #[arg(long = "view")]
+    pub views: Vec<String>,
+    /// Which settings to sweep: the cone tracer's (cone count, step,
+    /// aperture, skipping, image size) or reduced-resolution tracing and
+    /// temporal accumulation (`sparse-temporal`).
+    #[arg(long, value_enum, default_value_t = Sweep::Cones)]
+    pub sweep: Sweep,
+    /// Frame counts N of the `sparse-temporal` sweep's accumulated points (comma-separated).
+    #[arg(long, value_delimiter = ',', default_value = "4,16")]
+    pub frames: Vec<u32>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Sweep {
+    Cones,
+    SparseTemporal,
 }
 
 /// One setting of the sweep.
@@ -46,32 +63,88 @@ pub struct Point {
     pub settings: AoSettings,
     /// Image scale relative to --width/--height.
     pub scale: u32,
+    /// Frames of the still view accumulated (1: one frame).
+    pub frames: u32,
+}
+
+/// Full or reduced resolution, one frame or `frames` accumulated, at the
+/// default cone setting, with two comparisons: accumulation without jitter,
+/// and plain bilinear upsampling.
+fn sparse_temporal_sweep(frames: &[u32]) -> Vec<Point> {
+    use voxstream_viewer::ao::Upsample;
+    let d = AoSettings {
+        trace_downscale: 1,
+        jitter: true,
+        interleave: false,
+        temporal_frames: 1,
+        ..AoSettings::default()
+    };
+    let point =
+        |label: String, settings: AoSettings, frames: u32| Point { label, settings, scale: 1, frames };
+    let counts: Vec<u32> =
+        frames.iter().map(|&n| n.clamp(2, voxstream_viewer::ao::MAX_TEMPORAL_FRAMES)).collect();
+    let mut points = vec![point("full res, 1 frame".into(), d, 1)];
+    for &n in &counts {
+        points.push(point(format!("full res, {n} frames jittered"), d, n));
+    }
+    if let Some(&n) = counts.last() {
+        points.push(point(format!("full res, {n} frames, no jitter"), AoSettings { jitter: false, ..d }, n));
+    }
+    for f in [2, 4] {
+        let s = AoSettings { trace_downscale: f, ..d };
+        points.push(point(format!("1/{f} res + bilateral, 1 frame"), s, 1));
+        for &n in &counts {
+            points.push(point(format!("1/{f} res + bilateral, {n} frames jittered"), s, n));
+        }
+    }
+    let interleaved = AoSettings { trace_downscale: 2, interleave: true, ..d };
+    points.push(point("1/2 res + bilateral, interleaved, 1 frame".into(), interleaved, 1));
+    for &n in &counts {
+        points.push(point(format!("1/2 res + bilateral, interleaved, {n} frames jittered"), interleaved, n));
+    }
+    let interleaved_full = AoSettings { interleave: true, ..d };
+    points.push(point("full res, interleaved, 1 frame".into(), interleaved_full, 1));
+    points.push(point(
+        "1/2 res + bilinear, 1 frame".into(),
+        AoSettings { trace_downscale: 2, upsample: Upsample::Bilinear, ..d },
+        1,
+    ));
+    points
 }
 
 fn sweep() -> Vec<Point> {
-    let d = AoSettings::default();
+    // The cone tracer alone: full resolution, one frame, the fixed cone set.
+    let d = AoSettings { trace_downscale: 1, interleave: false, temporal_frames: 1, ..AoSettings::default() };
     let mut points = Vec::new();
     for cones in [3, 5, 6, 8, 16] {
-        points.push(Point { label: format!("{cones} cones"), settings: AoSettings { cones, ..d }, scale: 1 });
+        points.push(Point {
+            label: format!("{cones} cones"),
+            settings: AoSettings { cones, ..d },
+            scale: 1,
+            frames: 1,
+        });
     }
     for cones in [6, 16] {
         points.push(Point {
             label: format!("{cones} cones, step 0.5"),
             settings: AoSettings { cones, step: 0.5, ..d },
             scale: 1,
+            frames: 1,
         });
     }
     points.push(Point {
         label: "6 cones, aperture x1.5".into(),
         settings: AoSettings { aperture_deg: Some(d.aperture() * 1.5), ..d },
         scale: 1,
+        frames: 1,
     });
     points.push(Point {
         label: "6 cones, empty skip".into(),
         settings: AoSettings { empty_skip: true, ..d },
         scale: 1,
+        frames: 1,
     });
-    points.push(Point { label: "6 cones, 2x resolution".into(), settings: d, scale: 2 });
+    points.push(Point { label: "6 cones, 2x resolution".into(), settings: d, scale: 2, frames: 1 });
     points
 }
 
@@ -81,6 +154,8 @@ pub struct Row {
     pub point: String,
     pub width: u32,
     pub height: u32,
+    /// Frames of the still view accumulated.
+    pub frames: u32,
     pub frame_ms: f64,
     pub frame_no_ao_ms: f64,
     pub ao_over_frame: f64,
@@ -150,6 +225,7 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
         views.push(View { name: s.name.to_string(), mesh, camera: s.camera, shapes: Some(s.shapes) });
     }
     let mut skipped = Vec::new();
+    views.retain(|v| args.views.is_empty() || args.views.contains(&v.name));
     for (name, file, inside) in [
         ("cornell_box", "CornellBox-Original.obj", None),
         ("dragon", "dragon_vrip_res4.ply", Some(false)),
@@ -158,6 +234,9 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
         ("cedar_creek_inside", "matterport_cedar_creek.ply", Some(true)),
     ] {
         let mesh = args.data_dir.join(file);
+        if !args.views.is_empty() && !args.views.iter().any(|v| v == name) {
+            continue;
+        }
         if !mesh.is_file() {
             skipped.push(format!("{name}: {} absent", mesh.display()));
             continue;
@@ -175,7 +254,10 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
         };
         views.push(View { name: name.to_string(), mesh, camera, shapes: None });
     }
-    let points = sweep();
+    let points = match args.sweep {
+        Sweep::Cones => sweep(),
+        Sweep::SparseTemporal => sparse_temporal_sweep(&args.frames),
+    };
     let mut rows = Vec::new();
     for view in &views {
         eprintln!("ao-bench: {} ...", view.name);
@@ -201,6 +283,7 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
                 ao: point.settings,
                 max_distance: None,
                 timing_runs: 3,
+                ao_frames: point.frames,
             })?;
             let bvh = bvh.get_or_insert_with(|| MeshBvh::new(&mesh, out.info.grid_origin));
             if !references.iter().any(|r| r.scale == point.scale) {
@@ -237,6 +320,7 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
                 point: point.label.clone(),
                 width: w,
                 height: h,
+                frames: point.frames,
                 frame_ms: t.frame_ms.unwrap_or(f64::NAN),
                 frame_no_ao_ms: t.frame_no_ao_ms.unwrap_or(f64::NAN),
                 ao_over_frame: t.ao_over_frame.unwrap_or(f64::NAN),
@@ -248,7 +332,14 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
                 primary_rmse: p.rmse,
                 primary_bias: p.bias,
             });
-            eprintln!("  {:28} {:8.1} ms  RMSE {:.4}", point.label, rows.last().unwrap().frame_ms, c.rmse);
+            eprintln!(
+                "  {:36} {:8.1} ms  RMSE {:.4}  bias {:+.4}  eq. rays {}",
+                point.label,
+                rows.last().unwrap().frame_ms,
+                c.rmse,
+                c.bias,
+                fmt_opt(c.equal_error_rays, 1)
+            );
         }
     }
     std::fs::create_dir_all(&args.out_dir)?;
@@ -327,7 +418,7 @@ fn write_markdown(
     writeln!(s, "# Cone-traced AO: run time against error\n")?;
     writeln!(
         s,
-        "Written by `voxstream ao-bench` (server/src/reference/bench.rs) on {adapter}: scenes built at {}³, images {}×{} (2× for one point), reference {} cosine-weighted rays per pixel at the render's own points (obvhs BVH over the original triangles), the ray-traced view of the mesh with {} rays. Times are medians of three frames, with AO and without (the AO is traced in the fragment shader; `AO/frame` = (with − without) / without). Equal-error rays: k with mean σ²/k = the renderer's MSE (— where the error is below what the reference resolves). Exact MAE: analytic scenes only, against the exact geometry's quadrature.\n",
+        "Written by `voxstream ao-bench` (server/src/reference/bench.rs) on {adapter}: scenes built at {}³, images {}×{} (2× for one point), reference {} cosine-weighted rays per pixel at the render's own points (obvhs BVH over the original triangles), the ray-traced view of the mesh with {} rays. Times are medians of three frames, with AO and without (the AO runs in its own passes after the G-buffer draw; `AO/frame` = (with − without) / without); an N-frame point's AO is the average of N jittered frames of the still view and costs N frames to converge (`frames`). Equal-error rays: k with mean σ²/k = the renderer's MSE (— where the error is below what the reference resolves). Exact MAE: analytic scenes only, against the exact geometry's quadrature.\n",
         args.resolution,
         args.width,
         args.height,
@@ -356,17 +447,18 @@ fn write_markdown(
     writeln!(s, "\n## Every view and setting\n")?;
     writeln!(
         s,
-        "| view | setting | size | frame ms | no-AO ms | AO/frame | RMSE | bias | SSIM | eq. rays | exact MAE | RMSE vs ray-traced view | bias vs ray-traced view |"
+        "| view | setting | size | frames | frame ms | no-AO ms | AO/frame | RMSE | bias | SSIM | eq. rays | exact MAE | RMSE vs ray-traced view | bias vs ray-traced view |"
     )?;
-    writeln!(s, "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")?;
+    writeln!(s, "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")?;
     for r in rows {
         writeln!(
             s,
-            "| {} | {} | {}×{} | {:.1} | {:.1} | {:.2} | {:.4} | {:+.4} | {:.3} | {} | {} | {:.4} | {:+.4} |",
+            "| {} | {} | {}×{} | {} | {:.1} | {:.1} | {:.2} | {:.4} | {:+.4} | {:.3} | {} | {} | {:.4} | {:+.4} |",
             r.view,
             r.point,
             r.width,
             r.height,
+            r.frames,
             r.frame_ms,
             r.frame_no_ao_ms,
             r.ao_over_frame,

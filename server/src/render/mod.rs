@@ -117,6 +117,27 @@ impl CameraSpec {
     }
 }
 
+impl CameraSpec {
+    /// The viewer's fixed view (grid units) for a `width`×`height` image of a
+    /// scene whose grid frame is `origin` and `voxel_size`.
+    pub fn fixed_view(
+        &self,
+        origin: [f64; 3],
+        voxel_size: f64,
+        width: u32,
+        height: u32,
+    ) -> anyhow::Result<FixedView> {
+        let view_proj = self.view_proj_grid(origin, voxel_size, width, height);
+        ensure!(view_proj.is_finite(), "camera: the view matrix is not finite in grid units");
+        let eye = (DVec3::from(self.eye) - DVec3::from(origin)) / voxel_size;
+        Ok(FixedView {
+            view_proj: Mat4::from_cols_array(&view_proj.to_cols_array().map(|v| v as f32)),
+            eye: eye.as_vec3(),
+            focal_pixels: (height as f64 / (2.0 * (self.fov_y_deg.to_radians() * 0.5).tan())) as f32,
+        })
+    }
+}
+
 /// The AO settings of a render, in source units, as recorded in render.json.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct AoRecord {
@@ -140,8 +161,20 @@ pub struct AoRecord {
     /// Finest occupancy cells per grid edge and the cell edge in source units.
     pub occupancy_cells: u32,
     pub occupancy_cell_size: f64,
-    /// Cone axes in the local frame (x, y tangent, z normal), equal weights.
+    /// Cone axes in the local frame (x, y tangent, z normal), equal weights
+    /// (frame 0's set; with jitter each later frame turns it).
     pub cone_directions: Vec<[f32; 3]>,
+    /// AO traced for one pixel of each f×f block (1: every pixel).
+    pub trace_downscale: u32,
+    /// "bilateral" (joint, depth and normal guided) or "bilinear".
+    pub upsample: voxstream_viewer::ao::Upsample,
+    /// The cone set turned (and the traced pixel moved) every frame.
+    pub jitter: bool,
+    /// Each traced pixel turns the cone set by its own angle as well.
+    pub interleave: bool,
+    /// Frames of the still view drawn from a fresh history and averaged
+    /// (temporal accumulation with weight 1/frames); 1: a single frame.
+    pub frames: u32,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -150,7 +183,7 @@ pub struct Timings {
     pub frame_ms: Option<f64>,
     /// Median frame of the same view with AO off (ms).
     pub frame_no_ao_ms: Option<f64>,
-    /// frame_ms − frame_no_ao_ms: the AO is traced in the fragment shader, so its pass is this difference.
+    /// frame_ms − frame_no_ao_ms: the AO passes (trace, upsample, temporal) and the G-buffer's extra cost.
     pub ao_pass_ms: Option<f64>,
     /// ao_pass_ms / frame_no_ao_ms.
     pub ao_over_frame: Option<f64>,
@@ -200,6 +233,9 @@ pub struct RenderRequest {
     pub max_distance: Option<f64>,
     /// Timed frames per setting (0: no timing).
     pub timing_runs: usize,
+    /// Frames of the still view accumulated (jittered when `ao.jitter`): the
+    /// AO written is their average. 1: one frame.
+    pub ao_frames: u32,
 }
 
 /// Largest image edge `render` accepts.
@@ -232,16 +268,11 @@ pub fn render_view(req: &RenderRequest) -> anyhow::Result<RenderOutput> {
     }
     let (w, h) = (req.width, req.height);
     let mut offscreen = Offscreen::open(&req.scene_dir, &RenderOptions::new(w, h))?;
-    let view_proj = req.camera.view_proj_grid(grid.origin, grid.voxel_size, w, h);
-    ensure!(view_proj.is_finite(), "camera: the view matrix is not finite in grid units");
-    let eye = (DVec3::from(req.camera.eye) - DVec3::from(grid.origin)) / grid.voxel_size;
-    offscreen.scene.fixed_view = Some(FixedView {
-        view_proj: Mat4::from_cols_array(&view_proj.to_cols_array().map(|v| v as f32)),
-        eye: eye.as_vec3(),
-        focal_pixels: (h as f64 / (2.0 * (req.camera.fov_y_deg.to_radians() * 0.5).tan())) as f32,
-    });
+    offscreen.scene.fixed_view = Some(req.camera.fixed_view(grid.origin, grid.voxel_size, w, h)?);
+    let frames = req.ao_frames.clamp(1, voxstream_viewer::ao::MAX_TEMPORAL_FRAMES);
+    ao.temporal_frames = frames;
     offscreen.renderer.ao = ao;
-    let g = offscreen.render_gbuffer()?;
+    let g = offscreen.render_gbuffer(frames)?;
     if !g.frame.failures.is_empty() {
         bail!("blocks failed to load: {:?}", g.frame.failures);
     }
@@ -307,6 +338,11 @@ pub fn render_view(req: &RenderRequest) -> anyhow::Result<RenderOutput> {
             occupancy_cells: cells,
             occupancy_cell_size: cell_size,
             cone_directions: cone_directions(ao.cone_count()),
+            trace_downscale: ao.downscale(),
+            upsample: ao.upsample,
+            jitter: ao.jitter,
+            interleave: ao.interleave,
+            frames,
         },
         timings,
         adapter: g.frame.adapter.clone(),
@@ -498,6 +534,11 @@ mod tests {
                     occupancy_cells: 64,
                     occupancy_cell_size: 0.1,
                     cone_directions: vec![],
+                    trace_downscale: 2,
+                    upsample: voxstream_viewer::ao::Upsample::Bilateral,
+                    jitter: true,
+                    interleave: true,
+                    frames: 8,
                 },
                 timings: Timings {
                     frame_ms: None,

@@ -1,0 +1,65 @@
+// Pass 2 of the AO (only when traced at 1/f resolution, f > 1): joint
+// bilateral upsampling (seed 001 §5, Kopf et al. 2007) to full resolution.
+// A pixel blends the 2×2 traced texels around it with their bilinear weights
+// times how alike their surfaces are, read from the full-resolution G-buffer
+// at the pixels they traced:
+//
+//   w = bilinear * exp(-(plane distance / tolerance)^2) * max(n_s . n, 0)^8
+//
+// the plane distance being |(p_s - p) . n|: zero for samples on the pixel's
+// own plane however it is tilted, large across a depth discontinuity; the
+// normal term rejects samples across a crease. When no texel matches (a
+// feature thinner than f pixels) the most alike one is taken.
+// frame.ao_sparse.w = 0 turns the surface terms off: plain bilinear
+// upsampling, which blurs across edges (the comparison).
+
+@group(1) @binding(0) var gbuffer_position: texture_2d<f32>;
+@group(1) @binding(1) var gbuffer_normal: texture_2d<f32>;
+@group(1) @binding(2) var traced: texture_2d<f32>;
+
+@fragment
+fn fs_upsample(@builtin(position) clip: vec4<f32>) -> @location(0) vec4<f32> {
+    let size = vec2<i32>(textureDimensions(gbuffer_normal));
+    let low = vec2<i32>(textureDimensions(traced));
+    let pixel = vec2<i32>(clip.xy);
+    let here = load_surface(gbuffer_position, gbuffer_normal, pixel);
+    let bilateral = frame.ao_sparse.w > 0.5;
+    if bilateral && !here.surface {
+        return vec4<f32>(1.0, 0.0, 0.0, 1.0);
+    }
+    let f = max(frame.ao_sparse.x, 1.0);
+    // Texel t traced pixel t * f + offset: this pixel's place among the texels.
+    let g = (vec2<f32>(pixel) - frame.ao_sparse.yz) / f;
+    let base = vec2<i32>(floor(g));
+    let t = g - floor(g);
+    let tolerance = surface_tolerance(here.position);
+    var sum = 0.0;
+    var weight_sum = 0.0;
+    var best = 1.0;
+    var best_likeness = -1.0;
+    for (var k = 0; k < 4; k += 1) {
+        let corner = vec2<i32>(k & 1, k >> 1u);
+        let texel = clamp(base + corner, vec2<i32>(0), low - vec2<i32>(1));
+        let bilinear = select(1.0 - t.x, t.x, corner.x == 1) * select(1.0 - t.y, t.y, corner.y == 1);
+        let v = textureLoad(traced, texel, 0).r;
+        var w = bilinear;
+        if bilateral {
+            let s = load_surface(gbuffer_position, gbuffer_normal, traced_pixel(texel, size));
+            let plane = abs(dot(s.position - here.position, here.normal)) / tolerance;
+            let likeness = select(0.0, exp(-plane * plane) * pow(max(dot(s.normal, here.normal), 0.0), 8.0), s.surface);
+            // A small floor on the bilinear weight: a matching texel at the far
+            // corner still beats no sample at all.
+            w = (bilinear + 1e-3) * likeness;
+            if likeness > best_likeness {
+                best_likeness = likeness;
+                best = v;
+            }
+        }
+        sum += w * v;
+        weight_sum += w;
+    }
+    if weight_sum > 1e-6 {
+        return vec4<f32>(sum / weight_sum, 0.0, 0.0, 1.0);
+    }
+    return vec4<f32>(best, 0.0, 0.0, 1.0);
+}

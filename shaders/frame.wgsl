@@ -1,0 +1,42 @@
+// The per-frame uniform and the occupancy volume (group 0), shared by every
+// pass of a frame: the voxel draw (voxel.wgsl) and the AO passes (ao_trace,
+// ao_upsample, ao_temporal, ao_composite). The viewer prepends this file to
+// each of their modules (WGSL has no includes); viewer-wasm/src/render.rs
+// (`FrameUniform`) holds the same layout.
+
+struct Frame {
+    // Grid units -> clip space, wgpu depth 0..1.
+    view_proj: mat4x4<f32>,
+    // xyz: camera position in grid units.
+    eye: vec4<f32>,
+    // xyz: unit direction towards the key light.
+    key_light: vec4<f32>,
+    // x: grid edge in grid units, y: occupancy cells per edge at mip 0,
+    // z: occupancy mip count, w: AO strength (0 disables).
+    volume: vec4<f32>,
+    // x: cone count, y: tan(half aperture), z: step (fraction of the cone's
+    // diameter), w: start offset along the normal (grid units).
+    ao_cone: vec4<f32>,
+    // x: R (grid units), y: falloff lambda, z: 1 = empty-space skipping,
+    // w: 1 = ignore the normal (negative control).
+    ao_range: vec4<f32>,
+    // Cone axes in the local frame (x, y tangent, z normal), w: weight. This
+    // frame's set: rotated about the normal per frame when jitter is on.
+    ao_dirs: array<vec4<f32>, 16>,
+    // The previous frame's view_proj (temporal reprojection).
+    prev_view_proj: mat4x4<f32>,
+    // x: trace downscale f (1, 2 or 4: AO is traced for one pixel of each f×f
+    // block), yz: that pixel's offset in its block this frame, w: 1 = joint
+    // bilateral upsampling, 0 = plain bilinear (comparison only).
+    ao_sparse: vec4<f32>,
+    // x: N, the frames the history averages (a new frame's weight falls to
+    // 1/N; 1 = no accumulation), y: 1 = the history holds the previous frame,
+    // z: 1 = reject history where position or normal disagree (disocclusion),
+    // w: 1 = interleaved sampling (each traced texel turns the cone set by its
+    // own angle).
+    ao_temporal: vec4<f32>,
+}
+
+@group(0) @binding(0) var<uniform> frame: Frame;
+@group(0) @binding(1) var occupancy: texture_3d<f32>;
+@group(0) @binding(2) var occupancy_sampler: sampler;

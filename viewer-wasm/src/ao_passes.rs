@@ -1,0 +1,441 @@
+//! The frame's targets and the AO's full-screen passes after the voxel draw,
+//! one shader a pass (seed 001 §1.1: deferred, sparse, upsampled):
+//!
+//! 1. the voxel draw (render.rs, voxel.wgsl) writes the G-buffer: grid
+//!    position, normal, lit colour without AO, depth;
+//! 2. **trace** (ao_trace.wgsl + ao.wgsl): cone tracing for one pixel of each
+//!    f×f block into a 1/f-resolution target (f = 1, 2 or 4);
+//! 3. **upsample** (ao_upsample.wgsl, f > 1 only): joint bilateral upsampling
+//!    to full resolution, guided by the G-buffer's position and normal;
+//! 4. **temporal** (ao_temporal.wgsl, N > 1 only): the history reprojected
+//!    with the previous frame's view-projection, dropped where position or
+//!    normal disagree, blended with weight max(1/frames, 1/N);
+//! 5. **composite** (ao_composite.wgsl): colour × V into the frame's target.
+//!
+//! With jitter on, each frame turns the cone set about the normal
+//! ([`crate::ao::ConeJitter`]) and moves the traced pixel within its block
+//! ([`crate::ao::traced_pixel_offset`]), so accumulated frames average
+//! different cone sets and pixels. Position, normal and history are
+//! ping-ponged: a frame reads the previous frame's pair.
+
+use glam::Mat4;
+
+use crate::ao::{AoSettings, Upsample, traced_pixel_offset};
+use crate::shaders::AoPass;
+
+/// The G-buffer's position target (xyz grid units, w 1).
+pub const GBUFFER_POSITION_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
+/// The G-buffer's normal target (xyz unit normal, w 1 on a surface, 0 on the background).
+pub const GBUFFER_NORMAL_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
+/// The G-buffer's colour target: lit, AO not applied.
+pub const GBUFFER_COLOUR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
+/// The traced (1/f resolution) and upsampled visibility: V in r.
+pub const VISIBILITY_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::R32Float;
+/// The temporal history: (V, frames accumulated, 0, 1).
+pub const HISTORY_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
+
+/// GPU bytes of the targets at a viewport size and downscale (residency).
+pub fn target_bytes(width: u32, height: u32, downscale: u32) -> u64 {
+    let pixels = width as u64 * height as u64;
+    let f = downscale.max(1);
+    let low = width.div_ceil(f) as u64 * height.div_ceil(f) as u64;
+    // Position ×2, normal ×2, colour, upsampled V, history ×2; traced V.
+    pixels * (16 * 2 + 8 * 2 + 4 + 4 + 16 * 2) + low * 4
+}
+
+/// Every texture a frame draws into, at the viewport size.
+pub struct FrameTargets {
+    pub size: (u32, u32),
+    pub downscale: u32,
+    pub position: [wgpu::Texture; 2],
+    pub normal: [wgpu::Texture; 2],
+    pub colour: wgpu::Texture,
+    /// V at 1/downscale resolution (full resolution when downscale is 1).
+    pub traced: wgpu::Texture,
+    /// V upsampled to full resolution.
+    pub upsampled: wgpu::Texture,
+    pub history: [wgpu::Texture; 2],
+}
+
+impl FrameTargets {
+    fn new(device: &wgpu::Device, size: (u32, u32), downscale: u32) -> Self {
+        let make = |label: &str, format, (width, height): (u32, u32)| {
+            device.create_texture(&wgpu::TextureDescriptor {
+                label: Some(label),
+                size: wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format,
+                // COPY_SRC: `voxstream render` and the tests read them back.
+                usage: wgpu::TextureUsages::RENDER_ATTACHMENT
+                    | wgpu::TextureUsages::TEXTURE_BINDING
+                    | wgpu::TextureUsages::COPY_SRC,
+                view_formats: &[],
+            })
+        };
+        let low = (size.0.div_ceil(downscale), size.1.div_ceil(downscale));
+        Self {
+            size,
+            downscale,
+            position: [
+                make("g-buffer position a", GBUFFER_POSITION_FORMAT, size),
+                make("g-buffer position b", GBUFFER_POSITION_FORMAT, size),
+            ],
+            normal: [
+                make("g-buffer normal a", GBUFFER_NORMAL_FORMAT, size),
+                make("g-buffer normal b", GBUFFER_NORMAL_FORMAT, size),
+            ],
+            colour: make("g-buffer colour", GBUFFER_COLOUR_FORMAT, size),
+            traced: make("ao traced", VISIBILITY_FORMAT, low),
+            upsampled: make("ao upsampled", VISIBILITY_FORMAT, size),
+            history: [make("ao history a", HISTORY_FORMAT, size), make("ao history b", HISTORY_FORMAT, size)],
+        }
+    }
+}
+
+/// Where the last frame's final V is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum VisibilityTexture {
+    /// `traced` (downscale 1, no accumulation): V in r of an R32Float texture.
+    Traced,
+    /// `upsampled` (downscale > 1, no accumulation).
+    Upsampled,
+    /// `history[i]`: V in r of an Rgba32Float texture, frames in g.
+    History(usize),
+}
+
+/// What the last frame left in the targets.
+pub struct LastFrame<'a> {
+    pub position: &'a wgpu::Texture,
+    pub normal: &'a wgpu::Texture,
+    /// The final V (in the first f32 of each texel) and the bytes of a texel;
+    /// `None` with AO off.
+    pub visibility: Option<(&'a wgpu::Texture, u32)>,
+}
+
+/// The uniform values the AO passes read beside the settings.
+#[derive(Debug, Clone, Copy)]
+pub struct AoFrameState {
+    pub prev_view_proj: Mat4,
+    pub sparse: [f32; 4],
+    pub temporal: [f32; 4],
+    /// Frame index in the accumulation: the jitter of the cone set.
+    pub index: u32,
+}
+
+/// The AO passes' pipelines, the targets and the history's state.
+pub struct AoPasses {
+    pipelines: Vec<(AoPass, wgpu::RenderPipeline, wgpu::BindGroupLayout)>,
+    targets: Option<FrameTargets>,
+    /// The pair (position, normal, history) the next frame writes.
+    current: usize,
+    /// Frames since the history was reset: the jitter index.
+    frame_index: u32,
+    /// Frames drawn with the current view unchanged (pixels disoccluded while
+    /// the camera moved have that many frames in their history at least).
+    still_frames: u32,
+    /// The pair not written next holds a usable previous frame.
+    history_valid: bool,
+    prev_view_proj: Mat4,
+    /// The settings of the last frame (a change resets the history).
+    last_settings: Option<AoSettings>,
+    /// The last frame's final V, if it ran the AO.
+    last_visibility: Option<VisibilityTexture>,
+    /// Accumulating: the last frame ran the temporal pass with fewer than N frames in.
+    accumulating: bool,
+}
+
+fn texture_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::FRAGMENT,
+        ty: wgpu::BindingType::Texture {
+            sample_type: wgpu::TextureSampleType::Float { filterable: false },
+            view_dimension: wgpu::TextureViewDimension::D2,
+            multisampled: false,
+        },
+        count: None,
+    }
+}
+
+/// Textures group 1 of each pass binds (all read with textureLoad).
+fn pass_texture_count(pass: AoPass) -> u32 {
+    match pass {
+        AoPass::Trace => 2,
+        AoPass::Upsample => 3,
+        AoPass::Temporal => 6,
+        AoPass::Composite => 3,
+    }
+}
+
+impl AoPasses {
+    /// Builds the four pipelines; `frame_layout` is group 0 (frame.wgsl),
+    /// `output_format` the frame's target (the composite's output).
+    pub fn new(
+        device: &wgpu::Device,
+        frame_layout: &wgpu::BindGroupLayout,
+        output_format: wgpu::TextureFormat,
+    ) -> Self {
+        let pipelines = AoPass::ALL
+            .into_iter()
+            .map(|pass| {
+                let entries: Vec<_> = (0..pass_texture_count(pass)).map(texture_entry).collect();
+                let textures = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+                    label: Some(pass.entry_point()),
+                    entries: &entries,
+                });
+                let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                    label: Some(pass.entry_point()),
+                    bind_group_layouts: &[Some(frame_layout), Some(&textures)],
+                    immediate_size: 0,
+                });
+                let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                    label: Some(pass.entry_point()),
+                    source: wgpu::ShaderSource::Wgsl(pass.module_source().into()),
+                });
+                let format = match pass {
+                    AoPass::Trace | AoPass::Upsample => VISIBILITY_FORMAT,
+                    AoPass::Temporal => HISTORY_FORMAT,
+                    AoPass::Composite => output_format,
+                };
+                let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+                    label: Some(pass.entry_point()),
+                    layout: Some(&layout),
+                    vertex: wgpu::VertexState {
+                        module: &module,
+                        entry_point: Some("vs_fullscreen"),
+                        compilation_options: Default::default(),
+                        buffers: &[],
+                    },
+                    primitive: wgpu::PrimitiveState::default(),
+                    depth_stencil: None,
+                    multisample: Default::default(),
+                    fragment: Some(wgpu::FragmentState {
+                        module: &module,
+                        entry_point: Some(pass.entry_point()),
+                        compilation_options: Default::default(),
+                        targets: &[Some(format.into())],
+                    }),
+                    multiview_mask: None,
+                    cache: None,
+                });
+                (pass, pipeline, textures)
+            })
+            .collect();
+        Self {
+            pipelines,
+            targets: None,
+            current: 0,
+            frame_index: 0,
+            still_frames: 0,
+            history_valid: false,
+            prev_view_proj: Mat4::IDENTITY,
+            last_settings: None,
+            last_visibility: None,
+            accumulating: false,
+        }
+    }
+
+    /// Forgets the history: the next frame starts a new accumulation at jitter index 0.
+    pub fn reset_history(&mut self) {
+        self.history_valid = false;
+        self.frame_index = 0;
+    }
+
+    /// The targets, (re)made for `size` and `downscale` (a change resets the history).
+    pub fn targets(&mut self, device: &wgpu::Device, size: (u32, u32), downscale: u32) -> &FrameTargets {
+        if self.targets.as_ref().is_none_or(|t| t.size != size || t.downscale != downscale) {
+            self.targets = Some(FrameTargets::new(device, size, downscale));
+            self.reset_history();
+        }
+        self.targets.as_ref().expect("just made")
+    }
+
+    /// The uniform values of the coming frame, given its settings (`None`: AO off).
+    pub fn begin_frame(&mut self, settings: Option<&AoSettings>) -> AoFrameState {
+        if settings != self.last_settings.as_ref() {
+            self.reset_history();
+        }
+        self.last_settings = settings.copied();
+        let Some(s) = settings else {
+            self.reset_history();
+            return AoFrameState {
+                prev_view_proj: self.prev_view_proj,
+                sparse: [1.0, 0.0, 0.0, 1.0],
+                temporal: [1.0, 0.0, 1.0, 0.0],
+                index: 0,
+            };
+        };
+        let f = s.downscale();
+        let [ox, oy] = traced_pixel_offset(f, self.frame_index, s.jitter);
+        AoFrameState {
+            prev_view_proj: self.prev_view_proj,
+            sparse: [
+                f as f32,
+                ox as f32,
+                oy as f32,
+                if s.upsample == Upsample::Bilateral { 1.0 } else { 0.0 },
+            ],
+            temporal: [
+                s.accumulated_frames() as f32,
+                if self.history_valid { 1.0 } else { 0.0 },
+                if s.keep_disoccluded_history { 0.0 } else { 1.0 },
+                if s.interleave { 1.0 } else { 0.0 },
+            ],
+            index: self.frame_index,
+        }
+    }
+
+    /// The G-buffer attachments of the coming frame: position, normal, colour.
+    pub fn gbuffer_views(&self) -> [wgpu::TextureView; 3] {
+        let t = self.targets.as_ref().expect("targets() first");
+        [
+            t.position[self.current].create_view(&Default::default()),
+            t.normal[self.current].create_view(&Default::default()),
+            t.colour.create_view(&Default::default()),
+        ]
+    }
+
+    fn pass(&self, pass: AoPass) -> (&wgpu::RenderPipeline, &wgpu::BindGroupLayout) {
+        let (_, pipeline, layout) = self.pipelines.iter().find(|(p, _, _)| *p == pass).expect("every pass");
+        (pipeline, layout)
+    }
+
+    fn run(
+        &self,
+        device: &wgpu::Device,
+        encoder: &mut wgpu::CommandEncoder,
+        pass: AoPass,
+        frame_group: &wgpu::BindGroup,
+        inputs: &[&wgpu::Texture],
+        output: &wgpu::TextureView,
+    ) {
+        let (pipeline, layout) = self.pass(pass);
+        // Every pixel is written; the clear only matters to a reader of an unwritten target.
+        let clear = match pass {
+            AoPass::Trace | AoPass::Upsample => wgpu::Color::WHITE,
+            AoPass::Temporal => wgpu::Color::TRANSPARENT,
+            AoPass::Composite => crate::render::background_color(),
+        };
+        let views: Vec<wgpu::TextureView> =
+            inputs.iter().map(|t| t.create_view(&Default::default())).collect();
+        let entries: Vec<wgpu::BindGroupEntry> = views
+            .iter()
+            .enumerate()
+            .map(|(i, v)| wgpu::BindGroupEntry {
+                binding: i as u32,
+                resource: wgpu::BindingResource::TextureView(v),
+            })
+            .collect();
+        let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some(pass.entry_point()),
+            layout,
+            entries: &entries,
+        });
+        let mut rpass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some(pass.entry_point()),
+            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                view: output,
+                depth_slice: None,
+                resolve_target: None,
+                ops: wgpu::Operations { load: wgpu::LoadOp::Clear(clear), store: wgpu::StoreOp::Store },
+            })],
+            depth_stencil_attachment: None,
+            timestamp_writes: None,
+            occlusion_query_set: None,
+            multiview_mask: None,
+        });
+        rpass.set_pipeline(pipeline);
+        rpass.set_bind_group(0, frame_group, &[]);
+        rpass.set_bind_group(1, &group, &[]);
+        rpass.draw(0..3, 0..1);
+    }
+
+    /// Records the passes after the voxel draw: the AO passes `settings` ask
+    /// for (none when `None`: AO off), then the composite into `target`.
+    pub fn encode(
+        &mut self,
+        device: &wgpu::Device,
+        encoder: &mut wgpu::CommandEncoder,
+        frame_group: &wgpu::BindGroup,
+        settings: Option<&AoSettings>,
+        target: &wgpu::TextureView,
+        view_proj: Mat4,
+    ) {
+        let t = self.targets.as_ref().expect("targets() first");
+        let (cur, prev) = (self.current, 1 - self.current);
+        let mut visibility = None;
+        let mut accumulated = false;
+        if let Some(s) = settings {
+            let traced_view = t.traced.create_view(&Default::default());
+            self.run(
+                device,
+                encoder,
+                AoPass::Trace,
+                frame_group,
+                &[&t.position[cur], &t.normal[cur]],
+                &traced_view,
+            );
+            let mut current = (&t.traced, VisibilityTexture::Traced);
+            if s.downscale() > 1 {
+                let view = t.upsampled.create_view(&Default::default());
+                let inputs = [&t.position[cur], &t.normal[cur], &t.traced];
+                self.run(device, encoder, AoPass::Upsample, frame_group, &inputs, &view);
+                current = (&t.upsampled, VisibilityTexture::Upsampled);
+            }
+            if s.accumulated_frames() > 1 {
+                let view = t.history[cur].create_view(&Default::default());
+                let inputs = [
+                    &t.position[cur],
+                    &t.normal[cur],
+                    current.0,
+                    &t.position[prev],
+                    &t.normal[prev],
+                    &t.history[prev],
+                ];
+                self.run(device, encoder, AoPass::Temporal, frame_group, &inputs, &view);
+                current = (&t.history[cur], VisibilityTexture::History(cur));
+                accumulated = true;
+            }
+            visibility = Some(current.1);
+        }
+        let v = match visibility {
+            Some(VisibilityTexture::History(i)) => &t.history[i],
+            Some(VisibilityTexture::Upsampled) => &t.upsampled,
+            _ => &t.traced,
+        };
+        let inputs = [&t.normal[cur], &t.colour, v];
+        self.run(device, encoder, AoPass::Composite, frame_group, &inputs, target);
+        self.last_visibility = visibility;
+        self.history_valid = accumulated;
+        self.still_frames =
+            if accumulated && view_proj == self.prev_view_proj { self.still_frames + 1 } else { 0 };
+        // Every pixel of a still view has N frames in once N frames were drawn
+        // since the view last changed (or the history was reset).
+        let since = self.still_frames.min(self.frame_index);
+        self.accumulating = accumulated && settings.is_some_and(|s| since + 1 < s.accumulated_frames());
+        self.frame_index = self.frame_index.wrapping_add(1);
+        self.prev_view_proj = view_proj;
+        self.current = prev;
+    }
+
+    /// The textures the last frame wrote (`None` before the first frame).
+    pub fn last_frame(&self) -> Option<LastFrame<'_>> {
+        let t = self.targets.as_ref()?;
+        let last = 1 - self.current;
+        let visibility = self.last_visibility.map(|v| match v {
+            VisibilityTexture::Traced => (&t.traced, 4),
+            VisibilityTexture::Upsampled => (&t.upsampled, 4),
+            VisibilityTexture::History(i) => (&t.history[i], 16),
+        });
+        Some(LastFrame { position: &t.position[last], normal: &t.normal[last], visibility })
+    }
+
+    /// Whether fewer than N frames were drawn since the view last changed (or
+    /// the history was reset): the viewer keeps drawing a still view until
+    /// every pixel's AO has its N frames.
+    pub fn accumulating(&self) -> bool {
+        self.accumulating
+    }
+}
