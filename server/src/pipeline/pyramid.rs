@@ -276,9 +276,35 @@ impl Pyramid {
         if self.levels > 1 {
             let parent = self.partial[1]
                 .get_or_insert_with(|| LodBlock { key: block.key.parent(), voxels: Vec::new() });
-            downsample(&block, parent, &self.reach);
+            downsample(&block, &mut parent.voxels, &self.reach);
         }
         emit_drawn(block, emit)
+    }
+
+    /// [`Self::push`] for a level-0 block whose share of its parent was
+    /// computed elsewhere ([`parent_share`], e.g. on the worker that
+    /// voxelized it): emits the blocks completed before `key` and appends
+    /// `share` to the parent. The caller then writes the level-0 block itself
+    /// (buried voxels dropped), after what `emit` got here: that keeps post order.
+    pub fn push_share<E>(
+        &mut self,
+        key: BlockKey,
+        share: &[LodVoxel],
+        emit: &mut impl FnMut(LodBlock) -> Result<(), E>,
+    ) -> Result<(), E> {
+        assert_eq!(key.level, 0, "the pyramid takes level-0 blocks");
+        let m = block_morton(key.coord());
+        assert!(self.last.is_none_or(|last| last < m), "level-0 blocks must come in increasing Morton order");
+        self.last = Some(m);
+        self.close(Some(key), emit)?;
+        if self.levels > 1 && !share.is_empty() {
+            let parent =
+                self.partial[1].get_or_insert_with(|| LodBlock { key: key.parent(), voxels: Vec::new() });
+            // Exact growth: the front is accounted by capacity.
+            parent.voxels.reserve_exact(share.len());
+            parent.voxels.extend_from_slice(share);
+        }
+        Ok(())
     }
 
     /// Completes and emits every block still in the front, finest first.
@@ -303,7 +329,7 @@ impl Pyramid {
             if l + 1 < self.levels as usize {
                 let parent = self.partial[l + 1]
                     .get_or_insert_with(|| LodBlock { key: done.key.parent(), voxels: Vec::new() });
-                downsample(&done, parent, &self.reach);
+                downsample(&done, &mut parent.voxels, &self.reach);
             }
             emit_drawn(done, emit)?;
         }
@@ -317,17 +343,28 @@ fn emit_drawn<E>(mut block: LodBlock, emit: &mut impl FnMut(LodBlock) -> Result<
     if block.voxels.is_empty() { Ok(()) } else { emit(block) }
 }
 
-/// Merges `child` into its octant of `parent` (the same arithmetic, in the
-/// same order, as [`merge_children`]).
-fn downsample(child: &LodBlock, parent: &mut LodBlock, reach: &[f32; 256]) {
-    debug_assert_eq!(child.key.parent(), parent.key);
+/// A level-0 block's share of its parent (faces marked, buried voxels still
+/// in): its voxels downsampled into its octant of the parent, in exact
+/// capacity. Independent of the other children, so workers compute it in
+/// parallel; [`Pyramid::push_share`] appends it. At most 32³ voxels.
+pub fn parent_share(child: &LodBlock) -> Vec<LodVoxel> {
+    static REACH: std::sync::OnceLock<[f32; 256]> = std::sync::OnceLock::new();
+    let reach = REACH.get_or_init(|| std::array::from_fn(|m| empty_octant_reach(m as u8)));
+    let mut out = Vec::new();
+    downsample(child, &mut out, reach);
+    out
+}
+
+/// Merges `child` into its octant of the parent, appending to the parent's
+/// voxels `parent` (the same arithmetic, in the same order, as [`merge_children`]).
+fn downsample(child: &LodBlock, parent: &mut Vec<LodVoxel>, reach: &[f32; 256]) {
     let octant = (child.key.x & 1) | (child.key.y & 1) << 1 | (child.key.z & 1) << 2;
     let child_edge = (1u64 << child.key.level) as f32;
     let diagonal = 2.0 * child_edge * 3f32.sqrt();
     let same = |a: &LodVoxel, b: &LodVoxel| a.voxel.morton >> 3 == b.voxel.morton >> 3;
     // Exact growth: the front is accounted by capacity.
     let count = child.voxels.windows(2).filter(|w| !same(&w[0], &w[1])).count() + 1;
-    parent.voxels.reserve_exact(count);
+    parent.reserve_exact(count);
     for group in child.voxels.chunk_by(same) {
         let mut acc = LodVoxel { voxel: BuildVoxel::EMPTY, solid: 0, error: 0.0 };
         let mut mask = 0u8;
@@ -337,7 +374,7 @@ fn downsample(child: &LodBlock, parent: &mut LodBlock, reach: &[f32; 256]) {
         }
         acc.voxel.morton = octant << 15 | group[0].voxel.morton >> 3;
         acc.error = (acc.error + child_edge * reach[mask as usize]).min(diagonal);
-        parent.voxels.push(acc);
+        parent.push(acc);
     }
 }
 
