@@ -577,6 +577,90 @@ mod tests {
         assert_eq!(solid, vec![pts.len() as u32; 3], "every level accounts for every level-0 voxel");
     }
 
+    /// Random level-0 blocks over a 512 grid (4 levels), in Morton order.
+    fn random_level0() -> Vec<LodBlock> {
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        let mut keys: Vec<BlockKey> = (0..40)
+            .map(|_| {
+                let r = next();
+                BlockKey::new(0, (r % 8) as u32, (r / 8 % 8) as u32, (r / 64 % 8) as u32)
+            })
+            .collect();
+        keys.sort_by_key(|k| block_morton(k.coord()));
+        keys.dedup();
+        keys.into_iter()
+            .map(|key| {
+                let n = 1 + next() % 3000;
+                let mut pts: Vec<[u32; 3]> = (0..n)
+                    .map(|_| {
+                        let r = next();
+                        [(r % 64) as u32, (r / 64 % 64) as u32, (r / 4096 % 64) as u32]
+                    })
+                    .collect();
+                pts.sort();
+                pts.dedup();
+                let mut b = lod_of(key, &pts);
+                for (i, v) in b.voxels.iter_mut().enumerate() {
+                    v.voxel.normal_sum = [i as f32 * 0.25, 1.0 / (i + 1) as f32, -0.5];
+                }
+                b
+            })
+            .collect()
+    }
+
+    /// Fails if feeding shares computed apart ([`parent_share`], as the
+    /// build's workers do) emits other blocks, or in another order, than
+    /// [`Pyramid::push`]; the control writes level 0 before the shares' emits.
+    #[test]
+    fn shares_fold_like_whole_blocks() {
+        let level0 = random_level0();
+        assert!(level0.len() > 20);
+        let run = |shares: bool, level0_first: bool| {
+            let mut out: Vec<LodBlock> = Vec::new();
+            let mut p = Pyramid::new(512);
+            for b in level0.clone() {
+                if shares {
+                    let share = parent_share(&b);
+                    let mut drawn = b.clone();
+                    drawn.voxels.retain(|v| v.voxel.faces != 0);
+                    if level0_first {
+                        out.push(drawn.clone());
+                    }
+                    p.push_share(b.key, &share, &mut |c| {
+                        out.push(c);
+                        Ok::<_, ()>(())
+                    })
+                    .unwrap();
+                    if !level0_first && !drawn.voxels.is_empty() {
+                        out.push(drawn);
+                    }
+                } else {
+                    p.push(b, &mut |c| {
+                        out.push(c);
+                        Ok::<_, ()>(())
+                    })
+                    .unwrap();
+                }
+            }
+            p.finish(&mut |c| {
+                out.push(c);
+                Ok::<_, ()>(())
+            })
+            .unwrap();
+            out
+        };
+        let whole = run(false, false);
+        assert!(whole.iter().any(|b| b.key.level == 3), "the root is emitted");
+        assert_eq!(run(true, false), whole);
+        assert_ne!(run(true, true), whole, "the control must differ");
+    }
+
     #[test]
     fn level_counts() {
         assert_eq!(level_count(32), 1);
