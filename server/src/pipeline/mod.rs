@@ -16,7 +16,8 @@ pub use voxelize::{Resolution, ResolutionChoice};
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::mpsc;
 use std::time::Instant;
 
 use voxstream_format::SourceInfo;
@@ -24,7 +25,7 @@ use voxstream_format::SourceInfo;
 use crate::pipeline::bin::StreamSink;
 use crate::pipeline::progress::{Progress, ProgressSink, Stage};
 use crate::pipeline::pyramid::{
-    FULL_LOD_BLOCK_BYTES, LodBlock, Pyramid, level_count, mark_exposed_faces_lod,
+    FULL_LOD_BLOCK_BYTES, LodBlock, LodVoxel, Pyramid, level_count, mark_exposed_faces_lod, parent_share,
 };
 use crate::pipeline::read::{IngestError, ReadOptions};
 use crate::pipeline::stream::ChunkStore;
@@ -173,14 +174,25 @@ fn mib(bytes: u64) -> String {
 /// The largest triangle record: f64 positions and a colour.
 const MAX_RECORD_BYTES: usize = 72 + 12;
 
-/// One voxelizing worker: its brick, its block's output until the block's
-/// real size is known, and one segment read back (encoded and decoded).
-pub const WORKER_BYTES: usize =
-    BLOCK_VOXELIZER_BYTES + FULL_LOD_BLOCK_BYTES + 2 * MAX_CHUNK_TRIANGLES * MAX_RECORD_BYTES;
+/// Encoding a full 64³ block takes at most this (packed voxels, columns, output).
+const ENCODE_FULL_BYTES: usize = voxstream_format::BLOCK_VOXELS * ENCODE_BYTES_PER_VOXEL;
 
-/// The writer's queue (one full block) and what encoding it takes.
-pub const WRITER_BYTES: usize =
-    FULL_LOD_BLOCK_BYTES + voxstream_format::BLOCK_VOXELS * ENCODE_BYTES_PER_VOXEL;
+/// What a level-0 block takes on its worker until its real size is known:
+/// the block, its share of the parent (one octant: ⅛ of a block) and its encoding.
+pub const IN_FLIGHT_BYTES: usize = FULL_LOD_BLOCK_BYTES + FULL_LOD_BLOCK_BYTES / 8 + ENCODE_FULL_BYTES;
+
+/// One voxelizing worker: its brick, and its block in flight or, while it
+/// voxelizes, one segment read back (encoded and decoded).
+pub const WORKER_BYTES: usize =
+    BLOCK_VOXELIZER_BYTES + max_usize(IN_FLIGHT_BYTES, 2 * MAX_CHUNK_TRIANGLES * MAX_RECORD_BYTES);
+
+const fn max_usize(a: usize, b: usize) -> usize {
+    if a > b { a } else { b }
+}
+
+/// The fold's encoding of one coarser block. The block itself is out of the
+/// front while it is encoded, so the front's reserve holds it.
+pub const WRITER_BYTES: usize = ENCODE_FULL_BYTES;
 
 /// The least the triangle stores and bin buffers of passes 1 and 2 get.
 const SPARE_MIN: u64 = 4 << 20;
@@ -261,10 +273,6 @@ impl MemoryPlan {
         (self.spare() / 8) as usize
     }
 
-    pub fn writer_pending(&self) -> usize {
-        FULL_LOD_BLOCK_BYTES
-    }
-
     /// Bytes pass 3 has for workers and waiting level-0 blocks, once the
     /// bins hold `index_bytes` of index; an error when not even one worker fits.
     pub fn pass3_pool(&self, index_bytes: u64) -> Result<u64, BuildError> {
@@ -283,9 +291,97 @@ impl MemoryPlan {
     }
 }
 
-/// Pass 3: voxelizes the bins' blocks in Morton order, in parallel batches
-/// within the plan's pool, and feeds them in order through the streaming
-/// pyramid into `writer`.
+/// The most finished level-0 results may wait for the fold, beyond the blocks in flight.
+const FOLD_BACKLOG_BYTES: usize = 64 << 20;
+
+/// A level-0 block as its worker leaves it: its share of the parent
+/// ([`parent_share`]) and its drawn voxels encoded (`None` when all are buried).
+struct Level0 {
+    key: voxstream_format::BlockKey,
+    share: Vec<LodVoxel>,
+    encoded: Option<(voxstream_format::BlockEntry, Vec<u8>)>,
+}
+
+/// Bookkeeping of an encoded block beside its bytes (entry, hash text).
+const ENTRY_BYTES: usize = 256;
+
+impl Level0 {
+    /// Heap bytes it holds until the fold has taken it.
+    fn bytes(&self) -> usize {
+        self.share.capacity() * std::mem::size_of::<LodVoxel>()
+            + self.encoded.as_ref().map_or(0, |(_, b)| b.capacity() + ENTRY_BYTES)
+    }
+}
+
+/// A worker's part of pass 3 for one block: voxelize, mark faces, downsample
+/// into the parent's octant, drop buried voxels and encode.
+fn level0_block(
+    bins: &bin::Bins,
+    key: voxstream_format::BlockKey,
+    index: &[u64],
+    frame: &voxstream_format::GridFrame,
+    topology: Topology,
+    levels: u8,
+) -> Result<Option<Level0>, BuildError> {
+    let Some(mut block) = bin::voxelize_bin(bins, key, index, frame, topology)? else {
+        return Ok(None);
+    };
+    mark_exposed_faces_lod(&mut block);
+    let share = if levels > 1 { parent_share(&block) } else { Vec::new() };
+    block.voxels.retain(|v| v.voxel.faces != 0);
+    let encoded = (!block.voxels.is_empty()).then(|| write::encode_entry(&block));
+    Ok(Some(Level0 { key, share, encoded }))
+}
+
+/// What the producer hands the fold, in Morton order.
+enum ToFold {
+    Block(Level0),
+    /// Every block was sent: complete the pyramid.
+    End,
+}
+
+/// The fold: takes level-0 results in Morton order, appends their shares to
+/// the pyramid, encodes the coarser blocks it completes (one at a time: an
+/// emitted block is out of the front, so the front's reserve holds it) and
+/// writes everything in post order. Frees each result's bytes in `committed`
+/// and says so on `freed`.
+fn fold(
+    from_producer: mpsc::Receiver<ToFold>,
+    freed: mpsc::Sender<()>,
+    committed: &AtomicUsize,
+    resolution: u32,
+    writer: &mut BlockWriter,
+) -> Result<(), BuildError> {
+    let mut pyramid = Pyramid::new(resolution);
+    fn write_coarse(writer: &mut BlockWriter, b: LodBlock) -> Result<(), BuildError> {
+        let (entry, bytes) = write::encode_entry(&b);
+        drop(b);
+        Ok(writer.add_encoded(entry, &bytes)?)
+    }
+    for msg in from_producer {
+        match msg {
+            ToFold::Block(mut l0) => {
+                let held = l0.bytes();
+                pyramid.push_share(l0.key, &l0.share, &mut |b| write_coarse(writer, b))?;
+                if let Some((entry, bytes)) = l0.encoded.take() {
+                    writer.add_encoded(entry, &bytes)?;
+                }
+                drop(l0);
+                committed.fetch_sub(held, Ordering::Relaxed);
+                let _ = freed.send(());
+            }
+            ToFold::End => return pyramid.finish(&mut |b| write_coarse(writer, b)),
+        }
+    }
+    // The producer stopped without `End`: it failed, and returns its error.
+    Ok(())
+}
+
+/// Pass 3: voxelizes the bins' blocks in Morton order, in parallel rounds
+/// within the plan's pool (each worker also faces, downsamples and encodes
+/// its block), while a fold thread feeds the results in order through the
+/// streaming pyramid into `writer`: writing and the coarse levels overlap
+/// the next round's voxelizing.
 fn voxelize_pyramid(
     bins: &bin::Bins,
     frame: &voxstream_format::GridFrame,
@@ -294,30 +390,53 @@ fn voxelize_pyramid(
     progress: &ProgressSink,
     writer: &mut BlockWriter,
 ) -> Result<(), BuildError> {
-    use std::sync::atomic::AtomicUsize;
+    let committed = AtomicUsize::new(0);
+    let (to_fold, from_producer) = mpsc::channel();
+    let (freed, on_freed) = mpsc::channel();
+    std::thread::scope(|s| {
+        let folding = s.spawn(|| fold(from_producer, freed, &committed, frame.resolution, writer));
+        let produced = produce(bins, frame, opts, plan, progress, &committed, &to_fold, &on_freed);
+        drop(to_fold);
+        let folded = folding.join().unwrap_or_else(|p| std::panic::resume_unwind(p));
+        produced.and(folded)
+    })
+}
 
+/// The producer half of [`voxelize_pyramid`] (the calling thread): rounds of
+/// level-0 blocks on the worker pool, finished ones sent to the fold in order.
+/// Each block in flight reserves [`IN_FLIGHT_BYTES`] of `committed` until
+/// its real size is known, and keeps that until the fold frees it; the head
+/// of the window may use the whole limit, the others all but one
+/// reservation, so once the fold has caught up the head always fits.
+#[allow(clippy::too_many_arguments)]
+fn produce(
+    bins: &bin::Bins,
+    frame: &voxstream_format::GridFrame,
+    opts: &BuildOptions,
+    plan: &MemoryPlan,
+    progress: &ProgressSink,
+    committed: &AtomicUsize,
+    to_fold: &mpsc::Sender<ToFold>,
+    on_freed: &mpsc::Receiver<()>,
+) -> Result<(), BuildError> {
     use rayon::prelude::*;
 
     struct Slot<'b> {
         key: voxstream_format::BlockKey,
         index: &'b [u64],
-        done: Option<Result<Option<LodBlock>, BuildError>>,
+        done: Option<Result<Option<Level0>, BuildError>>,
     }
-    let held = |s: &Slot| match &s.done {
-        Some(Ok(Some(b))) => write::block_bytes(b),
-        _ => 0,
-    };
+    let levels = level_count(frame.resolution);
     let pool = plan.pass3_pool(bins.index_bytes() as u64)? as usize;
     let workers = (pool / WORKER_BYTES).clamp(1, rayon::current_num_threads());
-    // Finished level-0 blocks wait here; each block in flight reserves a full
-    // block until its real size is known, and the head of the window always
-    // finds its reservation free, so the window always moves.
-    let limit = pool - workers * (WORKER_BYTES - FULL_LOD_BLOCK_BYTES);
+    // Capped: results running far ahead of the fold only cost memory (a
+    // 1 GiB build at 8192 otherwise peaked at 1005 MiB instead of ≈ 280).
+    let limit = (pool - workers * (WORKER_BYTES - IN_FLIGHT_BYTES))
+        .min(workers * IN_FLIGHT_BYTES + FOLD_BACKLOG_BYTES);
     let window_len = 32 * workers;
     let total = bins.block_count().max(1);
     let mut blocks = bins.blocks();
     let mut window: Vec<Slot> = Vec::with_capacity(window_len);
-    let mut pyramid = Pyramid::new(frame.resolution);
     let mut fed = 0usize;
     let thread_pool = if workers < rayon::current_num_threads() {
         Some(
@@ -339,28 +458,29 @@ fn voxelize_pyramid(
         if window.is_empty() {
             break;
         }
-        let committed = AtomicUsize::new(window.iter().map(held).sum());
+        // Frees seen from here on wake a stalled round below; earlier ones are in `committed`.
+        while on_freed.try_recv().is_ok() {}
+        let started = AtomicUsize::new(0);
         let mut run = || {
             window.par_iter_mut().enumerate().filter(|(_, s)| s.done.is_none()).for_each(|(i, slot)| {
-                let cap = if i == 0 { limit } else { limit - FULL_LOD_BLOCK_BYTES };
+                let cap = if i == 0 { limit } else { limit - IN_FLIGHT_BYTES };
                 let reserved = committed
                     .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |c| {
-                        (c + FULL_LOD_BLOCK_BYTES <= cap).then_some(c + FULL_LOD_BLOCK_BYTES)
+                        (c + IN_FLIGHT_BYTES <= cap).then_some(c + IN_FLIGHT_BYTES)
                     })
                     .is_ok();
                 if !reserved {
                     return; // its turn comes in a later round
                 }
-                let result = opts.check_cancelled().and_then(|()| {
-                    let mut block = bin::voxelize_bin(bins, slot.key, slot.index, frame, opts.topology)?;
-                    block.iter_mut().for_each(mark_exposed_faces_lod);
-                    Ok(block)
-                });
+                started.fetch_add(1, Ordering::Relaxed);
+                let result = opts
+                    .check_cancelled()
+                    .and_then(|()| level0_block(bins, slot.key, slot.index, frame, opts.topology, levels));
                 let real = match &result {
-                    Ok(Some(b)) => write::block_bytes(b),
+                    Ok(Some(l0)) => l0.bytes(),
                     _ => 0,
                 };
-                committed.fetch_sub(FULL_LOD_BLOCK_BYTES - real, Ordering::Relaxed);
+                committed.fetch_sub(IN_FLIGHT_BYTES - real, Ordering::Relaxed);
                 slot.done = Some(result);
             })
         };
@@ -370,14 +490,19 @@ fn voxelize_pyramid(
         }
         let ready = window.iter().take_while(|s| s.done.is_some()).count();
         for slot in window.drain(..ready) {
-            if let Some(block) = slot.done.expect("counted as done")? {
-                pyramid.push(block, &mut |b| writer.add(b))?;
+            if let Some(l0) = slot.done.expect("counted as done")? {
+                if to_fold.send(ToFold::Block(l0)).is_err() {
+                    return Ok(()); // the fold failed; its error is the build's
+                }
             }
             fed += 1;
         }
+        if started.into_inner() == 0 && on_freed.recv().is_err() {
+            return Ok(()); // nothing fitted until the fold frees memory; it failed if it never will
+        }
         progress.stage(Stage::Voxelize, 0.3 + 0.7 * fed as f64 / total as f64);
     }
-    pyramid.finish(&mut |b| writer.add(b))?;
+    let _ = to_fold.send(ToFold::End);
     Ok(())
 }
 
@@ -502,7 +627,8 @@ pub fn build_scene_reporting(
     }
 
     // Pass 3: voxelize, build the pyramid and write, streaming.
-    let mut writer = BlockWriter::create(store_dir, &id, frame.resolution, plan.writer_pending())?;
+    // No queue: the build hands the writer encoded blocks only.
+    let mut writer = BlockWriter::create(store_dir, &id, frame.resolution, 0)?;
     writer.finished_files = opts.finished_files.clone();
     voxelize_pyramid(&bins, &frame, opts, &plan, &progress, &mut writer)?;
     let skipped = bins.skipped + read_skipped;

@@ -276,9 +276,35 @@ impl Pyramid {
         if self.levels > 1 {
             let parent = self.partial[1]
                 .get_or_insert_with(|| LodBlock { key: block.key.parent(), voxels: Vec::new() });
-            downsample(&block, parent, &self.reach);
+            downsample(&block, &mut parent.voxels, &self.reach);
         }
         emit_drawn(block, emit)
+    }
+
+    /// [`Self::push`] for a level-0 block whose share of its parent was
+    /// computed elsewhere ([`parent_share`], e.g. on the worker that
+    /// voxelized it): emits the blocks completed before `key` and appends
+    /// `share` to the parent. The caller then writes the level-0 block itself
+    /// (buried voxels dropped), after what `emit` got here: that keeps post order.
+    pub fn push_share<E>(
+        &mut self,
+        key: BlockKey,
+        share: &[LodVoxel],
+        emit: &mut impl FnMut(LodBlock) -> Result<(), E>,
+    ) -> Result<(), E> {
+        assert_eq!(key.level, 0, "the pyramid takes level-0 blocks");
+        let m = block_morton(key.coord());
+        assert!(self.last.is_none_or(|last| last < m), "level-0 blocks must come in increasing Morton order");
+        self.last = Some(m);
+        self.close(Some(key), emit)?;
+        if self.levels > 1 && !share.is_empty() {
+            let parent =
+                self.partial[1].get_or_insert_with(|| LodBlock { key: key.parent(), voxels: Vec::new() });
+            // Exact growth: the front is accounted by capacity.
+            parent.voxels.reserve_exact(share.len());
+            parent.voxels.extend_from_slice(share);
+        }
+        Ok(())
     }
 
     /// Completes and emits every block still in the front, finest first.
@@ -303,7 +329,7 @@ impl Pyramid {
             if l + 1 < self.levels as usize {
                 let parent = self.partial[l + 1]
                     .get_or_insert_with(|| LodBlock { key: done.key.parent(), voxels: Vec::new() });
-                downsample(&done, parent, &self.reach);
+                downsample(&done, &mut parent.voxels, &self.reach);
             }
             emit_drawn(done, emit)?;
         }
@@ -317,17 +343,28 @@ fn emit_drawn<E>(mut block: LodBlock, emit: &mut impl FnMut(LodBlock) -> Result<
     if block.voxels.is_empty() { Ok(()) } else { emit(block) }
 }
 
-/// Merges `child` into its octant of `parent` (the same arithmetic, in the
-/// same order, as [`merge_children`]).
-fn downsample(child: &LodBlock, parent: &mut LodBlock, reach: &[f32; 256]) {
-    debug_assert_eq!(child.key.parent(), parent.key);
+/// A level-0 block's share of its parent (faces marked, buried voxels still
+/// in): its voxels downsampled into its octant of the parent, in exact
+/// capacity. Independent of the other children, so workers compute it in
+/// parallel; [`Pyramid::push_share`] appends it. At most 32³ voxels.
+pub fn parent_share(child: &LodBlock) -> Vec<LodVoxel> {
+    static REACH: std::sync::OnceLock<[f32; 256]> = std::sync::OnceLock::new();
+    let reach = REACH.get_or_init(|| std::array::from_fn(|m| empty_octant_reach(m as u8)));
+    let mut out = Vec::new();
+    downsample(child, &mut out, reach);
+    out
+}
+
+/// Merges `child` into its octant of the parent, appending to the parent's
+/// voxels `parent` (the same arithmetic, in the same order, as [`merge_children`]).
+fn downsample(child: &LodBlock, parent: &mut Vec<LodVoxel>, reach: &[f32; 256]) {
     let octant = (child.key.x & 1) | (child.key.y & 1) << 1 | (child.key.z & 1) << 2;
     let child_edge = (1u64 << child.key.level) as f32;
     let diagonal = 2.0 * child_edge * 3f32.sqrt();
     let same = |a: &LodVoxel, b: &LodVoxel| a.voxel.morton >> 3 == b.voxel.morton >> 3;
     // Exact growth: the front is accounted by capacity.
     let count = child.voxels.windows(2).filter(|w| !same(&w[0], &w[1])).count() + 1;
-    parent.voxels.reserve_exact(count);
+    parent.reserve_exact(count);
     for group in child.voxels.chunk_by(same) {
         let mut acc = LodVoxel { voxel: BuildVoxel::EMPTY, solid: 0, error: 0.0 };
         let mut mask = 0u8;
@@ -337,7 +374,7 @@ fn downsample(child: &LodBlock, parent: &mut LodBlock, reach: &[f32; 256]) {
         }
         acc.voxel.morton = octant << 15 | group[0].voxel.morton >> 3;
         acc.error = (acc.error + child_edge * reach[mask as usize]).min(diagonal);
-        parent.voxels.push(acc);
+        parent.push(acc);
     }
 }
 
@@ -538,6 +575,90 @@ mod tests {
         }
         let solid: Vec<u32> = levels.iter().map(|l| l[0].voxels.iter().map(|v| v.solid).sum()).collect();
         assert_eq!(solid, vec![pts.len() as u32; 3], "every level accounts for every level-0 voxel");
+    }
+
+    /// Random level-0 blocks over a 512 grid (4 levels), in Morton order.
+    fn random_level0() -> Vec<LodBlock> {
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        let mut keys: Vec<BlockKey> = (0..40)
+            .map(|_| {
+                let r = next();
+                BlockKey::new(0, (r % 8) as u32, (r / 8 % 8) as u32, (r / 64 % 8) as u32)
+            })
+            .collect();
+        keys.sort_by_key(|k| block_morton(k.coord()));
+        keys.dedup();
+        keys.into_iter()
+            .map(|key| {
+                let n = 1 + next() % 3000;
+                let mut pts: Vec<[u32; 3]> = (0..n)
+                    .map(|_| {
+                        let r = next();
+                        [(r % 64) as u32, (r / 64 % 64) as u32, (r / 4096 % 64) as u32]
+                    })
+                    .collect();
+                pts.sort();
+                pts.dedup();
+                let mut b = lod_of(key, &pts);
+                for (i, v) in b.voxels.iter_mut().enumerate() {
+                    v.voxel.normal_sum = [i as f32 * 0.25, 1.0 / (i + 1) as f32, -0.5];
+                }
+                b
+            })
+            .collect()
+    }
+
+    /// Fails if feeding shares computed apart ([`parent_share`], as the
+    /// build's workers do) emits other blocks, or in another order, than
+    /// [`Pyramid::push`]; the control writes level 0 before the shares' emits.
+    #[test]
+    fn shares_fold_like_whole_blocks() {
+        let level0 = random_level0();
+        assert!(level0.len() > 20);
+        let run = |shares: bool, level0_first: bool| {
+            let mut out: Vec<LodBlock> = Vec::new();
+            let mut p = Pyramid::new(512);
+            for b in level0.clone() {
+                if shares {
+                    let share = parent_share(&b);
+                    let mut drawn = b.clone();
+                    drawn.voxels.retain(|v| v.voxel.faces != 0);
+                    if level0_first {
+                        out.push(drawn.clone());
+                    }
+                    p.push_share(b.key, &share, &mut |c| {
+                        out.push(c);
+                        Ok::<_, ()>(())
+                    })
+                    .unwrap();
+                    if !level0_first && !drawn.voxels.is_empty() {
+                        out.push(drawn);
+                    }
+                } else {
+                    p.push(b, &mut |c| {
+                        out.push(c);
+                        Ok::<_, ()>(())
+                    })
+                    .unwrap();
+                }
+            }
+            p.finish(&mut |c| {
+                out.push(c);
+                Ok::<_, ()>(())
+            })
+            .unwrap();
+            out
+        };
+        let whole = run(false, false);
+        assert!(whole.iter().any(|b| b.key.level == 3), "the root is emitted");
+        assert_eq!(run(true, false), whole);
+        assert_ne!(run(true, true), whole, "the control must differ");
     }
 
     #[test]

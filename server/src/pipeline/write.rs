@@ -339,52 +339,67 @@ impl BlockWriter {
         let encoded: Vec<(BlockEntry, Vec<u8>)> =
             std::mem::take(&mut self.pending).into_par_iter().map(|b| encode_entry(&b)).collect();
         self.pending_bytes = 0;
-        for (mut e, bytes) in encoded {
-            let level = self.levels.get_mut(e.key.level as usize).ok_or_else(|| StoreError::Damaged {
-                id: self.id.clone(),
-                message: format!("block {} lies beyond the grid's levels", e.key),
-            })?;
-            level.blocks += 1;
-            level.voxels += e.voxels as u64;
-            level.bytes += e.bytes as u64;
-            self.written += 1;
-            let key = e.key;
-            // A block's bytes go to the pack of the page listing it; the root's
-            // (listed by the manifest) to the root page's, which it closes.
-            let home = page_root_of(&key, self.coarsest, PAGE_LEVELS).unwrap_or(key);
-            let pack = match self.packs.entry(home) {
-                std::collections::btree_map::Entry::Occupied(o) => o.into_mut(),
-                std::collections::btree_map::Entry::Vacant(v) => {
-                    v.insert(OpenPack::create(&self.packs_dir, &home)?)
-                }
-            };
-            e.location = BlockLocation { pack: 0, offset: pack.append(&bytes)? };
-            let roots_page = is_page_root_level(key.level, self.coarsest, PAGE_LEVELS);
-            let closed = if roots_page || key.level == self.coarsest {
-                match self.packs.remove(&key).map(|p| p.close(&self.tmp)).transpose()? {
-                    Some((pack, path)) => {
-                        if let Some(sink) = &self.finished_files {
-                            // Read back from the page cache: the writer holds no pack in memory.
-                            let bytes = fs::read(&path).map_err(io("read", &path))?;
-                            (sink.0)(&pack_path(&pack.hash), bytes).map_err(|e| self.sink_failed(e))?;
-                        }
-                        Some(pack)
-                    }
-                    None => None,
-                }
-            } else {
-                None
-            };
-            if key.level == self.coarsest {
-                self.root_pack = closed.clone();
+        for (e, bytes) in encoded {
+            self.place(e, &bytes)?;
+        }
+        Ok(())
+    }
+
+    /// Writes a block already encoded by [`encode_entry`] (e.g. on the worker
+    /// that made it), after every block queued before it.
+    pub fn add_encoded(&mut self, entry: BlockEntry, bytes: &[u8]) -> Result<(), StoreError> {
+        if !self.pending.is_empty() {
+            self.flush()?;
+        }
+        self.place(entry, bytes)
+    }
+
+    /// Appends one encoded block to its page's pack and records its entry.
+    fn place(&mut self, mut e: BlockEntry, bytes: &[u8]) -> Result<(), StoreError> {
+        let level = self.levels.get_mut(e.key.level as usize).ok_or_else(|| StoreError::Damaged {
+            id: self.id.clone(),
+            message: format!("block {} lies beyond the grid's levels", e.key),
+        })?;
+        level.blocks += 1;
+        level.voxels += e.voxels as u64;
+        level.bytes += e.bytes as u64;
+        self.written += 1;
+        let key = e.key;
+        // A block's bytes go to the pack of the page listing it; the root's
+        // (listed by the manifest) to the root page's, which it closes.
+        let home = page_root_of(&key, self.coarsest, PAGE_LEVELS).unwrap_or(key);
+        let pack = match self.packs.entry(home) {
+            std::collections::btree_map::Entry::Occupied(o) => o.into_mut(),
+            std::collections::btree_map::Entry::Vacant(v) => {
+                v.insert(OpenPack::create(&self.packs_dir, &home)?)
             }
-            let page_pack = if roots_page { closed } else { None };
-            if let Some((page_ref, bytes)) = self.pages.add_packed(e, page_pack).map_err(page_err)? {
-                write_unsynced(&self.tmp.join(page_path(&page_ref.root)), &bytes)?;
-                if let Some(sink) = &self.finished_files {
-                    let name = crate::bucket_store::bucket_page_path(&page_ref.root, &page_ref.hash);
-                    (sink.0)(&name, bytes).map_err(|e| self.sink_failed(e))?;
+        };
+        e.location = BlockLocation { pack: 0, offset: pack.append(bytes)? };
+        let roots_page = is_page_root_level(key.level, self.coarsest, PAGE_LEVELS);
+        let closed = if roots_page || key.level == self.coarsest {
+            match self.packs.remove(&key).map(|p| p.close(&self.tmp)).transpose()? {
+                Some((pack, path)) => {
+                    if let Some(sink) = &self.finished_files {
+                        // Read back from the page cache: the writer holds no pack in memory.
+                        let bytes = fs::read(&path).map_err(io("read", &path))?;
+                        (sink.0)(&pack_path(&pack.hash), bytes).map_err(|e| self.sink_failed(e))?;
+                    }
+                    Some(pack)
                 }
+                None => None,
+            }
+        } else {
+            None
+        };
+        if key.level == self.coarsest {
+            self.root_pack = closed.clone();
+        }
+        let page_pack = if roots_page { closed } else { None };
+        if let Some((page_ref, bytes)) = self.pages.add_packed(e, page_pack).map_err(page_err)? {
+            write_unsynced(&self.tmp.join(page_path(&page_ref.root)), &bytes)?;
+            if let Some(sink) = &self.finished_files {
+                let name = crate::bucket_store::bucket_page_path(&page_ref.root, &page_ref.hash);
+                (sink.0)(&name, bytes).map_err(|e| self.sink_failed(e))?;
             }
         }
         Ok(())
