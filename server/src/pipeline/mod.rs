@@ -265,6 +265,14 @@ impl MemoryPlan {
         (self.spare() / 4) as usize
     }
 
+    /// Pass 1: the most a PLY's vertex table may hold in memory; a larger one
+    /// is paged from a temporary file through a cache of half as much. With
+    /// the stream store's resident chunks beside it, pass 1 stays within the
+    /// budget (nothing of passes 2 and 3 is alive yet).
+    pub fn ply_vertex_table(&self) -> u64 {
+        self.budget / 2
+    }
+
     pub fn bin_resident(&self) -> usize {
         (self.spare() / 4) as usize
     }
@@ -552,7 +560,7 @@ pub fn build_scene_reporting(
     let read_opts = ReadOptions {
         memory_budget: opts.memory_budget,
         temp_dir: Some(temp.path().to_path_buf()),
-        vertex_memory: opts.ply_vertex_memory,
+        vertex_memory: Some(opts.ply_vertex_memory.unwrap_or_else(|| first_plan.ply_vertex_table())),
         ..Default::default()
     };
     let bytes_read = read_opts.bytes_read.clone();
@@ -658,4 +666,27 @@ pub fn build_scene_reporting(
         bytes: manifest.levels.iter().map(|l| l.bytes).sum(),
         seconds: start.elapsed().as_secs_f64(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pass_one_fits_the_vertex_table_and_the_stream_store_in_the_budget() {
+        for resolution in [64u32, 4096, 65536] {
+            let smallest = MemoryPlan::minimum_budget(resolution);
+            for budget in [smallest, smallest + (7 << 20), 1 << 30, 16 << 30] {
+                let plan = MemoryPlan::new(budget, resolution).unwrap();
+                let pass1 = plan.ply_vertex_table() + plan.stream_resident() as u64;
+                assert!(pass1 <= budget, "{resolution}: {pass1} > {budget}");
+                // The paged table's cache is half the table: a quarter of the budget.
+                assert!(plan.ply_vertex_table() / 2 <= budget / 4);
+            }
+        }
+        // Control: the stream store does take memory in pass 1, so a table allowed the whole
+        // budget would pass it.
+        let plan = MemoryPlan::new(1 << 30, 4096).unwrap();
+        assert!(plan.stream_resident() > 0 && 1u64 << 30 < (1 << 30) + plan.stream_resident() as u64);
+    }
 }
