@@ -4,11 +4,11 @@
 mod common;
 
 use std::collections::BTreeMap;
-use std::io::{BufRead, BufReader};
 use std::process::{Child, Stdio};
 use std::time::{Duration, Instant};
 
 use common::garage::{Garage, koala, voxstream_with};
+use common::serve::spawn_listening;
 use futures_util::StreamExt;
 use object_store::ObjectStore;
 use object_store::path::Path as ObjectPath;
@@ -42,19 +42,10 @@ impl Drop for Server {
 }
 
 fn serve(garage: Option<&Garage>, store: &str) -> Server {
-    let mut child = voxstream_with(garage, &[])
-        .args(["serve", "--addr", "127.0.0.1:0", "--relist-secs", "1", "--store", store])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-    let base = line
-        .trim()
-        .strip_prefix("listening on ")
-        .unwrap_or_else(|| panic!("serve {store}: {line:?}"))
-        .to_string();
+    let mut cmd = voxstream_with(garage, &[]);
+    cmd.args(["serve", "--addr", "127.0.0.1:0", "--relist-secs", "1", "--store", store])
+        .stderr(Stdio::null());
+    let (child, base) = spawn_listening(cmd);
     Server { child, base }
 }
 

@@ -2,9 +2,12 @@
 //! without a token, and SIGTERM shuts it down gracefully (open SSE streams
 //! end, a running build is left queued and finishes after the next start).
 
-use std::io::{BufRead, BufReader};
+mod common;
+
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
+
+use common::serve::spawn_listening;
 
 const TOKEN: &str = "serve-cli-token";
 
@@ -35,17 +38,11 @@ async fn sigterm_ends_event_streams_and_keeps_the_build_for_the_next_start() {
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("store");
     let start = || {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_voxstream"))
-            .args(["serve", "--addr", "127.0.0.1:0", "--token", TOKEN, "--store"])
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_voxstream"));
+        cmd.args(["serve", "--addr", "127.0.0.1:0", "--token", TOKEN, "--store"])
             .arg(&store)
-            .stdout(Stdio::piped())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap();
-        let mut line = String::new();
-        BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-        let base = line.trim().strip_prefix("listening on ").unwrap().to_string();
-        (child, base)
+            .stderr(Stdio::null());
+        spawn_listening(cmd)
     };
     let (mut child, base) = start();
     let http = reqwest::Client::new();

@@ -8,10 +8,13 @@
 //! Needs `bash scripts/setup.sh` (it installs both clients); a missing one fails the test with the
 //! command to run.
 
-use std::io::{BufRead, BufReader};
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
+
+use common::serve::spawn_listening;
 
 use serde_json::Value;
 
@@ -37,16 +40,11 @@ impl Drop for Server {
 
 fn serve() -> Server {
     let dir = tempfile::tempdir().unwrap();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_voxstream"))
-        .args(["serve", "--addr", "127.0.0.1:0", "--token", TOKEN, "--store"])
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_voxstream"));
+    cmd.args(["serve", "--addr", "127.0.0.1:0", "--token", TOKEN, "--store"])
         .arg(dir.path().join("store"))
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-    let base = line.trim().strip_prefix("listening on ").expect("serve prints where it listens").to_string();
+        .stderr(Stdio::null());
+    let (child, base) = spawn_listening(cmd);
     Server { child, base, _dir: dir }
 }
 
