@@ -572,22 +572,30 @@ mod tests {
         assert_eq!(depth_at(&rows, (w, h), 256, (-1.0, 0.0)), None);
     }
 
-    #[test]
-    fn a_box_behind_a_near_wall_is_hidden_and_one_in_front_is_not() {
-        // Looking down -Z from z = 100 at the origin; a wall fills the view at depth d.
-        let cam = OrbitCamera {
+    /// Looking down -Z from z = 100 at the origin.
+    fn head_on_camera() -> OrbitCamera {
+        OrbitCamera {
             target: Vec3::ZERO,
             yaw: 0.0,
             pitch: 0.0,
             distance: 100.0,
             fov_y: 0.8,
             scene_radius: 60.0,
-        };
+        }
+    }
+
+    /// The depth buffer value of a wall facing the camera at height `z`.
+    fn depth_of(vp: &Mat4, z: f32) -> f32 {
+        let c = *vp * Vec4::new(0.0, 0.0, z, 1.0);
+        c.z / c.w
+    }
+
+    #[test]
+    fn a_box_behind_a_near_wall_is_hidden_and_one_in_front_is_not() {
+        // Looking down -Z from z = 100 at the origin; a wall fills the view at depth d.
+        let cam = head_on_camera();
         let vp = cam.view_proj(1.0);
-        let wall_depth = {
-            let c = vp * Vec4::new(0.0, 0.0, 10.0, 1.0);
-            c.z / c.w
-        };
+        let wall_depth = depth_of(&vp, 10.0);
         let pyramid = DepthPyramid::new(64, 64, vec![wall_depth; 64 * 64]);
         let behind = Aabb { min: Vec3::new(-5.0, -5.0, -20.0), max: Vec3::new(5.0, 5.0, -10.0) };
         let in_front = Aabb { min: Vec3::new(-5.0, -5.0, 15.0), max: Vec3::new(5.0, 5.0, 25.0) };
@@ -606,20 +614,10 @@ mod tests {
     #[test]
     fn a_reduced_depth_tests_boxes_in_pixels_not_in_tiles() {
         // A 66×50 view (not a multiple of the tile) reduced to 17×13 tiles.
-        let cam = OrbitCamera {
-            target: Vec3::ZERO,
-            yaw: 0.0,
-            pitch: 0.0,
-            distance: 100.0,
-            fov_y: 0.8,
-            scene_radius: 60.0,
-        };
+        let cam = head_on_camera();
         let size = (66u32, 50u32);
         let vp = cam.view_proj(size.0 as f32 / size.1 as f32);
-        let wall = {
-            let c = vp * Vec4::new(0.0, 0.0, 10.0, 1.0);
-            c.z / c.w
-        };
+        let wall = depth_of(&vp, 10.0);
         let (tw, th) = reduced_size(size);
         assert_eq!((tw, th), (17, 13));
         let reduced = |depth: Vec<f32>| DepthPyramid::new(tw, th, depth).with_pixel_scale(DEPTH_TILE, size);
