@@ -101,19 +101,13 @@ fn local_blocks(id: &str, resolution: &str) -> (Manifest, Vec<(String, Vec<u8>)>
         .output()
         .unwrap();
     assert!(out.status.success(), "local build: {}", String::from_utf8_lossy(&out.stderr));
-    let dir = store.path().join(id);
-    let manifest = Manifest::from_json(&std::fs::read(dir.join("manifest.json")).unwrap()).unwrap();
-    let index = voxstream::store::read_scene_index(&dir, &manifest).unwrap();
-    let mut blocks = Vec::new();
-    for e in index.blocks() {
-        let range = index.pack_range(&e.key).expect("packed");
-        let pack = std::fs::read(dir.join(voxstream_format::hierarchy::pack_path(&range.pack.hash))).unwrap();
-        blocks.push((
-            format!("/api/scenes/{id}/blocks/{}.{}", e.key, e.hash),
-            pack[range.offset as usize..range.end() as usize].to_vec(),
-        ));
-    }
-    blocks.sort();
+    let scene = voxstream::store::open_scene(store.path(), id).unwrap();
+    let blocks = scene
+        .blocks()
+        .into_iter()
+        .map(|e| (format!("/api/scenes/{id}/blocks/{}.{}", e.key, e.hash), scene.read_block(e).unwrap()))
+        .collect();
+    let manifest = scene.manifest;
     (manifest, blocks)
 }
 
