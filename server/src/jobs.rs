@@ -24,7 +24,7 @@ use crate::catalog::{BuildInfo, Catalog, now_unix, write_build_info};
 use crate::metrics::Metrics;
 use crate::pipeline::progress::Progress;
 use crate::pipeline::voxelize::Topology;
-use crate::pipeline::{BuildError, BuildOptions, Resolution, build_scene_reporting};
+use crate::pipeline::{BuildError, BuildOptions, OnPublished, Resolution, build_scene_reporting};
 use crate::uploads::{Uploads, write_json_atomic};
 
 pub const JOBS_DIR: &str = ".jobs";
@@ -370,6 +370,15 @@ impl JobManager {
             name: Some(job.scene_id.clone()),
             topology: parse_topology(&job.topology).unwrap_or(Topology::Conservative),
             cancel: Some(h.cancel.clone()),
+            // Readers switch to the new manifest before the replaced scene's blocks are removed.
+            on_published: Some(OnPublished(Arc::new({
+                let catalog = self.catalog.clone();
+                move |id: &str| {
+                    if let Err(e) = catalog.refresh(id) {
+                        tracing::warn!(scene = %id, error = %e, "cannot re-read the scene just published");
+                    }
+                }
+            }))),
             ..Default::default()
         };
         let tx = h.tx.clone();

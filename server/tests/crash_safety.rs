@@ -91,8 +91,9 @@ async fn check_store(base: &str, store: &Path, http: &reqwest::Client) -> usize 
                     eprintln!("scene {id} was replaced during its check ({e}); checking again");
                     attempt += 1;
                 }
-                // The build renames the scene in, then the catalog re-reads it: for that moment
-                // the server still serves the previous manifest. It must catch up within 2 s.
+                // The build renames the scene in and the catalog re-reads it right after (before
+                // the replaced scene is removed): between the two, this check can read the new
+                // manifest from disk and the previous one from the server. It must catch up.
                 Err(e) if attempt < 40 && e.ends_with(STALE_MANIFEST) => {
                     eprintln!("scene {id}: the server has not caught up with a publish yet; checking again");
                     attempt += 1;

@@ -61,6 +61,20 @@ pub struct BuildOptions {
     /// Told of every pack and page as it is finished (a build into a bucket uploads them from
     /// there); an error stops the build.
     pub finished_files: Option<FinishedFiles>,
+    /// Called with the scene id right after the new scene is renamed into the store and before
+    /// the scene it replaced is removed, so a server can switch readers to the new manifest
+    /// while the old one's blocks still exist.
+    pub on_published: Option<OnPublished>,
+}
+
+/// See [`BuildOptions::on_published`].
+#[derive(Clone)]
+pub struct OnPublished(pub Arc<dyn Fn(&str) + Send + Sync>);
+
+impl std::fmt::Debug for OnPublished {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("OnPublished")
+    }
 }
 
 /// Called with a finished file's name inside the scene (`packs/<blake3>.vxp`,
@@ -124,6 +138,7 @@ impl Default for BuildOptions {
             temp_dir: None,
             ply_vertex_memory: None,
             finished_files: None,
+            on_published: None,
         }
     }
 }
@@ -638,6 +653,7 @@ pub fn build_scene_reporting(
     // No queue: the build hands the writer encoded blocks only.
     let mut writer = BlockWriter::create(store_dir, &id, frame.resolution, 0)?;
     writer.finished_files = opts.finished_files.clone();
+    writer.on_published = opts.on_published.clone();
     voxelize_pyramid(&bins, &frame, opts, &plan, &progress, &mut writer)?;
     let skipped = bins.skipped + read_skipped;
     let triangles = bins.triangles + skipped;

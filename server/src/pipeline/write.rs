@@ -278,6 +278,8 @@ pub struct BlockWriter {
     published: bool,
     /// Told of each pack and page as it is finished.
     pub finished_files: Option<crate::pipeline::FinishedFiles>,
+    /// Told of the publish before the replaced scene is removed.
+    pub on_published: Option<crate::pipeline::OnPublished>,
 }
 
 impl BlockWriter {
@@ -309,6 +311,7 @@ impl BlockWriter {
                 .collect(),
             published: false,
             finished_files: None,
+            on_published: None,
         };
         for d in [&writer.packs_dir, &writer.tmp.join("pages")] {
             fs::create_dir_all(d).map_err(io("create directory", d))?;
@@ -449,7 +452,12 @@ impl BlockWriter {
         };
         write_unsynced(&self.tmp.join("manifest.json"), &manifest.to_json())?;
         sync_tree(&self.tmp, &[self.packs_dir.clone(), self.tmp.join("pages")])?;
-        publish(&self.store, &self.id, &self.tmp)?;
+        let on_published = |id: &str| {
+            if let Some(hook) = &self.on_published {
+                (hook.0)(id)
+            }
+        };
+        publish(&self.store, &self.id, &self.tmp, on_published)?;
         self.published = true;
         Ok(manifest)
     }
@@ -488,25 +496,34 @@ impl Drop for BlockWriter {
     }
 }
 
-fn publish(store: &Path, id: &str, tmp: &Path) -> Result<(), StoreError> {
+/// Renames `tmp` to `<store>/<id>`, then calls `on_published`, then removes the scene it
+/// replaced: a server that re-reads the manifest in `on_published` never serves an old manifest
+/// whose blocks are already gone.
+fn publish(store: &Path, id: &str, tmp: &Path, on_published: impl FnOnce(&str)) -> Result<(), StoreError> {
     let dest = store.join(id);
-    if dest.exists() {
+    let replaced = if dest.exists() {
         // One atomic swap where the kernel offers it, so a reader never finds the
         // scene missing; the old scene then sits at `tmp` until removed (a crash
         // leaves it as a `.tmp-*` dir, which start-up cleanup removes).
         if exchange_dirs(tmp, &dest).is_ok() {
-            let _ = fs::remove_dir_all(tmp);
+            Some(tmp.to_path_buf())
         } else {
             // Move the old scene aside first: rename cannot replace a non-empty directory.
             let old = store.join(format!(".old-{id}-{}", std::process::id()));
             fs::rename(&dest, &old).map_err(io("move aside", &dest))?;
             fs::rename(tmp, &dest).map_err(io("publish", &dest))?;
-            let _ = fs::remove_dir_all(&old);
+            Some(old)
         }
     } else {
         fs::rename(tmp, &dest).map_err(io("publish", &dest))?;
+        None
+    };
+    let synced = fs::File::open(store).and_then(|d| d.sync_all()).map_err(io("sync", store));
+    on_published(id);
+    if let Some(old) = replaced {
+        let _ = fs::remove_dir_all(old);
     }
-    fs::File::open(store).and_then(|d| d.sync_all()).map_err(io("sync", store))
+    synced
 }
 
 /// Atomically swaps two directories (Linux `renameat2(RENAME_EXCHANGE)`).
@@ -614,6 +631,50 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let (level_order, _) = most_open_packs(&blocks, dir.path(), resolution);
         assert!(level_order > bound, "level order opened only {level_order} packs");
+    }
+
+    /// Every directory of a store by the manifest text it holds.
+    fn manifests_in(store: &Path) -> BTreeMap<String, String> {
+        fs::read_dir(store)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter_map(|d| {
+                let text = fs::read_to_string(d.join("manifest.json")).ok()?;
+                Some((d.file_name()?.to_str()?.to_string(), text))
+            })
+            .collect()
+    }
+
+    /// Fails if the replaced scene is removed before the hook runs (a server re-reading the
+    /// manifest there would have served blocks that were already gone) or is never removed.
+    #[test]
+    fn publish_calls_back_before_removing_the_replaced_scene() {
+        let store = tempfile::tempdir().unwrap();
+        let staged = |name: &str, text: &str| {
+            let d = store.path().join(name);
+            fs::create_dir_all(&d).unwrap();
+            fs::write(d.join("manifest.json"), text).unwrap();
+            d
+        };
+        let mut seen = Vec::new();
+        publish(store.path(), "s", &staged(".tmp-1", "old"), |id| {
+            seen.push((id.to_string(), manifests_in(store.path())))
+        })
+        .unwrap();
+        publish(store.path(), "s", &staged(".tmp-2", "new"), |id| {
+            seen.push((id.to_string(), manifests_in(store.path())))
+        })
+        .unwrap();
+        // Control: the first publish replaced nothing, so only the new scene was there.
+        assert_eq!(seen[0], ("s".to_string(), BTreeMap::from([("s".to_string(), "old".to_string())])));
+        let (id, during) = &seen[1];
+        assert_eq!(id, "s");
+        assert_eq!(during.get("s").map(String::as_str), Some("new"));
+        assert!(
+            during.values().any(|m| m == "old"),
+            "the replaced scene was gone during the hook: {during:?}"
+        );
+        assert_eq!(manifests_in(store.path()), BTreeMap::from([("s".to_string(), "new".to_string())]));
     }
 
     #[test]
