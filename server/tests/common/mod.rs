@@ -1,4 +1,5 @@
 //! Helpers shared by integration tests.
 
+pub mod cluster;
 pub mod garage;
 pub mod serve;
