@@ -9,6 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
+use futures_util::StreamExt;
 use voxstream_format::Manifest;
 
 pub struct Cluster {
@@ -100,9 +101,22 @@ pub fn sigkill(pid: &str) {
 
 /// Every block of scene `id` built locally at `resolution`: its URL path and bytes.
 pub fn local_blocks(id: &str, resolution: &str) -> (Manifest, Vec<(String, Vec<u8>)>) {
+    local_blocks_of(&koala(), id, resolution)
+}
+
+/// The same for the koala uploaded as scene `id`: a server names an upload's input after its
+/// scene (`<id>.obj`), and the manifest records that name.
+pub fn local_blocks_uploaded(id: &str, resolution: &str) -> (Manifest, Vec<(String, Vec<u8>)>) {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join(format!("{id}.obj"));
+    std::fs::copy(koala(), &input).unwrap();
+    local_blocks_of(&input, id, resolution)
+}
+
+fn local_blocks_of(mesh: &Path, id: &str, resolution: &str) -> (Manifest, Vec<(String, Vec<u8>)>) {
     let store = tempfile::tempdir().unwrap();
     let out = Command::new(env!("CARGO_BIN_EXE_voxstream"))
-        .args(["build", koala().to_str().unwrap(), "--out", store.path().to_str().unwrap()])
+        .args(["build", mesh.to_str().unwrap(), "--out", store.path().to_str().unwrap()])
         .args(["--name", id, "--resolution", resolution])
         .output()
         .unwrap();
@@ -145,12 +159,15 @@ pub async fn check_identical(
         manifest,
         "{base}: manifest differs"
     );
-    for (path, bytes) in blocks {
-        let r = http.get(format!("{base}{path}")).send().await.unwrap();
-        assert_eq!(r.status(), 200, "{base}{path}");
-        assert!(
-            r.bytes().await.unwrap() == bytes.as_slice(),
-            "{base}{path}: bytes differ from the local build"
-        );
-    }
+    // A few GETs at once, as a viewer makes them.
+    futures_util::stream::iter(blocks)
+        .for_each_concurrent(8, |(path, bytes)| async move {
+            let r = http.get(format!("{base}{path}")).send().await.unwrap();
+            assert_eq!(r.status(), 200, "{base}{path}");
+            assert!(
+                r.bytes().await.unwrap() == bytes.as_slice(),
+                "{base}{path}: bytes differ from the local build"
+            );
+        })
+        .await;
 }
