@@ -48,7 +48,7 @@ pub struct ClusterJobs {
 
 /// How a build ended before publication.
 enum Built {
-    Staged(StagedScene),
+    Staged(Box<StagedScene>),
     Cancelled,
     Failed(String),
 }
@@ -272,7 +272,7 @@ impl ClusterJobs {
         .await;
         drop(scratch);
         match staged {
-            Ok(Ok(staged)) => Built::Staged(staged),
+            Ok(Ok(staged)) => Built::Staged(Box::new(staged)),
             Ok(Err(e)) if matches!(e.downcast_ref::<BuildError>(), Some(BuildError::Cancelled)) => {
                 Built::Cancelled
             }

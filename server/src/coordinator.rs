@@ -57,7 +57,7 @@ const HEAD_BYTES: usize = 64;
 /// How long a request waits for another replica's PATCH on the same upload before answering 423.
 const UPLOAD_LOCK_WAIT: &str = "10s";
 /// Serialises schema creation between replicas starting together.
-const SCHEMA_LOCK: i64 = 0x766f_7873_7472_6d;
+const SCHEMA_LOCK: i64 = 0x0076_6f78_7374_726d; // "voxstrm"
 
 const SCHEMA: &str = "
 CREATE TABLE IF NOT EXISTS voxstream_jobs (
