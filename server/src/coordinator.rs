@@ -811,8 +811,9 @@ mod tests {
     fn endpoints_are_described_without_secrets() {
         let config: tokio_postgres::Config = "postgres://vox:hunter2@db.example:6543/scenes".parse().unwrap();
         assert_eq!(describe(&config), "postgres://vox@db.example:6543/scenes");
+        // The port connected to, also when the URL leaves it to the default.
         let config: tokio_postgres::Config = "postgres://vox@127.0.0.1/scenes".parse().unwrap();
-        assert_eq!(describe(&config), "postgres://vox@127.0.0.1/scenes");
+        assert_eq!(describe(&config), "postgres://vox@127.0.0.1:5432/scenes");
     }
 
     #[tokio::test]
