@@ -21,6 +21,7 @@ use object_store::aws::AmazonS3Builder;
 use serde_json::Value;
 
 use common::cluster::{Cluster, check_identical, koala, local_blocks_uploaded, sigkill, wait_listed};
+use common::tus;
 
 /// The replicas' lease: a dead builder's job moves after this.
 const LEASE_SECS: &str = "3";
@@ -223,8 +224,46 @@ async fn replicas_build_each_upload_once_resume_uploads_anywhere_and_take_over_d
     assert_eq!(r.status(), 204, "rest on replica 2");
     let moved_job = r.headers()["voxstream-job"].to_str().unwrap().to_string();
 
-    // Two more uploads, plain POSTs, one to each replica: three jobs for two polling builders.
+    // The official clients, cut after their first 1 MiB chunk on replica 1 (the process exits) and
+    // resumed by a new process on replica 2 from the upload URL alone.
+    let koala_path = koala();
+    let koala_arg = koala_path.to_str().unwrap();
+    let chunk = (1u64 << 20).to_string();
     let mut jobs = vec![moved_job.clone()];
+    for (client, scene) in [("tuspy", "py-moved"), ("tus-js-client", "js-moved")] {
+        let create_args =
+            ["create", &format!("{}/api/uploads", replicas[0]), koala_arg, "no-token", scene, &chunk];
+        let url = tus::run(
+            if client == "tuspy" { tus::tuspy(&create_args) } else { tus::tus_js(&create_args) },
+            client,
+        );
+        let on_replica_2 = url.replacen(&replicas[0], &replicas[1], 1);
+        assert_ne!(url, on_replica_2, "{client}: upload URL {url}");
+        let resumed = tus::run(
+            if client == "tuspy" {
+                tus::tuspy(&[
+                    "resume",
+                    &format!("{}/api/uploads", replicas[1]),
+                    &on_replica_2,
+                    koala_arg,
+                    "no-token",
+                    &chunk,
+                ])
+            } else {
+                tus::tus_js(&["resume", &on_replica_2, koala_arg, "no-token", &chunk])
+            },
+            client,
+        );
+        assert_eq!(
+            resumed,
+            format!("{chunk} {}", mesh.len()),
+            "{client} resumed on replica 2 from the first chunk"
+        );
+        let r = http.head(&on_replica_2).header("Tus-Resumable", "1.0.0").send().await.unwrap();
+        jobs.push(r.headers()["voxstream-job"].to_str().unwrap().to_string());
+    }
+
+    // Two more uploads, plain POSTs, one to each replica: several jobs for two polling builders.
     for (i, name) in ["once-a", "once-b"].iter().enumerate() {
         let r = http
             .post(format!("{}/api/scenes?filename=koala.obj&id={name}&resolution=64", replicas[i]))
@@ -244,13 +283,12 @@ async fn replicas_build_each_upload_once_resume_uploads_anywhere_and_take_over_d
         assert_eq!(j["state"], "done", "{j}");
         assert_eq!(j["attempts"], 1, "built once: {j}");
     }
-    let moved = &ended[0];
-    assert_eq!(moved["input_bytes"], mesh.len() as u64);
-    assert_eq!(
-        moved["input_blake3"].as_str().unwrap(),
-        blake3::hash(&mesh).to_hex().as_str(),
-        "the input assembled from parts written on two replicas is the file uploaded"
-    );
+    // Uploads moved between replicas (by hand, tuspy, tus-js-client): the input assembled from
+    // parts written on two replicas is the file uploaded.
+    for moved in &ended[..3] {
+        assert_eq!(moved["input_bytes"], mesh.len() as u64, "{moved}");
+        assert_eq!(moved["input_blake3"].as_str().unwrap(), blake3::hash(&mesh).to_hex().as_str(), "{moved}");
+    }
     // Exactly once: the replicas together started one build per job.
     let total = builds_started(&http, &replicas[0]).await + builds_started(&http, &replicas[1]).await;
     assert_eq!(total, jobs.len() as u64, "builds started by both replicas for {} jobs", jobs.len());

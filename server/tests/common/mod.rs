@@ -3,3 +3,4 @@
 pub mod cluster;
 pub mod garage;
 pub mod serve;
+pub mod tus;
