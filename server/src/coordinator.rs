@@ -312,9 +312,8 @@ impl Coordinator {
         Ok(row.get(0))
     }
 
-    /// Cancels a job: a queued one ends at once (`Some(true)` with the job), a running one is
-    /// flagged and its builder stops at its next heartbeat. `Ok(None)`: no such job; `Err` of
-    /// [`CancelError::Ended`] when it already ended.
+    /// Cancels a job: a queued one ends at once (the job and `true`), a running one is flagged
+    /// and its builder stops at its next heartbeat (the job and `false`).
     pub async fn cancel(&self, id: &str) -> Result<(Job, bool), CancelError> {
         let client = self.client().await.map_err(CancelError::Failed)?;
         let sql = format!(
