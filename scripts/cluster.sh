@@ -7,7 +7,9 @@
 #                                           build a mesh into the cluster's bucket
 #   bash scripts/cluster.sh restart replica|garage I [DIR]
 #                                           start a killed replica or Garage node again
-#   bash scripts/cluster.sh tools           install Garage and nginx only (scripts/test.sh does,
+#   bash scripts/cluster.sh postgres start|stop DIR
+#                                           the coordinator alone (prints its URL; password in DIR/pg.env)
+#   bash scripts/cluster.sh tools           install Garage, nginx and PostgreSQL (scripts/test.sh does,
 #                                           before the tests that start clusters)
 #
 # What runs, all on loopback ports that were free at start:
@@ -15,18 +17,26 @@
 #     each, replication factor 3 (reads and writes go on with one node down: quorum 2);
 #   - a bucket `voxstream` and a key allowed on it, created with the garage CLI; the key is written
 #     to DIR/s3.env (mode 600) as AWS_* lines, which voxstream reads through VOXSTREAM_S3_ENV_FILE;
-#   - two `voxstream serve --store s3://voxstream/scenes` replicas (stateless: nothing on their
-#     disks), each talking to a different Garage node;
+#   - PostgreSQL (Debian's, installed with apt when missing), the replicas' coordinator: build
+#     leases and tus upload state. Its data folder is DIR/postgres (initdb'd on the first start,
+#     kept across stop/start), TCP on loopback with a password (scram-sha-256) for the role
+#     `voxstream`, written to DIR/pg.env (mode 600) as PGPASSWORD, which voxstream reads through
+#     VOXSTREAM_PG_ENV_FILE; as root it runs as the `postgres` user;
+#   - two `voxstream serve --store s3://voxstream/scenes --coordinator postgres://…` replicas
+#     (stateless: nothing on their disks), each talking to a different Garage node; they take
+#     uploads (tus) and build each once between them;
 #   - nginx (Debian's nginx-light, installed with apt when missing) in front of the replicas, as a
 #     user would deploy them: round robin, and a GET that fails on one replica (connection refused,
 #     timeout, 502/503/504) is retried on the other.
 #
 # DIR/cluster.env then names everything: URL (nginx), REPLICA_URLS, REPLICA_PIDS, GARAGE_PIDS,
-# GARAGE_S3 (each node's S3 endpoint), NGINX_PID, and the commands to restart one replica or node
-# (REPLICA_CMD_<i>, GARAGE_CMD_<i>), so tests can kill and restart parts.
+# GARAGE_S3 (each node's S3 endpoint), NGINX_PID, COORDINATOR (the replicas' --coordinator URL,
+# no password in it) and PG_ENV (the file holding the password), so tests can kill and restart
+# parts (`restart replica|garage I`).
 #
 # Environment: VOXSTREAM_BIN (default: target/release/voxstream, built when missing),
-# CLUSTER_PORT (nginx's port, default a free one).
+# CLUSTER_PORT (nginx's port, default a free one), CLUSTER_LEASE_SECS (the replicas'
+# --lease-secs, default 30; tests shorten it).
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -84,6 +94,78 @@ ensure_nginx() {
   command -v nginx >/dev/null 2>&1 || die "nginx-light installed but nginx is not on PATH"
 }
 
+pg_bin() {
+  # The newest installed PostgreSQL's bin folder (Debian keeps them versioned).
+  local dir
+  dir="$(find /usr/lib/postgresql -mindepth 2 -maxdepth 2 -name bin -type d 2>/dev/null | sort -V | tail -1)"
+  [ -n "$dir" ] && [ -x "$dir/initdb" ] && printf '%s\n' "$dir"
+}
+
+ensure_postgres() {
+  pg_bin >/dev/null && return 0
+  log "installing postgresql with apt"
+  local sudo=()
+  [ "$(id -u)" -ne 0 ] && sudo=(sudo -n)
+  "${sudo[@]}" env DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends postgresql >&2 ||
+    { "${sudo[@]}" env DEBIAN_FRONTEND=noninteractive apt-get update -q >&2 &&
+      "${sudo[@]}" env DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends postgresql >&2; } ||
+    die "PostgreSQL is missing and apt could not install postgresql"
+  pg_bin >/dev/null || die "postgresql installed but no /usr/lib/postgresql/*/bin/initdb"
+}
+
+as_pg() {
+  # PostgreSQL refuses to run as root: as root, its tools run as the postgres user.
+  if [ "$(id -u)" -eq 0 ]; then runuser -u postgres -- "$@"; else "$@"; fi
+}
+
+start_postgres() {
+  # Starts the coordinator (initdb on the first start) and creates its role and database once.
+  local pgdir="$DIR/postgres" bin
+  bin="$(pg_bin)" || die "no PostgreSQL (bash scripts/cluster.sh tools)"
+  mkdir -p "$pgdir/run"
+  if [ "$(id -u)" -eq 0 ]; then
+    chmod 711 "$DIR" # postgres must reach its folder inside; the files here stay unreadable to it
+    chown -R postgres: "$pgdir"
+  fi
+  chmod 700 "$pgdir"
+  if [ ! -f "$pgdir/data/PG_VERSION" ]; then
+    # Socket connections (inside pgdir, mode 700) are trusted: only its owner reaches them.
+    # --no-sync: a development cluster; initdb's fsyncs cost seconds on a busy disk.
+    as_pg "$bin/initdb" -D "$pgdir/data" -U postgres --auth-local=trust --auth-host=scram-sha-256 \
+      --encoding=UTF8 --locale=C.UTF-8 --no-sync >"$pgdir/initdb.log" 2>&1 ||
+      die "initdb failed: $(tail -5 "$pgdir/initdb.log")"
+  fi
+  local port
+  port="$(free_port)"
+  as_pg "$bin/pg_ctl" -D "$pgdir/data" -l "$pgdir/postgres.log" -w -t 30 \
+    -o "-p $port -c listen_addresses=127.0.0.1 -c unix_socket_directories=$pgdir/run -c unix_socket_permissions=0700" \
+    start >/dev/null || die "PostgreSQL did not start: $(tail -5 "$pgdir/postgres.log")"
+  log "postgres is up"
+  if [ ! -f "$DIR/pg.env" ]; then
+    (
+      umask 077
+      printf 'PGPASSWORD=%s\n' "$(od -An -N24 -tx1 /dev/urandom | tr -d ' \n')" >"$DIR/pg.env"
+    )
+  fi
+  local password
+  password="$(sed -n 's/^PGPASSWORD=//p' "$DIR/pg.env")"
+  # The password reaches psql on its stdin, never as an argument (ps shows those).
+  printf '%s\n' \
+    "SELECT 'CREATE ROLE voxstream LOGIN' WHERE NOT EXISTS (SELECT 1 FROM pg_roles WHERE rolname = 'voxstream')\\gexec" \
+    "ALTER ROLE voxstream PASSWORD '$password';" \
+    "SELECT 'CREATE DATABASE voxstream OWNER voxstream' WHERE NOT EXISTS (SELECT 1 FROM pg_database WHERE datname = 'voxstream')\\gexec" |
+    as_pg "$bin/psql" -h "$pgdir/run" -p "$port" -U postgres -d postgres -v ON_ERROR_STOP=1 -q >/dev/null ||
+    die "creating the coordinator's role and database failed: $(tail -5 "$pgdir/postgres.log")"
+  COORDINATOR="postgres://voxstream@127.0.0.1:$port/voxstream"
+}
+
+stop_postgres() {
+  local pgdir="$DIR/postgres" bin
+  [ -f "$pgdir/data/postmaster.pid" ] || return 0
+  bin="$(pg_bin)" || return 0
+  as_pg "$bin/pg_ctl" -D "$pgdir/data" -m fast -w -t 30 stop >/dev/null 2>&1 || true
+}
+
 start_garage_node() {
   # start_garage_node I : runs node I from its config, appends its pid.
   local i="$1"
@@ -94,9 +176,11 @@ start_garage_node() {
 start_replica() {
   # start_replica I : runs replica I against Garage node I's S3 endpoint.
   local i="$1"
-  setsid env VOXSTREAM_S3_ENV_FILE="$DIR/s3-$i.env" RUST_LOG="${RUST_LOG:-warn}" \
+  setsid env VOXSTREAM_S3_ENV_FILE="$DIR/s3-$i.env" VOXSTREAM_PG_ENV_FILE="$DIR/pg.env" \
+    RUST_LOG="${RUST_LOG:-warn,voxstream=info}" \
     "$VOXSTREAM" serve --store "s3://$BUCKET/$PREFIX" --addr "127.0.0.1:$(cat "$DIR/replica-$i/port")" \
-    --relist-secs 2 >"$DIR/replica-$i/out.log" 2>"$DIR/replica-$i/err.log" </dev/null &
+    --relist-secs 2 --coordinator "$COORDINATOR" --lease-secs "${CLUSTER_LEASE_SECS:-30}" \
+    >"$DIR/replica-$i/out.log" 2>"$DIR/replica-$i/err.log" </dev/null &
   echo $! >"$DIR/replica-$i/pid"
 }
 
@@ -107,6 +191,7 @@ cmd_start() {
   GARAGE="$(bash "$ROOT/scripts/garage.sh")" || die "scripts/garage.sh failed"
   VOXSTREAM="$(voxstream_bin)"
   ensure_nginx
+  ensure_postgres
   local secret
   secret="$(od -An -N32 -tx1 /dev/urandom | tr -d ' \n')"
 
@@ -167,6 +252,9 @@ EOF
   done
   cp "$DIR/s3-1.env" "$DIR/s3.env"
 
+  # --- the coordinator ------------------------------------------------------------------------
+  start_postgres
+
   # --- two stateless replicas, each on its own Garage node --------------------------------------
   for i in 1 2; do
     mkdir -p "$DIR/replica-$i"
@@ -210,8 +298,9 @@ http {
       proxy_next_upstream error timeout http_502 http_503 http_504;
       proxy_next_upstream_tries 2;
       proxy_connect_timeout 2s;
-      # Build progress is server-sent events: pass them on as they come.
+      # Build progress is server-sent events: pass them on as they come; uploads stream through.
       proxy_buffering off;
+      proxy_request_buffering off;
       proxy_read_timeout 1h;
     }
   }
@@ -231,6 +320,9 @@ EOF
     echo "S3_ENV=$DIR/s3.env"
     echo "VOXSTREAM=$VOXSTREAM"
     echo "GARAGE=$GARAGE"
+    echo "COORDINATOR=$COORDINATOR"
+    echo "PG_ENV=$DIR/pg.env"
+    echo "LEASE_SECS=${CLUSTER_LEASE_SECS:-30}"
   } >"$DIR/cluster.env"
   log "up: http://127.0.0.1:$port/ (nginx → 2 replicas → 3 Garage nodes); state in $DIR/cluster.env"
   log "build a scan into it: bash scripts/cluster.sh build <mesh> $DIR"
@@ -242,7 +334,8 @@ cmd_restart() {
   local what="$1" i="$2"
   # shellcheck disable=SC1091
   . "$DIR/cluster.env"
-  GARAGE="${GARAGE:?}" VOXSTREAM="${VOXSTREAM:?}"
+  GARAGE="${GARAGE:?}" VOXSTREAM="${VOXSTREAM:?}" COORDINATOR="${COORDINATOR:?}"
+  CLUSTER_LEASE_SECS="${LEASE_SECS:-30}"
   case "$what" in
     replica) start_replica "$i" ;;
     garage) start_garage_node "$i" ;;
@@ -260,6 +353,7 @@ cmd_stop() {
   for f in "$DIR"/replica-*/pid "$DIR"/garage-*/pid; do
     if [ -f "$f" ]; then kill "$(cat "$f")" 2>/dev/null || true; fi
   done
+  stop_postgres
   rm -f "$DIR/cluster.env"
   log "stopped the cluster in $DIR"
 }
@@ -300,10 +394,28 @@ case "$action" in
     fi
     cmd_build "$mesh" "$@"
     ;;
+  postgres)
+    # postgres start|stop DIR: the coordinator alone (server/tests/coordinator.rs); start prints
+    # its URL (the password is in DIR/pg.env).
+    [ $# -eq 2 ] || die "usage: bash scripts/cluster.sh postgres start|stop DIR"
+    DIR="$2"
+    case "$1" in
+      start)
+        ensure_postgres
+        mkdir -p "$DIR"
+        DIR="$(cd "$DIR" && pwd)"
+        start_postgres
+        printf '%s\n' "$COORDINATOR"
+        ;;
+      stop) stop_postgres ;;
+      *) die "usage: bash scripts/cluster.sh postgres start|stop DIR" ;;
+    esac
+    ;;
   tools)
     bash "$ROOT/scripts/garage.sh" >/dev/null || die "scripts/garage.sh failed"
     ensure_nginx
-    log "garage and nginx are installed"
+    ensure_postgres
+    log "garage, nginx and postgresql are installed"
     ;;
   *) die "usage: bash scripts/cluster.sh start|stop|restart|build|tools … (see the top of this script)" ;;
 esac

@@ -41,15 +41,9 @@ pub fn build_into_bucket(
     mesh: &Path,
     bucket: &str,
     prefix: &str,
-    mut opts: BuildOptions,
+    opts: BuildOptions,
     report: &(dyn Fn(Progress) + Sync),
 ) -> anyhow::Result<BucketBuild> {
-    let id = match &opts.name {
-        Some(name) => name.clone(),
-        None => crate::store::id_from_file_stem(mesh),
-    };
-    crate::store::validate_id(&id)?;
-    opts.name = Some(id.clone());
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
@@ -61,6 +55,58 @@ pub fn build_into_bucket(
         prefix,
         crate::objstore::START_CHECK_DEADLINE,
     ))?);
+    let staged = stage_in_bucket(mesh, &bucket, rt.handle(), opts, report)?;
+    // Last: from here on readers see the new scene.
+    rt.block_on(staged.publish(&bucket))?;
+    Ok(staged.into_build(&bucket))
+}
+
+/// A scene whose packs and pages are in the bucket and whose manifest is not yet: invisible to
+/// readers until [`StagedScene::publish`].
+pub struct StagedScene {
+    pub report: BuildReport,
+    pub id: String,
+    pub manifest: Vec<u8>,
+    objects: usize,
+    bytes: u64,
+    /// The local build the report names; removed with the staged scene.
+    _scratch: tempfile::TempDir,
+}
+
+impl StagedScene {
+    /// Writes the manifest: the one PUT that makes the scene (or its new version) visible.
+    pub async fn publish(&self, bucket: &Bucket) -> anyhow::Result<()> {
+        bucket
+            .put(&format!("{}/manifest.json", self.id), self.manifest.clone(), "application/json", "no-cache")
+            .await
+    }
+
+    pub fn into_build(self, bucket: &Bucket) -> BucketBuild {
+        let url = format!("s3://{}/{}", bucket.bucket, bucket.path(&self.id));
+        BucketBuild {
+            objects: self.objects + 1,
+            bytes: self.bytes + self.manifest.len() as u64,
+            report: self.report,
+            url,
+        }
+    }
+}
+
+/// Builds `mesh` and uploads its packs and pages (not the manifest) through `handle`'s runtime.
+/// Blocking: call it off the runtime's worker threads (the CLI's main thread, `spawn_blocking`).
+pub fn stage_in_bucket(
+    mesh: &Path,
+    bucket: &Arc<Bucket>,
+    handle: &tokio::runtime::Handle,
+    mut opts: BuildOptions,
+    report: &(dyn Fn(Progress) + Sync),
+) -> anyhow::Result<StagedScene> {
+    let id = match &opts.name {
+        Some(name) => name.clone(),
+        None => crate::store::id_from_file_stem(mesh),
+    };
+    crate::store::validate_id(&id)?;
+    opts.name = Some(id.clone());
     let scratch_parent = opts.temp_dir.clone().unwrap_or_else(std::env::temp_dir);
     std::fs::create_dir_all(&scratch_parent)
         .with_context(|| format!("cannot create {}", scratch_parent.display()))?;
@@ -71,7 +117,7 @@ pub fn build_into_bucket(
 
     let (tx, rx) = tokio::sync::mpsc::channel::<(String, Vec<u8>)>(UPLOAD_QUEUE);
     let failure: Arc<Mutex<Option<String>>> = Arc::default();
-    let uploader = rt.spawn(upload_all(bucket.clone(), id.clone(), rx, failure.clone()));
+    let uploader = handle.spawn(upload_all(bucket.clone(), id.clone(), rx, failure.clone()));
     let sink_failure = failure.clone();
     opts.finished_files = Some(FinishedFiles(Arc::new(move |name: &str, bytes: Vec<u8>| {
         // Blocks while the queue is full: the build waits for the bucket.
@@ -85,7 +131,7 @@ pub fn build_into_bucket(
     })));
     let built = build_scene_reporting(mesh, scratch.path(), &opts, report);
     drop(opts); // closes the queue: the uploader ends once it has sent what is queued
-    let uploaded = rt.block_on(uploader);
+    let uploaded = handle.block_on(uploader);
     let report = built?;
     let (objects, bytes) = match uploaded {
         Ok(Ok(counts)) => counts,
@@ -95,12 +141,7 @@ pub fn build_into_bucket(
     let manifest_path = report.scene_dir.join("manifest.json");
     let manifest = std::fs::read(&manifest_path)
         .with_context(|| format!("cannot read the built manifest {}", manifest_path.display()))?;
-    let manifest_bytes = manifest.len() as u64;
-    // Last: from here on readers see the new scene.
-    rt.block_on(bucket.put(&format!("{id}/manifest.json"), manifest, "application/json", "no-cache"))?;
-    drop(scratch);
-    let url = format!("s3://{}/{}", bucket.bucket, bucket.path(&id));
-    Ok(BucketBuild { report, url, objects: objects + 1, bytes: bytes + manifest_bytes })
+    Ok(StagedScene { report, id, manifest, objects, bytes, _scratch: scratch })
 }
 
 /// Uploads queued files, [`UPLOAD_CONCURRENCY`] at once, until the queue closes; on the first

@@ -160,8 +160,8 @@ pub enum CatalogError {
 }
 
 /// How scenes get into a bucket, for refusals of writes on a replica.
-pub const READ_ONLY_BUCKET_HINT: &str =
-    "this replica serves a bucket read-only; build with `voxstream build --out s3://bucket/prefix`";
+pub const READ_ONLY_BUCKET_HINT: &str = "this replica serves a bucket read-only: build with `voxstream build --out \
+     s3://bucket/prefix`, or start the replicas with --coordinator to take uploads";
 
 /// Where a catalog's scenes live.
 #[derive(Clone)]
@@ -195,8 +195,8 @@ fn nanos() -> u128 {
 
 /// The published scenes of one store.
 pub struct Catalog {
-    /// The local store folder; for a bucket, the replica's own folder for job and upload state
-    /// (unused: a bucket replica takes no uploads yet).
+    /// The local store folder; for a bucket, the replica's own scratch folder (inputs assembled
+    /// and built there before upload, with a coordinator).
     store: PathBuf,
     scenes_at: SceneStore,
     scenes: RwLock<BTreeMap<String, Arc<LoadedScene>>>,
@@ -310,6 +310,13 @@ impl Catalog {
         self.manifests.lock().expect("manifest lock").insert(id.to_string(), bytes);
         tracing::info!(scene = %id, "scene loaded from the bucket");
         Ok(true)
+    }
+
+    /// Loads scene `id` from the bucket now (a build on this replica just published it).
+    pub async fn reload(&self, id: &str) -> Result<bool, String> {
+        let SceneStore::Bucket(bucket) = &self.scenes_at else { return Ok(false) };
+        self.unknown.invalidate(id).await;
+        self.load_from_bucket(bucket, id).await
     }
 
     /// A scene, asking the bucket for an id not listed yet (another replica's build may have

@@ -11,8 +11,8 @@ use clap::Args;
 #[derive(Debug, Clone, Args)]
 pub struct ServeArgs {
     /// The store: a directory (scenes, plus .jobs/ and .uploads/ for the server's own state), or
-    /// s3://bucket/prefix, served read-only from the bucket (endpoint and credentials from AWS_*
-    /// variables or VOXSTREAM_S3_ENV_FILE; see --cache-size).
+    /// s3://bucket/prefix, served from the bucket (endpoint and credentials from AWS_* variables
+    /// or VOXSTREAM_S3_ENV_FILE; see --cache-size), read-only unless --coordinator is given.
     #[arg(long, env = "VOXSTREAM_STORE")]
     pub store: PathBuf,
     /// With an s3:// store: bytes of hot hierarchy pages and blocks kept in memory (K/M/G
@@ -24,6 +24,15 @@ pub struct ServeArgs {
     /// is also looked up when asked for).
     #[arg(long, env = "VOXSTREAM_RELIST_SECS", default_value_t = 5)]
     pub relist_secs: u64,
+    /// With an s3:// store: postgres://user@host:port/database of the coordinator the replicas
+    /// share; with it they take uploads and build each once (without it they are read-only). The
+    /// password comes from PGPASSWORD or the file VOXSTREAM_PG_ENV_FILE names, never from here.
+    #[arg(long, env = "VOXSTREAM_COORDINATOR")]
+    pub coordinator: Option<String>,
+    /// With --coordinator: seconds a build's claim lasts without renewal; a replica that dies
+    /// while building loses its job to another after this.
+    #[arg(long, env = "VOXSTREAM_LEASE_SECS", default_value_t = 30)]
+    pub lease_secs: u64,
     #[arg(long, env = "VOXSTREAM_ADDR", default_value = "127.0.0.1:8080")]
     pub addr: SocketAddr,
     /// Directory of the built viewer (index.html, pkg/, upload.html).
@@ -76,6 +85,8 @@ pub struct ServeArgs {
 #[derive(Debug, Clone)]
 pub struct ServerConfig {
     pub store: PathBuf,
+    /// The scenes live in a bucket (set by the server): renames and deletes are refused (403).
+    pub bucket_scenes: bool,
     pub web: Option<PathBuf>,
     pub token: Option<String>,
     pub read_only: bool,
@@ -97,6 +108,7 @@ impl ServerConfig {
     pub fn new(store: impl Into<PathBuf>) -> Self {
         Self {
             store: store.into(),
+            bucket_scenes: false,
             web: None,
             token: None,
             read_only: false,
@@ -119,6 +131,7 @@ impl ServeArgs {
     pub fn config(&self) -> ServerConfig {
         ServerConfig {
             store: self.store.clone(),
+            bucket_scenes: false,
             web: self.web.clone(),
             token: self.token.clone().filter(|t| !t.is_empty()),
             read_only: self.read_only,

@@ -91,6 +91,12 @@ pub struct Job {
     pub finished_at: Option<u64>,
     /// Builds started, counting ones a crash or shutdown cut short.
     pub attempts: u32,
+    /// With a coordinator: the replica building it now or last (`host/pid/n`).
+    #[serde(default)]
+    pub builder: Option<String>,
+    /// With a coordinator: the blake3 of the input as the builder assembled it from the upload's parts.
+    #[serde(default)]
+    pub input_blake3: Option<String>,
 }
 
 pub fn parse_topology(name: &str) -> Option<Topology> {
@@ -117,6 +123,8 @@ pub enum JobError {
     NotFound(String),
     #[error("job {id} already ended ({state})")]
     Ended { id: String, state: &'static str },
+    #[error("the coordinator is unavailable: {0}")]
+    Unavailable(String),
 }
 
 struct JobHandle {
@@ -359,6 +367,7 @@ impl JobManager {
         let job = h.tx.borrow().clone();
         self.persist(&job);
         self.metrics.jobs_running.inc();
+        self.metrics.builds_started.inc();
         let started = Instant::now();
         let input = self.input_path(&job);
         let store = self.store.clone();
@@ -472,5 +481,76 @@ impl JobManager {
 
     pub fn store(&self) -> &Path {
         &self.store
+    }
+}
+
+/// The jobs a server answers for: its own (a local store), or every replica's through the
+/// coordinator (a bucket with `--coordinator`).
+#[derive(Clone)]
+pub enum Jobs {
+    Local(Arc<JobManager>),
+    Cluster(Arc<crate::cluster_jobs::ClusterJobs>),
+}
+
+fn unavailable(e: anyhow::Error) -> JobError {
+    JobError::Unavailable(format!("{e:#}"))
+}
+
+impl Jobs {
+    pub async fn get(&self, id: &str) -> Result<Option<Job>, JobError> {
+        match self {
+            Jobs::Local(m) => Ok(m.get(id)),
+            Jobs::Cluster(c) => c.coordinator.job(id).await.map_err(unavailable),
+        }
+    }
+
+    /// All jobs, newest first.
+    pub async fn list(&self) -> Result<Vec<Job>, JobError> {
+        match self {
+            Jobs::Local(m) => Ok(m.list()),
+            Jobs::Cluster(c) => c.coordinator.jobs().await.map_err(unavailable),
+        }
+    }
+
+    /// Whether a queued or running job will publish `scene_id`.
+    pub async fn building(&self, scene_id: &str) -> Result<bool, JobError> {
+        match self {
+            Jobs::Local(m) => Ok(m.building(scene_id)),
+            Jobs::Cluster(c) => c.coordinator.building(scene_id).await.map_err(unavailable),
+        }
+    }
+
+    pub async fn cancel(&self, id: &str) -> Result<Job, JobError> {
+        match self {
+            Jobs::Local(m) => m.cancel(id),
+            Jobs::Cluster(c) => match c.coordinator.cancel(id).await {
+                Ok((job, ended_now)) => {
+                    if ended_now {
+                        // Queued: it never ran, so its upload goes now.
+                        c.coordinator.remove_upload(c.bucket(), id).await;
+                    }
+                    Ok(job)
+                }
+                Err(crate::coordinator::CancelError::NotFound) => Err(JobError::NotFound(id.to_string())),
+                Err(crate::coordinator::CancelError::Ended(state)) => {
+                    Err(JobError::Ended { id: id.to_string(), state })
+                }
+                Err(crate::coordinator::CancelError::Failed(e)) => Err(unavailable(e)),
+            },
+        }
+    }
+
+    pub async fn subscribe(&self, id: &str) -> Result<Option<watch::Receiver<Job>>, JobError> {
+        match self {
+            Jobs::Local(m) => Ok(m.subscribe(id)),
+            Jobs::Cluster(c) => c.subscribe(id).await.map_err(unavailable),
+        }
+    }
+
+    pub async fn shutdown(&self, timeout: Duration) {
+        match self {
+            Jobs::Local(m) => m.shutdown(timeout).await,
+            Jobs::Cluster(c) => c.shutdown(timeout).await,
+        }
     }
 }

@@ -8,13 +8,16 @@
 //! against a peer (`voxstream bench`). The server side of
 //! [`http`] keeps its state in [`catalog`] (published scenes), [`uploads`]
 //! and [`jobs`] (builds of uploads), configured by [`config`], measured by
-//! [`metrics`]; [`thumbnail`] draws catalog pictures on the CPU.
+//! [`metrics`]; [`thumbnail`] draws catalog pictures on the CPU. Bucket replicas
+//! with a [`coordinator`] (PostgreSQL) take uploads too: [`cluster_jobs`] builds them once.
 
 pub mod bench;
 pub mod bucket_build;
 pub mod bucket_store;
 pub mod catalog;
+pub mod cluster_jobs;
 pub mod config;
+pub mod coordinator;
 pub mod http;
 pub mod jobs;
 pub mod metrics;

@@ -26,6 +26,8 @@ pub struct Metrics {
     pub job_seconds: HistogramFamily,
     pub jobs_running: Gauge<i64, AtomicI64>,
     pub jobs_queued: Gauge<i64, AtomicI64>,
+    /// Builds this process started (with a coordinator, the replicas' sum counts every build).
+    pub builds_started: Counter,
     pub sse_streams: Gauge<i64, AtomicI64>,
 }
 
@@ -56,6 +58,7 @@ impl Metrics {
             job_seconds: Family::new_with_constructor(job_histogram),
             jobs_running: Gauge::default(),
             jobs_queued: Gauge::default(),
+            builds_started: Counter::default(),
             sse_streams: Gauge::default(),
             registry: Registry::default(),
         };
@@ -76,6 +79,7 @@ impl Metrics {
         registry.register("job_seconds", "Build job durations by outcome", m.job_seconds.clone());
         registry.register("jobs_running", "Builds running now", m.jobs_running.clone());
         registry.register("jobs_queued", "Builds waiting for a worker", m.jobs_queued.clone());
+        registry.register("builds_started", "Builds this process started", m.builds_started.clone());
         registry.register("sse_streams", "Open job event streams", m.sse_streams.clone());
         Metrics { registry, ..m }
     }

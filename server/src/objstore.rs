@@ -61,6 +61,7 @@ pub fn parse_location(text: &str) -> Result<Location, String> {
 }
 
 /// A bucket (and prefix) that answered.
+#[derive(Clone)]
 pub struct Bucket {
     pub store: Arc<dyn ObjectStore>,
     pub bucket: String,

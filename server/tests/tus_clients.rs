@@ -15,6 +15,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use common::serve::spawn_listening;
+use common::tus::tools_venv;
 
 use serde_json::Value;
 
@@ -144,19 +145,6 @@ async fn cut_and_resume_with(
         http.get(format!("{}/api/scenes/{scene}", server.base)).send().await.unwrap().json().await.unwrap();
     assert_eq!(meta["triangles"], manifest["source"]["triangles"], "{client}: {meta}");
     assert_eq!(meta["voxels"], manifest["levels"][0]["voxels"], "{client}: {meta}");
-}
-
-fn tools_venv() -> PathBuf {
-    let out = Command::new("bash")
-        .arg(root().join("scripts/schemathesis.sh"))
-        .arg("--check")
-        .output()
-        .expect("bash runs");
-    assert!(
-        out.status.success(),
-        "the Python tools venv (tuspy) is missing: run bash scripts/setup.sh (or bash scripts/schemathesis.sh --install)"
-    );
-    PathBuf::from(String::from_utf8(out.stdout).unwrap().trim())
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -39,7 +39,9 @@ impl FromRequestParts<AppState> for WriteAccess {
     type Rejection = ApiError;
 
     async fn from_request_parts(parts: &mut Parts, state: &AppState) -> Result<Self, ApiError> {
-        if let crate::catalog::SceneStore::Bucket(_) = state.catalog.scene_store() {
+        if let crate::catalog::SceneStore::Bucket(_) = state.catalog.scene_store()
+            && state.cluster().is_none()
+        {
             return Err(ApiError::new(StatusCode::FORBIDDEN, crate::catalog::READ_ONLY_BUCKET_HINT));
         }
         if state.config.read_only {

@@ -24,8 +24,23 @@ fn check_id(id: &str) -> Result<(), ApiError> {
 
 #[utoipa::path(get, path = "/api/jobs", tag = "jobs",
     responses((status = 200, description = "All jobs the store remembers, newest first", body = [Job])))]
-pub async fn list_jobs(_read: ReadAccess, State(state): State<AppState>) -> axum::Json<Vec<Job>> {
-    axum::Json(state.jobs.list())
+pub async fn list_jobs(
+    _read: ReadAccess,
+    State(state): State<AppState>,
+) -> Result<axum::Json<Vec<Job>>, ApiError> {
+    state.jobs.list().await.map(axum::Json).map_err(job_error)
+}
+
+/// A job operation's error as a response (the coordinator unreachable: 503).
+pub fn job_error(e: JobError) -> ApiError {
+    match e {
+        JobError::NotFound(_) => ApiError::not_found(e.to_string()),
+        JobError::Ended { .. } => ApiError::new(StatusCode::CONFLICT, e.to_string()),
+        JobError::Unavailable(_) => {
+            tracing::error!(error = %e, "coordinator request failed");
+            ApiError::new(StatusCode::SERVICE_UNAVAILABLE, e.to_string())
+        }
+    }
 }
 
 #[utoipa::path(get, path = "/api/jobs/{id}", tag = "jobs", params(("id" = String, Path)),
@@ -36,7 +51,13 @@ pub async fn get_job(
     UrlPath(id): UrlPath<String>,
 ) -> Result<axum::Json<Job>, ApiError> {
     check_id(&id)?;
-    state.jobs.get(&id).map(axum::Json).ok_or_else(|| ApiError::not_found(format!("no job with id {id:?}")))
+    state
+        .jobs
+        .get(&id)
+        .await
+        .map_err(job_error)?
+        .map(axum::Json)
+        .ok_or_else(|| ApiError::not_found(format!("no job with id {id:?}")))
 }
 
 #[utoipa::path(delete, path = "/api/jobs/{id}", tag = "jobs", security(("bearer" = [])), params(("id" = String, Path)),
@@ -48,10 +69,9 @@ pub async fn cancel_job(
     UrlPath(id): UrlPath<String>,
 ) -> Result<Response, ApiError> {
     check_id(&id)?;
-    match state.jobs.cancel(&id) {
+    match state.jobs.cancel(&id).await {
         Ok(job) => Ok((StatusCode::ACCEPTED, axum::Json(job)).into_response()),
-        Err(e @ JobError::NotFound(_)) => Err(ApiError::not_found(e.to_string())),
-        Err(e @ JobError::Ended { .. }) => Err(ApiError::new(StatusCode::CONFLICT, e.to_string())),
+        Err(e) => Err(job_error(e)),
     }
 }
 
@@ -89,8 +109,12 @@ pub async fn job_events(
     UrlPath(id): UrlPath<String>,
 ) -> Result<Response, ApiError> {
     check_id(&id)?;
-    let rx =
-        state.jobs.subscribe(&id).ok_or_else(|| ApiError::not_found(format!("no job with id {id:?}")))?;
+    let rx = state
+        .jobs
+        .subscribe(&id)
+        .await
+        .map_err(job_error)?
+        .ok_or_else(|| ApiError::not_found(format!("no job with id {id:?}")))?;
     let gauge = state.metrics.sse_streams.clone();
     gauge.inc();
     let guard = scopeguard(move || {

@@ -34,8 +34,10 @@ use tower_http::trace::TraceLayer;
 
 use crate::bucket_store::BucketStore;
 use crate::catalog::{Catalog, LoadedScene, SceneStore, remove_stale};
+use crate::cluster_jobs::ClusterJobs;
 use crate::config::{ServeArgs, ServerConfig};
-use crate::jobs::JobManager;
+use crate::coordinator::Coordinator;
+use crate::jobs::{JobManager, Jobs};
 use crate::metrics::Metrics;
 use crate::store::validate_id;
 use crate::uploads::Uploads;
@@ -49,7 +51,7 @@ pub struct AppState(Arc<Shared>);
 pub struct Shared {
     pub config: ServerConfig,
     pub catalog: Arc<Catalog>,
-    pub jobs: Arc<JobManager>,
+    pub jobs: Jobs,
     pub uploads: Uploads,
     pub metrics: Arc<Metrics>,
     pub upload_limiter: access::RateLimiter,
@@ -80,7 +82,7 @@ impl AppState {
 
     fn build(config: ServerConfig, shutdown: CancellationToken) -> anyhow::Result<AppState> {
         let catalog = Arc::new(Catalog::open(&config.store)?);
-        Ok(Self::with_catalog(config, catalog, shutdown, None))
+        Ok(Self::with_catalog(config, catalog, shutdown, None, None))
     }
 
     fn with_catalog(
@@ -88,13 +90,29 @@ impl AppState {
         catalog: Arc<Catalog>,
         shutdown: CancellationToken,
         state_dir: Option<tempfile::TempDir>,
+        coordinator: Option<Arc<Coordinator>>,
     ) -> AppState {
         let mut metrics = Metrics::new();
         if let SceneStore::Bucket(bucket) = catalog.scene_store() {
             metrics.register_store_cache(&bucket.metrics);
         }
         let metrics = Arc::new(metrics);
-        let jobs = JobManager::new(catalog.clone(), metrics.clone(), config.build_workers, shutdown.clone());
+        let jobs = match (coordinator, catalog.scene_store()) {
+            (Some(coordinator), SceneStore::Bucket(bucket)) => Jobs::Cluster(ClusterJobs::new(
+                coordinator,
+                bucket,
+                catalog.clone(),
+                metrics.clone(),
+                config.build_workers,
+                shutdown.clone(),
+            )),
+            _ => Jobs::Local(JobManager::new(
+                catalog.clone(),
+                metrics.clone(),
+                config.build_workers,
+                shutdown.clone(),
+            )),
+        };
         AppState(Arc::new(Shared {
             upload_limiter: access::RateLimiter::new(config.uploads_per_minute),
             uploads: Uploads::new(&config.store),
@@ -108,21 +126,39 @@ impl AppState {
         }))
     }
 
-    /// A replica over the scenes of a bucket: read-only (writes answer 403 naming how to build
-    /// into the bucket), its catalog listed from the bucket. Fails when the first listing does.
+    /// A replica over the scenes of a bucket, its catalog listed from the bucket. Without a
+    /// coordinator it is read-only (writes answer 403 naming how to build into the bucket); with
+    /// one it takes uploads and builds them, once across all replicas. Fails when the first
+    /// listing does.
     pub async fn start_bucket(
         mut config: ServerConfig,
         bucket: Arc<BucketStore>,
+        coordinator: Option<Arc<Coordinator>>,
         shutdown: CancellationToken,
     ) -> anyhow::Result<AppState> {
-        config.read_only = true;
+        // A --read-only replica never builds, coordinator or not.
+        let coordinator = coordinator.filter(|_| !config.read_only);
+        config.read_only = coordinator.is_none();
+        config.bucket_scenes = true;
         let state_dir = tempfile::Builder::new()
             .prefix("voxstream-replica-")
             .tempdir()
             .map_err(|e| anyhow::anyhow!("cannot create the replica's state folder: {e}"))?;
         config.store = state_dir.path().to_path_buf();
         let catalog = Catalog::open_bucket(bucket, state_dir.path()).await.map_err(anyhow::Error::msg)?;
-        Ok(Self::with_catalog(config, Arc::new(catalog), shutdown, Some(state_dir)))
+        let state = Self::with_catalog(config, Arc::new(catalog), shutdown, Some(state_dir), coordinator);
+        if let Some(cluster) = state.cluster() {
+            cluster.start();
+        }
+        Ok(state)
+    }
+
+    /// The replicas' shared jobs, when this is a bucket replica with a coordinator.
+    pub fn cluster(&self) -> Option<&Arc<ClusterJobs>> {
+        match &self.jobs {
+            Jobs::Cluster(c) => Some(c),
+            Jobs::Local(_) => None,
+        }
     }
 
     /// The full server for `config`: removes what interrupted builds left,
@@ -137,8 +173,8 @@ impl AppState {
             }
         }
         let state = Self::build(config, shutdown)?;
-        if !state.config.read_only {
-            let r = state.jobs.recover();
+        if let (false, Jobs::Local(jobs)) = (state.config.read_only, &state.jobs) {
+            let r = jobs.recover();
             if !(r.resumed.is_empty() && r.failed.is_empty() && r.removed_uploads.is_empty()) {
                 tracing::info!(resumed = ?r.resumed, failed = ?r.failed, removed_uploads = ?r.removed_uploads, "jobs recovered");
             }
@@ -353,6 +389,11 @@ pub fn serve_command(args: ServeArgs) -> anyhow::Result<()> {
     args.check_exposure().map_err(anyhow::Error::msg)?;
     let location = crate::objstore::parse_location(&args.store.to_string_lossy())
         .map_err(|e| anyhow::anyhow!("--store {e}"))?;
+    if args.coordinator.is_some() && matches!(location, crate::objstore::Location::Local(_)) {
+        anyhow::bail!(
+            "--coordinator is for replicas of an s3://bucket/prefix store; a local store's server builds on its own"
+        );
+    }
     let config = args.config();
     if let Some(w) = &config.web
         && !w.join("index.html").is_file()
@@ -371,7 +412,22 @@ pub fn serve_command(args: ServeArgs) -> anyhow::Result<()> {
                 let bucket =
                     crate::objstore::connect(&bucket, &prefix, crate::objstore::START_CHECK_DEADLINE).await?;
                 let bucket = Arc::new(BucketStore::new(bucket, args.cache_size));
-                let state = AppState::start_bucket(config, bucket, shutdown.clone()).await?;
+                let coordinator = match &args.coordinator {
+                    // Unreachable, refused or misnamed: one error naming the endpoint, before anything listens.
+                    Some(url) => Some(Arc::new(
+                        Coordinator::connect(
+                            url,
+                            Duration::from_secs(args.lease_secs.max(1)),
+                            crate::objstore::START_CHECK_DEADLINE,
+                        )
+                        .await?,
+                    )),
+                    None => None,
+                };
+                if let Some(c) = &coordinator {
+                    tracing::info!(coordinator = %c.endpoint, replica = %c.owner, lease_secs = args.lease_secs, "builds coordinated");
+                }
+                let state = AppState::start_bucket(config, bucket, coordinator, shutdown.clone()).await?;
                 tokio::spawn(relist_periodically(
                     state.catalog.clone(),
                     Duration::from_secs(args.relist_secs.max(1)),

@@ -170,13 +170,18 @@ pub fn document(config: &ServerConfig) -> Value {
             // A --read-only server refuses writes (403) before it looks at a token.
             let token_required = token && ((write && !config.read_only) || (read && config.protect_read));
             let read_only_refusal = write && config.read_only;
+            // A bucket replica that takes uploads still neither renames nor deletes scenes.
+            let bucket_refusal = config.bucket_scenes
+                && !config.read_only
+                && path == "/api/scenes/{id}"
+                && matches!(method, "patch" | "delete");
             let rate_limited = config.uploads_per_minute > 0
                 && method == "post"
                 && matches!(path.as_str(), "/api/scenes" | "/api/uploads");
             // Only the statuses this server can answer with: the handlers' attributes list them all.
             let responses = op.get_mut("responses").and_then(Value::as_object_mut).expect("responses");
             for (status, applies) in
-                [("401", token_required), ("403", read_only_refusal), ("429", rate_limited)]
+                [("401", token_required), ("403", read_only_refusal || bucket_refusal), ("429", rate_limited)]
             {
                 if !applies {
                     responses.remove(status);
@@ -190,6 +195,12 @@ pub fn document(config: &ServerConfig) -> Value {
             }
             if read_only_refusal {
                 add_response(op, "403", "This server is read-only (--read-only)");
+            } else if bucket_refusal {
+                add_response(
+                    op,
+                    "403",
+                    "Scenes in a bucket are replaced by uploading again, not renamed or deleted here",
+                );
             }
             if rate_limited {
                 add_response(

@@ -67,7 +67,7 @@ pub async fn patch_scene(
     let update: SceneUpdate = read_json(body, JSON_BODY_LIMIT).await?;
     if let Some(new_id) = &update.id {
         validate_id(new_id).map_err(|e| ApiError::bad_request(e.to_string()))?;
-        if state.jobs.building(new_id) {
+        if state.jobs.building(new_id).await.map_err(super::jobs::job_error)? {
             return Err(ApiError::new(
                 StatusCode::CONFLICT,
                 format!("a build is publishing scene {new_id:?}"),
@@ -82,7 +82,7 @@ pub async fn patch_scene(
     if update.id.is_none() && update.name.is_none() {
         return Err(ApiError::bad_request("give \"id\" (new id) and/or \"name\" (display name)"));
     }
-    if state.jobs.building(&id) {
+    if state.jobs.building(&id).await.map_err(super::jobs::job_error)? {
         return Err(ApiError::new(
             StatusCode::CONFLICT,
             format!("a build is publishing scene {id:?}; wait or cancel it"),
@@ -120,7 +120,7 @@ pub async fn delete_scene(
     UrlPath(id): UrlPath<String>,
 ) -> Result<StatusCode, ApiError> {
     state.scene(&id).await?;
-    if state.jobs.building(&id) {
+    if state.jobs.building(&id).await.map_err(super::jobs::job_error)? {
         return Err(ApiError::new(
             StatusCode::CONFLICT,
             format!("a build is publishing scene {id:?}; cancel it first"),

@@ -9,6 +9,9 @@
 //!   creates, `PATCH` (Upload-Offset, `application/offset+octet-stream`)
 //!   appends, `HEAD` tells the offset to resume from, `DELETE` abandons.
 //!   The upload survives dropped connections and server restarts.
+//!
+//! On bucket replicas with a coordinator, the same protocol keeps its state in PostgreSQL and its
+//! bytes in the bucket ([`crate::coordinator`]), so an upload can continue on any replica.
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -27,9 +30,10 @@ use tokio::io::AsyncWriteExt;
 use super::access::{UploadPermit, WriteAccess};
 use super::{ApiError, AppState};
 use crate::catalog::now_unix;
-use crate::jobs::{Job, JobState, new_id, parse_topology, valid_job_id};
+use crate::coordinator::{AppendError, Appended};
+use crate::jobs::{Job, JobState, Jobs, new_id, parse_topology, valid_job_id};
 use crate::store::{id_from_file_stem, validate_id};
-use crate::uploads::UploadRecord;
+use crate::uploads::{UploadRecord, detect_format};
 
 pub const TUS_VERSION: &str = "1.0.0";
 const OFFSET_CONTENT_TYPE: &str = "application/offset+octet-stream";
@@ -56,7 +60,7 @@ pub struct UploadOptions {
 }
 
 /// Checks the options before any byte is stored; returns the record to create.
-fn plan_upload(
+async fn plan_upload(
     state: &AppState,
     opts: UploadOptions,
     content_type: Option<String>,
@@ -104,7 +108,7 @@ fn plan_upload(
             "topology {topology:?} is not conservative, 26-separating or 6-separating"
         )));
     }
-    if state.jobs.building(&scene_id) {
+    if state.jobs.building(&scene_id).await.map_err(super::jobs::job_error)? {
         return Err(ApiError::new(
             StatusCode::CONFLICT,
             format!("a build is already publishing scene {scene_id:?}"),
@@ -190,7 +194,19 @@ async fn start_job(state: &AppState, record: UploadRecord, bytes: u64) -> Result
             return Err(ApiError::new(StatusCode::UNSUPPORTED_MEDIA_TYPE, message));
         }
     };
-    let job = Job {
+    let input_file = input.file_name().and_then(|f| f.to_str()).unwrap_or_default().to_string();
+    let job = new_job(state, &record, input_file, bytes);
+    tracing::info!(job = %job.id, scene = %job.scene_id, bytes, "upload complete; build queued");
+    match &state.jobs {
+        Jobs::Local(jobs) => Ok(jobs.submit(job)),
+        // Coordinated replicas queue jobs in the coordinator (`Coordinator::append`), never here.
+        Jobs::Cluster(_) => Err(ApiError::internal("a local upload finished on a coordinated replica")),
+    }
+}
+
+/// The queued job of a complete upload whose input is `input_file`.
+fn new_job(state: &AppState, record: &UploadRecord, input_file: String, bytes: u64) -> Job {
+    Job {
         id: record.id.clone(),
         scene_id: record.scene_id.clone(),
         state: JobState::Queued,
@@ -199,7 +215,7 @@ async fn start_job(state: &AppState, record: UploadRecord, bytes: u64) -> Result
         eta_seconds: None,
         triangles_per_second: 0.0,
         error: None,
-        input_file: input.file_name().and_then(|f| f.to_str()).unwrap_or_default().to_string(),
+        input_file,
         input_bytes: bytes,
         resolution: record.resolution,
         max_resolution: state.config.max_resolution,
@@ -208,9 +224,65 @@ async fn start_job(state: &AppState, record: UploadRecord, bytes: u64) -> Result
         started_at: None,
         finished_at: None,
         attempts: 0,
-    };
-    tracing::info!(job = %job.id, scene = %job.scene_id, bytes, "upload complete; build queued");
-    Ok(state.jobs.submit(job))
+        builder: None,
+        input_blake3: None,
+    }
+}
+
+/// With a coordinator: the job of a complete upload whose first bytes are `head`, or why the
+/// format cannot be told (415).
+fn cluster_job(state: &AppState, record: &UploadRecord, head: &[u8], bytes: u64) -> Result<Job, String> {
+    let format = detect_format(head, record.file_name.as_deref(), record.content_type.as_deref())?;
+    let job = new_job(state, record, format!("{}.{format}", record.scene_id), bytes);
+    tracing::info!(job = %job.id, scene = %job.scene_id, bytes, "upload complete; build queued for the replicas");
+    Ok(job)
+}
+
+fn coordinator_error(e: anyhow::Error) -> ApiError {
+    tracing::error!(error = %format!("{e:#}"), "coordinator request failed");
+    ApiError::new(StatusCode::SERVICE_UNAVAILABLE, format!("the coordinator is unavailable: {e:#}"))
+}
+
+/// An append's failure as tus answers it (`post`: a plain POST, where too large is 413).
+fn append_error(id: &str, e: AppendError, post: bool) -> ApiError {
+    match e {
+        AppendError::NotFound => ApiError::not_found(format!("no upload with id {id:?}")),
+        AppendError::Complete => {
+            ApiError::new(StatusCode::CONFLICT, format!("upload {id} is already complete"))
+        }
+        AppendError::Busy => {
+            ApiError::new(StatusCode::LOCKED, format!("upload {id} is busy with another request"))
+        }
+        AppendError::OffsetMismatch { current } => ApiError::new(
+            StatusCode::CONFLICT,
+            format!("Upload-Offset differs from the {current} bytes the server has: resume from {current}"),
+        )
+        .with_header(h("upload-offset"), HeaderValue::from(current)),
+        AppendError::TooLarge { limit, .. } if post => {
+            ApiError::new(StatusCode::PAYLOAD_TOO_LARGE, format!("the upload is larger than {limit} bytes"))
+        }
+        AppendError::TooLarge { current, limit } => ApiError::bad_request(format!(
+            "the body runs past Upload-Length {limit}; nothing of this request was kept"
+        ))
+        .with_header(h("upload-offset"), HeaderValue::from(current)),
+        AppendError::Cut { offset, why } if post => ApiError::bad_request(format!(
+            "the upload was cut off after {offset} bytes ({why}); use /api/uploads (tus) to resume"
+        )),
+        AppendError::Cut { offset, why } => {
+            tracing::info!(upload = %id, offset, %why, "upload interrupted; it can resume on any replica");
+            ApiError::bad_request(format!("the body was cut off at offset {offset} ({why})"))
+                .with_header(h("upload-offset"), HeaderValue::from(offset))
+        }
+        AppendError::Empty => ApiError::bad_request("the upload is empty"),
+        AppendError::Unusable(message) => ApiError::new(StatusCode::UNSUPPORTED_MEDIA_TYPE, message),
+        AppendError::SceneBusy(scene) => {
+            ApiError::new(StatusCode::CONFLICT, format!("a build is already publishing scene {scene:?}"))
+        }
+        AppendError::Failed(message) => {
+            tracing::error!(upload = %id, error = %message, "storing the upload failed");
+            ApiError::new(StatusCode::SERVICE_UNAVAILABLE, format!("cannot store the upload: {message}"))
+        }
+    }
 }
 
 fn job_created(job: Job) -> Response {
@@ -249,7 +321,39 @@ pub async fn post_scene(
     if opts.filename.is_none() {
         opts.filename = header_str(&headers, h("x-filename"));
     }
-    let record = plan_upload(&state, opts, header_str(&headers, header::CONTENT_TYPE), length, false)?;
+    let record = plan_upload(&state, opts, header_str(&headers, header::CONTENT_TYPE), length, false).await?;
+    if let Some(cluster) = state.cluster() {
+        let (coordinator, bucket) = (&cluster.coordinator, cluster.bucket());
+        coordinator.create_upload(&record).await.map_err(coordinator_error)?;
+        let appended = coordinator
+            .append(
+                bucket,
+                &record.id,
+                None,
+                state.config.max_upload_bytes,
+                body.into_data_stream(),
+                state.config.upload_idle,
+                &state.metrics.upload_bytes,
+                |rec, head, n| cluster_job(&state, rec, head, n),
+            )
+            .await;
+        return match appended {
+            Ok(Appended { job: Some(job), .. }) => Ok(job_created(job)),
+            Ok(Appended { offset, .. }) => {
+                coordinator.remove_upload(bucket, &record.id).await;
+                Err(ApiError::bad_request(format!(
+                    "the body ended after {offset} of its Content-Length bytes"
+                )))
+            }
+            Err(e) => {
+                // Not resumable: whatever arrived goes.
+                if !matches!(e, AppendError::Unusable(_)) {
+                    coordinator.remove_upload(bucket, &record.id).await;
+                }
+                Err(append_error(&record.id, e, true))
+            }
+        };
+    }
     state.uploads.create(&record).map_err(io_error)?;
     let path = state.uploads.data_path(&record.id);
     let mut file = tokio::fs::OpenOptions::new().append(true).open(&path).await.map_err(io_error)?;
@@ -368,8 +472,11 @@ pub async fn tus_create(
         topology: meta.get("topology").cloned(),
         replace: meta.get("replace").is_some_and(|v| v == "true" || v == "1"),
     };
-    let record = plan_upload(&state, opts, meta.get("filetype").cloned(), Some(length), true)?;
-    state.uploads.create(&record).map_err(io_error)?;
+    let record = plan_upload(&state, opts, meta.get("filetype").cloned(), Some(length), true).await?;
+    match state.cluster() {
+        Some(cluster) => cluster.coordinator.create_upload(&record).await.map_err(coordinator_error)?,
+        None => state.uploads.create(&record).map_err(io_error)?,
+    }
     let location = HeaderValue::from_str(&format!("/api/uploads/{}", record.id)).expect("hex id");
     Ok((StatusCode::CREATED, tus_headers(), [(header::LOCATION, location)]).into_response())
 }
@@ -410,12 +517,30 @@ pub async fn tus_head(
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     require_tus(&headers)?;
+    if let Some(cluster) = state.cluster() {
+        // The offset committed by the last PATCH, on whichever replica it ran.
+        if let Some(upload) = cluster.coordinator.upload(&id).await.map_err(coordinator_error)?
+            && !upload.complete
+        {
+            let length = upload.record.length.unwrap_or(upload.received);
+            return Ok((tus_headers(), offset_headers(upload.received, length)).into_response());
+        }
+        return complete_upload_head(&state, &id).await;
+    }
     let _guard = lock_upload(&state, &id).await?;
     if let Some(record) = state.uploads.load(&id) {
         let offset = state.uploads.offset(&id).map_err(io_error)?;
         return Ok((tus_headers(), offset_headers(offset, record.length.unwrap_or(offset))).into_response());
     }
-    match state.jobs.get(&id) {
+    complete_upload_head(&state, &id).await
+}
+
+/// HEAD of an upload that became a job: its whole length, and the job.
+async fn complete_upload_head(state: &AppState, id: &str) -> Result<Response, ApiError> {
+    if !valid_job_id(id) {
+        return Err(ApiError::not_found(format!("no upload with id {id:?}")));
+    }
+    match state.jobs.get(id).await.map_err(super::jobs::job_error)? {
         Some(job) => Ok((
             tus_headers(),
             offset_headers(job.input_bytes, job.input_bytes),
@@ -455,9 +580,47 @@ pub async fn tus_patch(
         .ok_or_else(|| ApiError::bad_request("Upload-Offset is required"))?
         .parse()
         .map_err(|_| ApiError::bad_request("Upload-Offset must be a non-negative integer"))?;
+    if let Some(cluster) = state.cluster() {
+        if !valid_job_id(&id) {
+            return Err(ApiError::not_found(format!("no upload with id {id:?}")));
+        }
+        // The upload's row lock serialises PATCHes across replicas.
+        let appended = cluster
+            .coordinator
+            .append(
+                cluster.bucket(),
+                &id,
+                Some(claimed),
+                state.config.max_upload_bytes,
+                body.into_data_stream(),
+                state.config.upload_idle,
+                &state.metrics.upload_bytes,
+                |rec, head, n| cluster_job(&state, rec, head, n),
+            )
+            .await;
+        let appended = match appended {
+            Ok(appended) => appended,
+            // Its job ended and the upload's state is gone: still "complete", as on a local store.
+            Err(AppendError::NotFound)
+                if state.jobs.get(&id).await.map_err(super::jobs::job_error)?.is_some() =>
+            {
+                return Err(append_error(&id, AppendError::Complete, false));
+            }
+            Err(e) => return Err(append_error(&id, e, false)),
+        };
+        let mut response =
+            (StatusCode::NO_CONTENT, tus_headers(), offset_headers(appended.offset, appended.length))
+                .into_response();
+        if let Some(job) = appended.job {
+            response
+                .headers_mut()
+                .insert(h("voxstream-job"), HeaderValue::from_str(&job.id).expect("hex id"));
+        }
+        return Ok(response);
+    }
     let _guard = lock_upload(&state, &id).await?;
     let Some(record) = state.uploads.load(&id) else {
-        return Err(match state.jobs.get(&id) {
+        return Err(match state.jobs.get(&id).await.map_err(super::jobs::job_error)? {
             Some(_) => ApiError::new(StatusCode::CONFLICT, format!("upload {id} is already complete")),
             None => ApiError::not_found(format!("no upload with id {id:?}")),
         });
@@ -516,6 +679,16 @@ pub async fn tus_delete(
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     require_tus(&headers)?;
+    if let Some(cluster) = state.cluster() {
+        if !valid_job_id(&id) {
+            return Err(ApiError::not_found(format!("no unfinished upload with id {id:?}")));
+        }
+        return match cluster.coordinator.delete_upload(cluster.bucket(), &id).await {
+            Ok(true) => Ok((StatusCode::NO_CONTENT, tus_headers()).into_response()),
+            Ok(false) => Err(ApiError::not_found(format!("no unfinished upload with id {id:?}"))),
+            Err(e) => Err(append_error(&id, e, false)),
+        };
+    }
     let _guard = lock_upload(&state, &id).await?;
     if state.uploads.load(&id).is_none() {
         return Err(ApiError::not_found(format!("no unfinished upload with id {id:?}")));

@@ -1,4 +1,6 @@
 //! Helpers shared by integration tests.
 
+pub mod cluster;
 pub mod garage;
 pub mod serve;
+pub mod tus;
