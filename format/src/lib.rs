@@ -20,7 +20,7 @@ pub use codec::{
 };
 pub use hierarchy::{
     BlockLocation, HierarchyPage, PAGE_LEVELS, PackRange, PackRef, PageBuilder, PageError, PageRef,
-    SceneIndex, load_scene_index,
+    SceneIndex, FinishedHierarchy, load_scene_index,
 };
 pub use key::{BlockKey, KeyError};
 pub use manifest::{
