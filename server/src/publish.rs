@@ -158,13 +158,16 @@ fn read_checked_pack(scene: &StoredScene, pack: &PackRef, blocks: &[PackedBlock]
     let id = &scene.id;
     let path = scene.pack_path(&pack.hash);
     let bytes = fs::read(&path).with_context(|| format!("scene {id:?}: cannot read {}", path.display()))?;
-    if bytes.len() as u64 != pack.bytes || content_hash(&bytes) != pack.hash {
+    if bytes.len() as u64 != pack.bytes {
         bail!(
-            "scene {id:?}: pack {} is {} bytes and does not match its hash (expected {} bytes): damaged store",
-            pack.hash,
+            "scene {id:?}: {} is truncated or grown: {} bytes, its pages say {} (damaged store)",
+            pack_path(&pack.hash),
             bytes.len(),
             pack.bytes
         );
+    }
+    if content_hash(&bytes) != pack.hash {
+        bail!("scene {id:?}: {} does not match its hash (damaged store)", pack_path(&pack.hash));
     }
     for (key, hash, start, end) in blocks {
         if content_hash(&bytes[*start as usize..*end as usize]) != *hash {
