@@ -372,9 +372,8 @@ impl HierarchyPage {
                 "{entries} entries, {children} child pages, {packs} packs"
             )));
         }
-        let expected_len = packs as usize * PACK_REF_LEN
-            + children as usize * CHILD_PAGE_LEN
-            + entries as usize * ENTRY_LEN;
+        let expected_len =
+            packs as usize * PACK_REF_LEN + children as usize * CHILD_PAGE_LEN + entries as usize * ENTRY_LEN;
         if payload as usize != expected_len {
             return Err(PageError::BadHeader(format!(
                 "payload length {payload} does not match the counts ({expected_len})"
@@ -701,11 +700,10 @@ impl PageBuilder {
                 let (reference, bytes) = self.seal(key, open)?;
                 match page_root_of(&key, self.coarsest, self.page_levels) {
                     Some(parent) => {
-                        let p = self
-                            .open
-                            .get_mut(&parent)
-                            .or_else(|| self.held.get_mut(&parent))
-                            .ok_or_else(|| PageError::Order(format!("page {parent} above {key} is gone")))?;
+                        let p =
+                            self.open.get_mut(&parent).or_else(|| self.held.get_mut(&parent)).ok_or_else(
+                                || PageError::Order(format!("page {parent} above {key} is gone")),
+                            )?;
                         p.child_pages.push(reference.clone());
                         p.unsealed_children -= 1;
                     }
@@ -810,7 +808,9 @@ impl SceneIndex {
         let pack = if *key == self.root {
             self.root_pack.as_ref()?
         } else {
-            self.packs.get(&page_root_of(key, self.root.level, self.page_levels)?)?.get(e.location.pack as usize)?
+            self.packs
+                .get(&page_root_of(key, self.root.level, self.page_levels)?)?
+                .get(e.location.pack as usize)?
         };
         Some(PackRange { pack: pack.clone(), offset: e.location.offset, bytes: e.bytes })
     }
@@ -818,7 +818,10 @@ impl SceneIndex {
     /// Every pack named so far (each once), in no particular order.
     pub fn packs(&self) -> impl Iterator<Item = &PackRef> {
         let mut seen = std::collections::HashSet::new();
-        self.root_pack.iter().chain(self.packs.values().flatten()).filter(move |p| seen.insert(p.hash.as_str()))
+        self.root_pack
+            .iter()
+            .chain(self.packs.values().flatten())
+            .filter(move |p| seen.insert(p.hash.as_str()))
     }
 
     /// Every known entry, in no particular order.
@@ -1187,7 +1190,8 @@ mod tests {
         }
         // Held pages stay a front: one page a layer filled before the open pack, plus what the
         // pack itself holds. Control: one pack for the whole scene holds every page to the end.
-        let biggest = pages.iter().map(|(r, b)| HierarchyPage::decode(b, r).unwrap().entries.len()).max().unwrap();
+        let biggest =
+            pages.iter().map(|(r, b)| HierarchyPage::decode(b, r).unwrap().entries.len()).max().unwrap();
         assert!(most_held <= per_pack + 2 * biggest, "{most_held} entries held");
         let whole = build_packed(&order, coarsest, usize::MAX);
         assert_eq!(whole.packs.len(), 1);

@@ -181,10 +181,9 @@ fn read_checked_pack(scene: &StoredScene, pack: &PackRef, blocks: &[PackedBlock]
 fn scene_packs(scene: &StoredScene) -> anyhow::Result<Vec<(PackRef, Vec<PackedBlock>)>> {
     let mut by_pack: std::collections::HashMap<String, Vec<PackedBlock>> = Default::default();
     for e in scene.blocks() {
-        let r = scene
-            .index
-            .pack_range(&e.key)
-            .with_context(|| format!("scene {:?}: block {} is in no pack (rebuild the scene)", scene.id, e.key))?;
+        let r = scene.index.pack_range(&e.key).with_context(|| {
+            format!("scene {:?}: block {} is in no pack (rebuild the scene)", scene.id, e.key)
+        })?;
         by_pack.entry(r.pack.hash.clone()).or_default().push((e.key, e.hash.clone(), r.offset, r.end()));
     }
     let mut packs: Vec<(PackRef, Vec<PackedBlock>)> =
@@ -192,7 +191,6 @@ fn scene_packs(scene: &StoredScene) -> anyhow::Result<Vec<(PackRef, Vec<PackedBl
     packs.sort_by(|a, b| a.0.hash.cmp(&b.0.hash));
     Ok(packs)
 }
-
 
 fn write_file(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
     if let Some(dir) = path.parent() {
@@ -209,8 +207,15 @@ fn write_site(
     viewer: &[(String, Vec<u8>)],
 ) -> anyhow::Result<PublishReport> {
     let id = &scene.id;
-    let mut report =
-        PublishReport { id: id.clone(), to: dir.to_path_buf(), files: 0, bytes: 0, blocks: 0, pages: 0, packs: 0 };
+    let mut report = PublishReport {
+        id: id.clone(),
+        to: dir.to_path_buf(),
+        files: 0,
+        bytes: 0,
+        blocks: 0,
+        pages: 0,
+        packs: 0,
+    };
     let add = |path: &Path, bytes: &[u8], report: &mut PublishReport| -> anyhow::Result<()> {
         write_file(path, bytes)?;
         report.files += 1;

@@ -319,7 +319,11 @@ fn streaming_build_matches_the_in_memory_reference() {
         let (pages, packs) = (count("pages/"), count("packs/"));
         assert_eq!(want.len(), 1 + pages + packs, "{id}: {:?}", want.keys());
         let blocks = report.blocks as usize;
-        assert_eq!(packs, blocks.div_ceil(voxstream::pipeline::write::PACK_MIN_BLOCKS), "{id}: {blocks} blocks");
+        assert_eq!(
+            packs,
+            blocks.div_ceil(voxstream::pipeline::write::PACK_MIN_BLOCKS),
+            "{id}: {blocks} blocks"
+        );
         if resolution >= 256 {
             assert!(4 * want.len() <= blocks, "{id}: {} files for {blocks} blocks", want.len());
         }

@@ -26,7 +26,8 @@ fn free_port() -> u16 {
 fn viewer_dir(root: &Path) -> PathBuf {
     let dir = root.join("viewer");
     std::fs::create_dir_all(&dir).unwrap();
-    std::fs::write(dir.join("index.html"), "<!doctype html><html><head><title>v</title></head></html>").unwrap();
+    std::fs::write(dir.join("index.html"), "<!doctype html><html><head><title>v</title></head></html>")
+        .unwrap();
     dir
 }
 
@@ -45,8 +46,10 @@ fn run(cmd: &mut Command) -> String {
 /// the last pack), each with its range.
 fn sample_blocks(site_scene: &Path) -> Vec<(BlockEntry, PackRange)> {
     let manifest = Manifest::from_json(&std::fs::read(site_scene.join("manifest")).unwrap()).unwrap();
-    let index = load_scene_index(&manifest, |r| std::fs::read(site_scene.join(format!("pages/{}.{}", r.root, r.hash))))
-        .expect("the published pages load");
+    let index = load_scene_index(&manifest, |r| {
+        std::fs::read(site_scene.join(format!("pages/{}.{}", r.root, r.hash)))
+    })
+    .expect("the published pages load");
     let mut by_pack: HashMap<String, Vec<(BlockEntry, PackRange)>> = HashMap::new();
     for e in index.blocks() {
         let r = index.pack_range(&e.key).expect("every block is packed");
@@ -54,14 +57,21 @@ fn sample_blocks(site_scene: &Path) -> Vec<(BlockEntry, PackRange)> {
     }
     let (_, mut blocks) = by_pack.into_iter().max_by_key(|(_, b)| b.len()).unwrap();
     blocks.sort_by_key(|(_, r)| r.offset);
-    let mut picked = vec![blocks[0].clone(), blocks[blocks.len() / 2].clone(), blocks[blocks.len() - 1].clone()];
+    let mut picked =
+        vec![blocks[0].clone(), blocks[blocks.len() / 2].clone(), blocks[blocks.len() - 1].clone()];
     let root = index.pack_range(&manifest.root.key).unwrap();
     picked.push((manifest.root.clone(), root));
     picked
 }
 
 /// GET `url` with `Range: bytes=start-end` (and `Host: host` when given): status and body.
-async fn get_range(http: &reqwest::Client, url: &str, host: Option<&str>, start: u64, end: u64) -> (u16, Vec<u8>) {
+async fn get_range(
+    http: &reqwest::Client,
+    url: &str,
+    host: Option<&str>,
+    start: u64,
+    end: u64,
+) -> (u16, Vec<u8>) {
     let mut req = http.get(url).header("Range", format!("bytes={start}-{end}"));
     if let Some(h) = host {
         req = req.header("Host", h);
@@ -82,7 +92,13 @@ fn block_from_answer(status: u16, body: Vec<u8>, start: u64, end: u64) -> Vec<u8
 
 /// Fetches every sample block from `base` (the site's root URL) as the viewer does; asserts the
 /// status the host gives and that each block's hash checks, and that a range one byte off fails.
-async fn check_host(name: &str, base: &str, host: Option<&str>, blocks: &[(BlockEntry, PackRange)], status: u16) {
+async fn check_host(
+    name: &str,
+    base: &str,
+    host: Option<&str>,
+    blocks: &[(BlockEntry, PackRange)],
+    status: u16,
+) {
     let http = reqwest::Client::new();
     for (e, r) in blocks {
         let (start, end) = (r.offset, r.end() - 1);

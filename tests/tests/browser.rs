@@ -582,7 +582,10 @@ fn static_publish_renders_in_chromium() {
         std::panic::resume_unwind(e);
     }
     let log = std::fs::read_to_string(&log_path).unwrap();
-    let ranged = log.lines().filter(|l| l.contains("/packs/") && l.contains(".vxp?r=") && l.contains("\" 200")).count();
+    let ranged = log
+        .lines()
+        .filter(|l| l.contains("/packs/") && l.contains(".vxp?r=") && l.contains("\" 200"))
+        .count();
     assert!(ranged > 0, "no pack range URL answered 200 in the server's log:\n{log}");
     assert!(!log.contains("/blocks/"), "per-block URLs asked for:\n{log}");
     println!("python3 -m http.server: {ranged} pack range URLs answered 200 (whole pack, sliced)");

@@ -33,7 +33,12 @@ pub fn decode_checked(
     if let Some(expected) = hash {
         let got = voxstream_format::hierarchy::content_hash(bytes);
         if got != expected {
-            return Err(DecodeError::WrongHash { key, bytes: bytes.len(), got, expected: expected.to_string() });
+            return Err(DecodeError::WrongHash {
+                key,
+                bytes: bytes.len(),
+                got,
+                expected: expected.to_string(),
+            });
         }
     }
     let block = decode_block(bytes).map_err(|source| DecodeError::Codec { key, source })?;

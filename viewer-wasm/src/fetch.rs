@@ -51,7 +51,10 @@ pub fn block_request(
         (true, Some(r)) if r.bytes > 0 => {
             let (start, end) = (r.offset, r.end() - 1);
             BlockRequest {
-                url: format!("{scene_url}/{}?r={start}-{end}", voxstream_format::hierarchy::pack_path(&r.pack.hash)),
+                url: format!(
+                    "{scene_url}/{}?r={start}-{end}",
+                    voxstream_format::hierarchy::pack_path(&r.pack.hash)
+                ),
                 range: Some((start, end)),
             }
         }
@@ -119,7 +122,12 @@ impl BlockSource {
 
     /// How to GET a block (see [`block_request`]).
     #[cfg(target_arch = "wasm32")]
-    pub fn block_request(&self, key: BlockKey, hash: Option<&str>, range: Option<&PackRange>) -> BlockRequest {
+    pub fn block_request(
+        &self,
+        key: BlockKey,
+        hash: Option<&str>,
+        range: Option<&PackRange>,
+    ) -> BlockRequest {
         let BlockSource::Http { scene_url, static_packs } = self;
         block_request(scene_url, *static_packs, key, hash, range)
     }
@@ -293,7 +301,10 @@ mod tests {
         assert_eq!(site, BlockRequest { url, range: Some((10, 14)) });
         // A 206 must be the range; a 200 is the whole pack, sliced; a short pack is an error.
         let pack_bytes: Vec<u8> = (0..100).collect();
-        assert_eq!(slice_range_answer(206, pack_bytes[10..15].to_vec(), 10, 14).unwrap(), &pack_bytes[10..15]);
+        assert_eq!(
+            slice_range_answer(206, pack_bytes[10..15].to_vec(), 10, 14).unwrap(),
+            &pack_bytes[10..15]
+        );
         assert!(slice_range_answer(206, pack_bytes[10..16].to_vec(), 10, 14).is_err());
         assert_eq!(slice_range_answer(200, pack_bytes.clone(), 10, 14).unwrap(), &pack_bytes[10..15]);
         assert!(slice_range_answer(200, pack_bytes[..14].to_vec(), 10, 14).is_err());
