@@ -222,7 +222,7 @@ fn render_and_check(url: &str, out: &Path, scene_dir: &Path, interact: bool) {
     assert!(lit < silhouette.len(), "the screenshot has no background pixel at all");
 
     // 6. CPU coverage of the drawn blocks, read back from the store the server used
-    //    (each block's range of its page's pack).
+    //    (each block's range of its pack).
     let id = scene_dir.file_name().and_then(|n| n.to_str()).expect("a scene folder");
     let scene = voxstream::store::open_scene(scene_dir.parent().expect("a store"), id)
         .unwrap_or_else(|e| panic!("{}: {e}", scene_dir.display()));

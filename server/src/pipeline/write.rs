@@ -379,7 +379,8 @@ impl BlockWriter {
         self.place(entry, bytes)
     }
 
-    /// Appends one encoded block to its page's pack and records its entry.
+    /// Appends one encoded block to the open pack (opening one if needed),
+    /// records its entry, and closes the pack once it is full.
     fn place(&mut self, mut e: BlockEntry, bytes: &[u8]) -> Result<(), StoreError> {
         let level = self.levels.get_mut(e.key.level as usize).ok_or_else(|| StoreError::Damaged {
             id: self.id.clone(),
