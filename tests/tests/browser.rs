@@ -525,7 +525,9 @@ fn static_publish_renders_in_chromium() {
 
     // tower-http's ServeDir honours Range: every pack GET must be a 206 of a `?r=` URL.
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
-    let seen: Arc<std::sync::Mutex<Vec<(String, Option<String>, u16)>>> = Arc::default();
+    // Each request: its URI, its Range header, the status answered.
+    type RequestLog = Arc<Mutex<Vec<(String, Option<String>, u16)>>>;
+    let seen: RequestLog = Arc::default();
     let log = seen.clone();
     let app = axum::Router::new().fallback_service(tower_http::services::ServeDir::new(&host_root)).layer(
         axum::middleware::from_fn(move |req: axum::extract::Request, next: axum::middleware::Next| {
