@@ -1,4 +1,4 @@
-//! The paged block hierarchy (format 3): the manifest holds the root block and
+//! The paged block hierarchy (format 4): the manifest holds the root block and
 //! a reference to the root page; every other block's entry lives in a
 //! [`HierarchyPage`], a binary, content-addressed file covering a subtree of
 //! [`PAGE_LEVELS`] levels, fetched when a traversal reaches it (Potree 2's
@@ -12,25 +12,27 @@
 //! [`PageRef`] to it. Pages therefore form a Merkle tree: a page's hash covers
 //! its children's hashes, so they are written bottom-up ([`PageBuilder`]).
 //!
-//! **Packs.** The encoded bytes of the blocks a page lists live in one pack,
-//! `packs/<blake3 of the pack>.vxp` in the scene directory: the blocks' bytes
-//! concatenated (in the order the writer finished them: post order). The
-//! page's header names the pack (hash and length), so the page's hash covers
-//! it and the Merkle chain reaches every block byte. An entry's
-//! `location.pack == 0` means "this page's pack", bytes
-//! `[offset, offset + bytes)`; [`NO_PACK`] means the block is its own file
-//! `blocks/<key>.vxb` (version-1 pages; no writer makes those any more).
+//! **Packs.** The encoded bytes of blocks live in packs,
+//! `packs/<blake3 of the pack>.vxp` in the scene directory: blocks' bytes
+//! concatenated in the order the writer finished them (post order). A pack
+//! spans several pages (the writer closes one at 256 blocks or 8 MiB), so a
+//! scene is a few objects, not one per page. A page lists the packs its
+//! entries lie in (hash and length each), so the page's hash covers them and
+//! the Merkle chain reaches every block byte; an entry's `location.pack`
+//! indexes that list, bytes `[offset, offset + bytes)`. [`NO_PACK`] means the
+//! block is its own file `blocks/<key>.vxb` (no writer makes those any more;
+//! the tests' unpacked pages use it).
 //!
-//! Binary page layout (little endian), version 2:
+//! Binary page layout (little endian), version 3:
 //!
 //! ```text
 //! 0  magic "VXHP"
-//! 4  version u8 (2), page_levels u8, reserved 2 zero bytes
+//! 4  version u8 (3), page_levels u8, reserved 2 zero bytes
 //! 8  root: level u8, x, y, z u32
-//! 21 entry count u32, child page count u32, pack count u32 (0 or 1)
+//! 21 entry count u32, child page count u32, pack count u32 (at most the entry count)
 //! 33 payload length u32 (decompressed; must equal what the counts imply)
-//! 37 pack: blake3 32 bytes, length u64 (all zero when the pack count is 0)
-//! 77 lz4 block of the payload:
+//! 37 lz4 block of the payload:
+//!    packs        count × (blake3 32, length u64)                                 = 40 bytes
 //!    child pages  count × (level u8, x, y, z u32, bytes u32, blake3 32)        = 49 bytes
 //!    entries      count × (level u8, x, y, z u32, child_mask u8,
 //!                          bounds min 3 × u8, max 3 × u8 (block-local, 0..=64),
@@ -38,15 +40,16 @@
 //!                          blake3 32, pack u32, offset u64)                       = 80 bytes
 //! ```
 //!
-//! Version 1 (still decoded) had a 37-byte header and the pack hashes
-//! (32 bytes each, no lengths) at the start of the payload; its writers never
-//! named a pack, so a version-1 page with packs is refused.
+//! Versions 1 and 2 (one pack per page, named in the header) belong to format-3
+//! scenes, which the manifest check refuses with a rebuild message; a page of
+//! another version is refused the same way.
 //!
 //! **Invariant:** [`HierarchyPage::decode`] never panics and never allocates
 //! more than the counts imply after checking them against a hard cap; a
-//! decoded version-2 page is exactly what [`HierarchyPage::encode`] would
-//! write, every entry is a descendant of the root within `page_levels`
-//! levels, and every packed entry's range lies inside the page's pack.
+//! decoded page is exactly what [`HierarchyPage::encode`] would write, every
+//! entry is a descendant of the root within `page_levels` levels, every
+//! packed entry's range lies inside the pack it names, and every pack the page
+//! lists holds at least one of its entries.
 
 use std::collections::{BTreeMap, HashMap};
 
@@ -57,11 +60,10 @@ use crate::{BLOCK_SIZE, BlockEntry, BlockKey, Manifest, VoxelBounds};
 /// Levels one page spans below its root.
 pub const PAGE_LEVELS: u8 = 3;
 pub const PAGE_MAGIC: [u8; 4] = *b"VXHP";
-const PAGE_VERSION: u8 = 2;
-/// The header of a version-2 page (the pack is named in it).
-pub const PAGE_HEADER_LEN: usize = 77;
-/// The header of a version-1 page, the shortest any page can be.
-const V1_HEADER_LEN: usize = 37;
+const PAGE_VERSION: u8 = 3;
+/// The page header, the shortest any page can be.
+pub const PAGE_HEADER_LEN: usize = 37;
+const PACK_REF_LEN: usize = 40;
 const CHILD_PAGE_LEN: usize = 49;
 const ENTRY_LEN: usize = 80;
 /// A page holds at most the full subtree of `page_levels ≤ 4` levels: 8 + 64 + 512 + 4096 blocks.
@@ -69,8 +71,9 @@ pub const MAX_PAGE_ENTRIES: u32 = 8 + 64 + 512 + 4096;
 /// `pack` value of a block stored as its own file `blocks/<key>.vxb`.
 pub const NO_PACK: u32 = u32::MAX;
 
-/// Where a block's bytes are: its own file, or a byte range of a pack named in
-/// its page (`[offset, offset + bytes)`).
+/// Where a block's bytes are: its own file, or a byte range of a pack its page
+/// lists (`pack` indexes that list; `[offset, offset + bytes)`). While a page
+/// is being built, `pack` is the writer's pack serial ([`PageBuilder`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub struct BlockLocation {
     pub pack: u32,
@@ -92,7 +95,7 @@ impl Default for BlockLocation {
     }
 }
 
-/// A pack as its page (or the manifest, for the root block) names it:
+/// A pack as a page (or the manifest, for the root block) names it:
 /// content-addressed, `packs/<hash>.vxp`.
 #[derive(Debug, Clone, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub struct PackRef {
@@ -145,8 +148,9 @@ pub struct PageRef {
 pub struct HierarchyPage {
     pub root: BlockKey,
     pub page_levels: u8,
-    /// The pack holding the bytes of the entries whose `location.pack` is 0.
-    pub pack: Option<PackRef>,
+    /// The packs holding the entries' bytes, indexed by `location.pack`, in
+    /// the order the writer closed them.
+    pub packs: Vec<PackRef>,
     /// Pages rooted at this page's deepest entries, sorted by root.
     pub child_pages: Vec<PageRef>,
     /// Sorted by key.
@@ -275,8 +279,15 @@ fn put_hash(out: &mut Vec<u8>, h: &str) {
 impl HierarchyPage {
     /// The binary page; deterministic for equal pages.
     pub fn encode(&self) -> Vec<u8> {
-        let mut raw =
-            Vec::with_capacity(self.child_pages.len() * CHILD_PAGE_LEN + self.entries.len() * ENTRY_LEN);
+        let mut raw = Vec::with_capacity(
+            self.packs.len() * PACK_REF_LEN
+                + self.child_pages.len() * CHILD_PAGE_LEN
+                + self.entries.len() * ENTRY_LEN,
+        );
+        for p in &self.packs {
+            put_hash(&mut raw, &p.hash);
+            raw.extend_from_slice(&p.bytes.to_le_bytes());
+        }
         for c in &self.child_pages {
             put_key(&mut raw, &c.root);
             raw.extend_from_slice(&c.bytes.to_le_bytes());
@@ -303,15 +314,8 @@ impl HierarchyPage {
         out.extend_from_slice(&PAGE_MAGIC);
         out.extend_from_slice(&[PAGE_VERSION, self.page_levels, 0, 0]);
         put_key(&mut out, &self.root);
-        for n in [self.entries.len(), self.child_pages.len(), self.pack.is_some() as usize, raw.len()] {
+        for n in [self.entries.len(), self.child_pages.len(), self.packs.len(), raw.len()] {
             out.extend_from_slice(&(n as u32).to_le_bytes());
-        }
-        match &self.pack {
-            Some(p) => {
-                put_hash(&mut out, &p.hash);
-                out.extend_from_slice(&p.bytes.to_le_bytes());
-            }
-            None => out.extend_from_slice(&[0; 40]),
         }
         out.extend_from_slice(&lz4_flex::block::compress(&raw));
         out
@@ -340,22 +344,19 @@ impl HierarchyPage {
 
     /// Decodes and validates a page without checking its content hash.
     pub fn decode_unverified(bytes: &[u8]) -> Result<Self, PageError> {
-        if bytes.len() < V1_HEADER_LEN {
+        if bytes.len() < PAGE_HEADER_LEN {
             return Err(PageError::Truncated(bytes.len()));
         }
         if bytes[..4] != PAGE_MAGIC {
             return Err(PageError::BadMagic);
         }
         let version = bytes[4];
-        let header_len = match version {
-            1 => V1_HEADER_LEN,
-            PAGE_VERSION => PAGE_HEADER_LEN,
-            _ => return Err(PageError::BadHeader(format!("version {version} is not 1 or {PAGE_VERSION}"))),
-        };
-        if bytes.len() < header_len {
-            return Err(PageError::Truncated(bytes.len()));
+        if version != PAGE_VERSION {
+            return Err(PageError::BadHeader(format!(
+                "version {version} is not {PAGE_VERSION}: rebuild the scene from its mesh with `voxstream build`"
+            )));
         }
-        let mut h = Reader { bytes: &bytes[..header_len], at: 5 };
+        let mut h = Reader { bytes: &bytes[..PAGE_HEADER_LEN], at: 5 };
         let page_levels = h.u8();
         let reserved = h.take::<2>();
         if !(1..=4).contains(&page_levels) || reserved != [0, 0] {
@@ -366,38 +367,31 @@ impl HierarchyPage {
         if root.level == 0 || root.level > crate::MAX_LEVEL {
             return Err(PageError::BadHeader(format!("root {root} cannot root a page")));
         }
-        if entries == 0 || entries > MAX_PAGE_ENTRIES || children > entries || packs > 1 {
+        if entries == 0 || entries > MAX_PAGE_ENTRIES || children > entries || packs > entries {
             return Err(PageError::BadHeader(format!(
                 "{entries} entries, {children} child pages, {packs} packs"
             )));
         }
-        if version == 1 && packs != 0 {
-            return Err(PageError::BadHeader("a version-1 page cannot name packs".into()));
-        }
-        let pack = if version == PAGE_VERSION {
-            let hash = hex(&h.take::<32>());
-            let length = h.u64();
-            match packs {
-                1 => Some(PackRef { hash, bytes: length }),
-                _ if length == 0 && hash.bytes().all(|b| b == b'0') => None,
-                _ => return Err(PageError::BadHeader("a page without a pack names one".into())),
-            }
-        } else {
-            None
-        };
-        let expected_len = children as usize * CHILD_PAGE_LEN + entries as usize * ENTRY_LEN;
+        let expected_len =
+            packs as usize * PACK_REF_LEN + children as usize * CHILD_PAGE_LEN + entries as usize * ENTRY_LEN;
         if payload as usize != expected_len {
             return Err(PageError::BadHeader(format!(
                 "payload length {payload} does not match the counts ({expected_len})"
             )));
         }
         let mut raw = vec![0u8; expected_len];
-        let written = lz4_flex::block::decompress_into(&bytes[header_len..], &mut raw)
+        let written = lz4_flex::block::decompress_into(&bytes[PAGE_HEADER_LEN..], &mut raw)
             .map_err(|e| PageError::Corrupt(e.to_string()))?;
         if written != expected_len {
             return Err(PageError::Corrupt(format!("payload is {written} bytes, expected {expected_len}")));
         }
         let mut r = Reader { bytes: &raw, at: 0 };
+        let pack_list = (0..packs)
+            .map(|_| {
+                let hash = hex(&r.take::<32>());
+                PackRef { hash, bytes: r.u64() }
+            })
+            .collect();
         let child_pages = (0..children)
             .map(|_| {
                 let root = r.key();
@@ -437,7 +431,7 @@ impl HierarchyPage {
                 location,
             });
         }
-        let page = HierarchyPage { root, page_levels, pack, child_pages, entries: list };
+        let page = HierarchyPage { root, page_levels, packs: pack_list, child_pages, entries: list };
         page.validate()?;
         Ok(page)
     }
@@ -498,28 +492,31 @@ impl HierarchyPage {
                 return bad(format!("block {} hash is not 64 hex digits", e.key));
             }
             if !e.location.is_file() {
-                match &self.pack {
-                    Some(p) if e.location.pack == 0 => {
-                        if !range_in_pack(e.location.offset, e.bytes, p.bytes) {
-                            return bad(format!(
-                                "block {} lies at bytes {}..{} of a {}-byte pack",
-                                e.key,
-                                e.location.offset,
-                                e.location.offset as u128 + e.bytes as u128,
-                                p.bytes
-                            ));
-                        }
-                    }
-                    _ => {
-                        return bad(format!(
-                            "block {} names pack {} of {}",
-                            e.key,
-                            e.location.pack,
-                            self.pack.is_some() as u32
-                        ));
-                    }
+                let Some(p) = self.packs.get(e.location.pack as usize) else {
+                    return bad(format!(
+                        "block {} names pack {} of {}",
+                        e.key,
+                        e.location.pack,
+                        self.packs.len()
+                    ));
+                };
+                if !range_in_pack(e.location.offset, e.bytes, p.bytes) {
+                    return bad(format!(
+                        "block {} lies at bytes {}..{} of a {}-byte pack",
+                        e.key,
+                        e.location.offset,
+                        e.location.offset as u128 + e.bytes as u128,
+                        p.bytes
+                    ));
                 }
             }
+        }
+        let mut used = vec![false; self.packs.len()];
+        for e in self.entries.iter().filter(|e| !e.location.is_file()) {
+            used[e.location.pack as usize] = true;
+        }
+        if let Some(i) = used.iter().position(|u| !u) {
+            return bad(format!("pack {i} of the page holds none of its blocks"));
         }
         let deepest: Vec<BlockKey> = self
             .entries
@@ -536,14 +533,12 @@ impl HierarchyPage {
             ));
         }
         for c in &self.child_pages {
-            if unhex(&c.hash).is_none() || c.bytes < V1_HEADER_LEN as u32 {
+            if unhex(&c.hash).is_none() || c.bytes < PAGE_HEADER_LEN as u32 {
                 return bad(format!("child page {} is malformed", c.root));
             }
         }
-        if let Some(p) = &self.pack
-            && unhex(&p.hash).is_none()
-        {
-            return bad("pack hash is not 64 hex digits".into());
+        if self.packs.iter().any(|p| unhex(&p.hash).is_none()) {
+            return bad("a pack hash is not 64 hex digits".into());
         }
         Ok(())
     }
@@ -554,26 +549,53 @@ impl HierarchyPage {
     }
 }
 
-/// One page waiting for its root block.
+/// A page's entries and child pages, while its root block has not come
+/// (open) or while it waits for its packs or child pages (held).
 #[derive(Default)]
 struct OpenPage {
     entries: Vec<BlockEntry>,
     child_pages: Vec<PageRef>,
+    /// Child pages whose root block came but which are not sealed yet.
+    unsealed_children: usize,
 }
 
 /// Builds pages as blocks are finished, children before parents (any such
-/// order gives the same bytes). Memory: the entries of pages whose root has
-/// not been added yet, and the child masks of blocks not yet added.
+/// order gives the same bytes).
+///
+/// Packed entries arrive with `location.pack` set to the writer's pack
+/// *serial* (0, 1, 2, … in the order packs are closed; the pack is still open
+/// when its blocks arrive). A page is content-addressed and names its packs
+/// by hash, so it is sealed (encoded) only once every pack its entries lie in
+/// is closed ([`Self::pack_closed`]) and every child page is sealed; until
+/// then it is held. Memory: the entries of pages whose root has not come (a
+/// front, one page a page layer in post order), of held pages (with one open
+/// pack of at most N blocks in post order: at most one page a layer whose
+/// entries came before that pack, plus pages rooted and filled within it,
+/// together ≤ N entries: [`Self::held_entries`]), the child masks of blocks
+/// not yet added and the hash of each closed pack.
 pub struct PageBuilder {
     coarsest: u8,
     page_levels: u8,
     open: BTreeMap<BlockKey, OpenPage>,
+    held: BTreeMap<BlockKey, OpenPage>,
     masks: HashMap<BlockKey, u8>,
-    root: Option<(BlockEntry, Option<PageRef>)>,
+    /// Closed packs by serial.
+    closed_packs: Vec<PackRef>,
+    root: Option<BlockEntry>,
+    root_page: Option<PageRef>,
 }
 
 /// A finished page: its reference and its bytes (write them as `pages/<root>.vxh`).
 pub type FinishedPage = (PageRef, Vec<u8>);
+
+/// The hierarchy's top once every block is added: the root block's entry (a
+/// packed root names pack 0, `root_pack`), the root page, and the root's pack.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FinishedHierarchy {
+    pub root: BlockEntry,
+    pub root_page: Option<PageRef>,
+    pub root_pack: Option<PackRef>,
+}
 
 impl PageBuilder {
     pub fn new(coarsest: u8, page_levels: u8) -> Self {
@@ -581,30 +603,29 @@ impl PageBuilder {
             coarsest,
             page_levels: page_levels.clamp(1, 4),
             open: BTreeMap::new(),
+            held: BTreeMap::new(),
             masks: HashMap::new(),
+            closed_packs: Vec::new(),
             root: None,
+            root_page: None,
         }
     }
 
     /// Records a finished block; `entry.child_mask` is filled in here from the
-    /// children added before it. Returns the page this block completes (when
-    /// it roots one). Entries naming pack 0 need [`Self::add_packed`].
-    pub fn add(&mut self, entry: BlockEntry) -> Result<Option<FinishedPage>, PageError> {
-        self.add_packed(entry, None)
-    }
-
-    /// [`Self::add`] for a block that roots a page whose entries are in
-    /// `pack` (the page names it; `None` when its entries are own files).
-    pub fn add_packed(
-        &mut self,
-        mut entry: BlockEntry,
-        pack: Option<PackRef>,
-    ) -> Result<Option<FinishedPage>, PageError> {
+    /// children added before it. A packed entry names its pack by serial (see
+    /// the type's notes). Returns the pages that can be sealed now.
+    pub fn add(&mut self, mut entry: BlockEntry) -> Result<Vec<FinishedPage>, PageError> {
         let key = entry.key;
         if key.level > self.coarsest || self.root.is_some() {
             return Err(PageError::Order(format!(
                 "block {key} after the root or above level {}",
                 self.coarsest
+            )));
+        }
+        if !entry.location.is_file() && (entry.location.pack as usize) < self.closed_packs.len() {
+            return Err(PageError::Order(format!(
+                "block {key} names pack {}, which is already closed",
+                entry.location.pack
             )));
         }
         entry.child_mask = self.masks.remove(&key).unwrap_or(0);
@@ -618,50 +639,123 @@ impl PageBuilder {
             *m |= bit;
         }
         let roots_page = is_page_root_level(key.level, self.coarsest, self.page_levels);
-        if pack.is_some() && !roots_page {
-            return Err(PageError::Order(format!("block {key} roots no page, yet a pack was given for it")));
-        }
-        let finished = if roots_page {
+        if roots_page {
             let open = self.open.remove(&key).unwrap_or_default();
             if open.entries.is_empty() {
                 return Err(PageError::Order(format!(
                     "block {key} roots a page but none of its children came first"
                 )));
             }
-            let mut page = HierarchyPage {
-                root: key,
-                page_levels: self.page_levels,
-                pack,
-                child_pages: open.child_pages,
-                entries: open.entries,
-            };
-            page.entries.sort_by_key(|e| e.key);
-            page.child_pages.sort_by_key(|c| c.root);
-            page.validate()?;
-            let bytes = page.encode();
-            Some((page.reference(&bytes), bytes))
-        } else {
-            None
-        };
+            self.held.insert(key, open);
+        }
         match page_root_of(&key, self.coarsest, self.page_levels) {
             Some(r) => {
                 let open = self.open.entry(r).or_default();
                 open.entries.push(entry);
-                if let Some((reference, _)) = &finished {
-                    open.child_pages.push(reference.clone());
-                }
+                open.unsealed_children += roots_page as usize;
             }
-            None => self.root = Some((entry, finished.as_ref().map(|(r, _)| r.clone()))),
+            None => self.root = Some(entry),
         }
-        Ok(finished)
+        if roots_page { self.seal_ready() } else { Ok(Vec::new()) }
     }
 
-    /// After the coarsest block: its entry and the root page's reference.
-    pub fn finish(self) -> Result<(BlockEntry, Option<PageRef>), PageError> {
+    /// Pack `serial` (the next one: packs close in serial order) is closed
+    /// as `pack`. Returns the pages that can be sealed now.
+    pub fn pack_closed(&mut self, serial: u32, pack: PackRef) -> Result<Vec<FinishedPage>, PageError> {
+        if serial as usize != self.closed_packs.len() || serial == crate::hierarchy::NO_PACK {
+            return Err(PageError::Order(format!(
+                "pack {serial} closed, expected pack {}",
+                self.closed_packs.len()
+            )));
+        }
+        self.closed_packs.push(pack);
+        self.seal_ready()
+    }
+
+    /// Entries of the pages held for a pack or a child page.
+    pub fn held_entries(&self) -> usize {
+        self.held.values().map(|p| p.entries.len()).sum()
+    }
+
+    fn sealable(&self, page: &OpenPage) -> bool {
+        page.unsealed_children == 0
+            && page
+                .entries
+                .iter()
+                .all(|e| e.location.is_file() || (e.location.pack as usize) < self.closed_packs.len())
+    }
+
+    /// Seals every held page whose packs are closed and whose child pages are
+    /// sealed (children first, so a parent may follow in the same call).
+    fn seal_ready(&mut self) -> Result<Vec<FinishedPage>, PageError> {
+        let mut finished = Vec::new();
+        loop {
+            let ready: Vec<BlockKey> =
+                self.held.iter().filter(|(_, p)| self.sealable(p)).map(|(k, _)| *k).collect();
+            if ready.is_empty() {
+                return Ok(finished);
+            }
+            for key in ready {
+                let open = self.held.remove(&key).expect("listed as held");
+                let (reference, bytes) = self.seal(key, open)?;
+                match page_root_of(&key, self.coarsest, self.page_levels) {
+                    Some(parent) => {
+                        let p =
+                            self.open.get_mut(&parent).or_else(|| self.held.get_mut(&parent)).ok_or_else(
+                                || PageError::Order(format!("page {parent} above {key} is gone")),
+                            )?;
+                        p.child_pages.push(reference.clone());
+                        p.unsealed_children -= 1;
+                    }
+                    None => self.root_page = Some(reference.clone()),
+                }
+                finished.push((reference, bytes));
+            }
+        }
+    }
+
+    /// Encodes a page, its pack serials mapped to indices into its pack list.
+    fn seal(&self, root: BlockKey, open: OpenPage) -> Result<FinishedPage, PageError> {
+        let mut serials: Vec<u32> =
+            open.entries.iter().filter(|e| !e.location.is_file()).map(|e| e.location.pack).collect();
+        serials.sort_unstable();
+        serials.dedup();
+        let mut page = HierarchyPage {
+            root,
+            page_levels: self.page_levels,
+            packs: serials.iter().map(|&s| self.closed_packs[s as usize].clone()).collect(),
+            child_pages: open.child_pages,
+            entries: open.entries,
+        };
+        for e in page.entries.iter_mut().filter(|e| !e.location.is_file()) {
+            e.location.pack = serials.binary_search(&e.location.pack).expect("collected above") as u32;
+        }
+        page.entries.sort_by_key(|e| e.key);
+        page.child_pages.sort_by_key(|c| c.root);
+        page.validate()?;
+        let bytes = page.encode();
+        Ok((page.reference(&bytes), bytes))
+    }
+
+    /// After the coarsest block and the last pack: the hierarchy's top.
+    pub fn finish(self) -> Result<FinishedHierarchy, PageError> {
         if let Some(k) = self.open.keys().next() {
             return Err(PageError::Order(format!("page {k} never got its root block")));
         }
-        self.root.ok_or_else(|| PageError::Order("no root block was added".into()))
+        if let Some(k) = self.held.keys().next() {
+            return Err(PageError::Order(format!("page {k} still waits for a pack that was never closed")));
+        }
+        let mut root = self.root.ok_or_else(|| PageError::Order("no root block was added".into()))?;
+        let root_pack = if root.location.is_file() {
+            None
+        } else {
+            let pack = self.closed_packs.get(root.location.pack as usize).cloned().ok_or_else(|| {
+                PageError::Order(format!("the root block's pack {} was never closed", root.location.pack))
+            })?;
+            root.location.pack = 0;
+            Some(pack)
+        };
+        Ok(FinishedHierarchy { root, root_page: self.root_page, root_pack })
     }
 }
 
@@ -673,8 +767,8 @@ pub struct SceneIndex {
     root: BlockKey,
     /// The pack holding the root block (the manifest's `root_pack`).
     root_pack: Option<PackRef>,
-    /// Each loaded page's pack, by page root.
-    packs: HashMap<BlockKey, PackRef>,
+    /// Each loaded page's packs, by page root.
+    packs: HashMap<BlockKey, Vec<PackRef>>,
     entries: HashMap<BlockKey, BlockEntry>,
     /// Pages named by a loaded page (or the manifest) and not loaded yet, by root.
     pending: BTreeMap<BlockKey, PageRef>,
@@ -703,8 +797,8 @@ impl SceneIndex {
         self.entries.get(key)
     }
 
-    /// Where in a pack `key`'s bytes are: the pack its page names (the
-    /// manifest's `root_pack` for the root block). `None` when the block is
+    /// Where in a pack `key`'s bytes are: the pack its page lists at
+    /// `location.pack` (the manifest's `root_pack` for the root block). `None` when the block is
     /// its own file (`blocks/<key>.vxb`) or not known.
     pub fn pack_range(&self, key: &BlockKey) -> Option<PackRange> {
         let e = self.entries.get(key)?;
@@ -714,7 +808,9 @@ impl SceneIndex {
         let pack = if *key == self.root {
             self.root_pack.as_ref()?
         } else {
-            self.packs.get(&page_root_of(key, self.root.level, self.page_levels)?)?
+            self.packs
+                .get(&page_root_of(key, self.root.level, self.page_levels)?)?
+                .get(e.location.pack as usize)?
         };
         Some(PackRange { pack: pack.clone(), offset: e.location.offset, bytes: e.bytes })
     }
@@ -722,7 +818,10 @@ impl SceneIndex {
     /// Every pack named so far (each once), in no particular order.
     pub fn packs(&self) -> impl Iterator<Item = &PackRef> {
         let mut seen = std::collections::HashSet::new();
-        self.root_pack.iter().chain(self.packs.values()).filter(move |p| seen.insert(p.hash.as_str()))
+        self.root_pack
+            .iter()
+            .chain(self.packs.values().flatten())
+            .filter(move |p| seen.insert(p.hash.as_str()))
     }
 
     /// Every known entry, in no particular order.
@@ -797,8 +896,8 @@ impl SceneIndex {
         for c in page.child_pages {
             self.pending.insert(c.root, c);
         }
-        if let Some(p) = page.pack {
-            self.packs.insert(page.root, p);
+        if !page.packs.is_empty() {
+            self.packs.insert(page.root, page.packs);
         }
         for e in page.entries {
             self.entries.insert(e.key, e);
@@ -875,40 +974,55 @@ mod tests {
         for k in order {
             pages.extend(b.add(entry(*k)).unwrap());
         }
-        let (root, root_page) = b.finish().unwrap();
-        (pages, root, root_page)
+        let top = b.finish().unwrap();
+        assert!(top.root_pack.is_none());
+        (pages, top.root, top.root_page)
+    }
+
+    /// What [`build_packed`] made.
+    struct Packed {
+        pages: Vec<FinishedPage>,
+        top: FinishedHierarchy,
+        /// Every pack closed, in order.
+        packs: Vec<PackRef>,
+        /// The most entries held at once for a pack or a child page.
+        most_held: usize,
     }
 
     /// [`build`] as the store's writer does it: each block's bytes appended to
-    /// its page's pack (the root's to its own page's), each pack named by the
-    /// page it belongs to. Returns the pages, the root entry and page, and the
-    /// root's pack.
-    fn build_packed(
-        order: &[BlockKey],
-        coarsest: u8,
-    ) -> (Vec<FinishedPage>, BlockEntry, Option<PageRef>, PackRef) {
+    /// the one open pack, which closes after `per_pack` blocks and at the end.
+    fn build_packed(order: &[BlockKey], coarsest: u8, per_pack: usize) -> Packed {
         let mut b = PageBuilder::new(coarsest, PAGE_LEVELS);
-        let mut open: HashMap<BlockKey, u64> = HashMap::new();
-        let mut pages = Vec::new();
-        let mut root_pack = None;
+        let (mut serial, mut len, mut in_pack) = (0u32, 0u64, 0usize);
+        let mut out = Packed {
+            pages: Vec::new(),
+            top: FinishedHierarchy { root: entry(order[0]), root_page: None, root_pack: None },
+            packs: Vec::new(),
+            most_held: 0,
+        };
+        let close = |b: &mut PageBuilder, serial: &mut u32, len: &mut u64, out: &mut Packed| {
+            let pack = PackRef { hash: content_hash(format!("pack {serial}").as_bytes()), bytes: *len };
+            out.packs.push(pack.clone());
+            out.pages.extend(b.pack_closed(*serial, pack).unwrap());
+            (*serial, *len) = (*serial + 1, 0);
+        };
         for k in order {
             let mut e = entry(*k);
-            let home = page_root_of(k, coarsest, PAGE_LEVELS).unwrap_or(*k);
-            let len = open.entry(home).or_default();
-            e.location = BlockLocation { pack: 0, offset: *len };
-            *len += e.bytes as u64;
-            let roots = is_page_root_level(k.level, coarsest, PAGE_LEVELS);
-            let pack = (roots || k.level == coarsest).then(|| PackRef {
-                hash: content_hash(format!("pack {k}").as_bytes()),
-                bytes: open.remove(k).unwrap_or(0),
-            });
-            if k.level == coarsest {
-                root_pack = pack.clone();
+            e.location = BlockLocation { pack: serial, offset: len };
+            len += e.bytes as u64;
+            in_pack += 1;
+            out.pages.extend(b.add(e).unwrap());
+            out.most_held = out.most_held.max(b.held_entries());
+            if in_pack == per_pack {
+                close(&mut b, &mut serial, &mut len, &mut out);
+                in_pack = 0;
             }
-            pages.extend(b.add_packed(e, if roots { pack } else { None }).unwrap());
         }
-        let (root, root_page) = b.finish().unwrap();
-        (pages, root, root_page, root_pack.unwrap())
+        if in_pack > 0 {
+            close(&mut b, &mut serial, &mut len, &mut out);
+        }
+        out.top = b.finish().unwrap();
+        out
     }
 
     /// Post-order by Morton code of the level-0 descendants: the out-of-core pyramid's order.
@@ -1038,92 +1152,99 @@ mod tests {
     }
 
     #[test]
-    fn packed_pages_name_their_pack_and_every_range_lies_inside_it() {
+    fn packs_span_pages_and_every_range_lies_inside_its_pack() {
         let levels = tree(&sample_level0());
         let coarsest = (levels.len() - 1) as u8;
         let order = morton_post_order(&levels);
-        let (pages, root, root_page, root_pack) = build_packed(&order, coarsest);
-        assert_eq!(root.location, BlockLocation { pack: 0, offset: root.location.offset });
+        let per_pack = 64;
+        let Packed { pages, top, packs, most_held } = build_packed(&order, coarsest, per_pack);
+        assert_eq!(packs.len(), order.len().div_ceil(per_pack), "a pack every {per_pack} blocks");
+        assert!(pages.len() > packs.len(), "{} pages, {} packs: packs span pages", pages.len(), packs.len());
+        assert_eq!(top.root.location.pack, 0);
+        assert_eq!(top.root_pack.as_ref(), packs.last(), "the root comes last, in the last pack");
         let store: HashMap<String, Vec<u8>> =
             pages.iter().map(|(r, b)| (r.hash.clone(), b.clone())).collect();
-        let mut manifest = manifest_for(root, root_page.clone(), coarsest);
-        manifest.root_pack = Some(root_pack.clone());
+        let mut manifest = manifest_for(top.root.clone(), top.root_page.clone(), coarsest);
+        manifest.root_pack = top.root_pack.clone();
         manifest.validate().unwrap();
         let index = load_scene_index(&manifest, |r| {
             store.get(&r.hash).cloned().ok_or_else(|| std::io::Error::other("missing"))
         })
         .unwrap();
-        // Every block resolves to a range of its page's pack; ranges of one pack tile it.
+        // Every block resolves to a range of the pack it was written to; the ranges tile each pack.
         let mut by_pack: HashMap<String, Vec<(u64, u64)>> = HashMap::new();
-        for k in &order {
+        for (i, k) in order.iter().enumerate() {
             let r = index.pack_range(k).unwrap_or_else(|| panic!("{k} has no pack range"));
+            assert_eq!(r.pack, packs[i / per_pack], "block {k} (number {i})");
             let e = index.block(k).unwrap();
             assert_eq!((r.offset, r.bytes), (e.location.offset, e.bytes));
             by_pack.entry(r.pack.hash.clone()).or_default().push((r.offset, r.end()));
         }
-        assert_eq!(index.pack_range(&manifest.root.key).unwrap().pack, root_pack);
-        assert_eq!(by_pack.len(), pages.len(), "one pack a page (the root shares the root page's)");
-        assert_eq!(index.packs().count(), pages.len());
-        for p in index.packs() {
+        assert_eq!(index.packs().count(), packs.len());
+        for p in &packs {
             let mut ranges = by_pack[&p.hash].clone();
             ranges.sort();
             assert_eq!(ranges[0].0, 0);
             assert!(ranges.windows(2).all(|w| w[0].1 == w[1].0), "contiguous");
             assert_eq!(ranges.last().unwrap().1, p.bytes, "the pack ends at its last block");
         }
+        // Held pages stay a front: one page a layer filled before the open pack, plus what the
+        // pack itself holds. Control: one pack for the whole scene holds every page to the end.
+        let biggest =
+            pages.iter().map(|(r, b)| HierarchyPage::decode(b, r).unwrap().entries.len()).max().unwrap();
+        assert!(most_held <= per_pack + 2 * biggest, "{most_held} entries held");
+        let whole = build_packed(&order, coarsest, usize::MAX);
+        assert_eq!(whole.packs.len(), 1);
+        assert_eq!(whole.most_held, order.len() - 1, "every entry but the root's, held for the one pack");
 
-        // The page's hash covers its pack: another pack gives another page.
-        let (r, bytes) = pages.iter().find(|(r, _)| Some(r) == root_page.as_ref()).unwrap();
+        // A page that spans packs lists them in order; its hash covers them.
+        let (r, bytes) = pages
+            .iter()
+            .find(|(r, b)| HierarchyPage::decode(b, r).unwrap().packs.len() > 1)
+            .expect("a page spanning two packs");
         let page = HierarchyPage::decode(bytes, r).unwrap();
         assert_eq!(&page.encode(), bytes);
-        let pack = page.pack.clone().unwrap();
         let mut other = page.clone();
-        other.pack = Some(PackRef { hash: content_hash(b"another pack"), bytes: pack.bytes });
+        other.packs[1].hash = content_hash(b"another pack");
         assert_ne!(content_hash(&other.encode()), r.hash);
-        // A range past the pack's end is refused, by validate and by decode.
-        let last = page.entries.iter().map(|e| e.location.offset + e.bytes as u64).max().unwrap();
-        assert_eq!(last, pack.bytes - manifest.root.bytes as u64, "the root comes last");
+        // A range past its pack's end, an overflowing offset, a pack index past the list and a
+        // listed pack no entry uses are refused, by validate and by decode.
+        let in_first = page.entries.iter().filter(|e| e.location.pack == 0);
+        let last = in_first.map(|e| e.location.offset + e.bytes as u64).max().unwrap();
         let mut short = page.clone();
-        short.pack = Some(PackRef { bytes: last - 1, ..pack.clone() });
+        short.packs[0].bytes = last - 1;
         assert!(short.validate().is_err(), "a range one byte past the pack");
         assert!(HierarchyPage::decode_unverified(&short.encode()).is_err());
         let mut far = page.clone();
         far.entries[0].location.offset = u64::MAX - 1;
         assert!(far.validate().is_err(), "an offset that overflows");
-        let mut no_pack = page.clone();
-        no_pack.pack = None;
-        assert!(no_pack.validate().is_err(), "pack 0 of a page without a pack");
-        let mut pack1 = page.clone();
-        pack1.entries[0].location.pack = 1;
-        assert!(pack1.validate().is_err(), "a page has one pack");
-        // Header damage in the pack fields: a truncated header, a pack count of 2.
+        let mut beyond = page.clone();
+        beyond.entries[0].location.pack = page.packs.len() as u32;
+        assert!(beyond.validate().is_err(), "a pack the page does not list");
+        let mut unused = page.clone();
+        unused.packs.push(PackRef { hash: content_hash(b"unused"), bytes: 1 << 30 });
+        assert!(unused.validate().is_err(), "a listed pack holding none of the page's blocks");
+        assert!(HierarchyPage::decode_unverified(&unused.encode()).is_err());
+        // Header damage: a pack count past the entry count, a truncated header.
+        let mut many = bytes.clone();
+        many[29..33].copy_from_slice(&(page.entries.len() as u32 + 1).to_le_bytes());
+        assert!(matches!(HierarchyPage::decode_unverified(&many), Err(PageError::BadHeader(_))));
         assert!(HierarchyPage::decode_unverified(&bytes[..PAGE_HEADER_LEN - 1]).is_err());
-        let mut two = bytes.clone();
-        two[29] = 2;
-        assert!(HierarchyPage::decode_unverified(&two).is_err());
-        let mut zero = bytes.clone();
-        zero[29] = 0;
-        assert!(HierarchyPage::decode_unverified(&zero).is_err(), "no pack, yet one is named");
     }
 
     #[test]
-    fn version_1_pages_still_decode() {
+    fn pages_of_older_versions_ask_for_a_rebuild() {
         let levels = tree(&sample_level0());
         let coarsest = (levels.len() - 1) as u8;
         let (pages, _, _) = build(&levels.iter().flatten().copied().collect::<Vec<_>>(), coarsest);
-        let (_, v2) = &pages[0];
-        let page = HierarchyPage::decode_unverified(v2).unwrap();
-        assert!(page.pack.is_none() && page.entries.iter().all(|e| e.location.is_file()));
-        // Version 1: the same fields in a 37-byte header, no pack slot.
-        let mut v1 = v2[..37].to_vec();
-        v1[4] = 1;
-        v1.extend_from_slice(&v2[PAGE_HEADER_LEN..]);
-        assert_eq!(HierarchyPage::decode_unverified(&v1).unwrap(), page);
-        let mut bad = v1.clone();
-        bad[29] = 1;
-        assert!(HierarchyPage::decode_unverified(&bad).is_err(), "version 1 named no packs");
-        bad[4] = 3;
-        assert!(matches!(HierarchyPage::decode_unverified(&bad), Err(PageError::BadHeader(_))));
+        let (_, bytes) = &pages[0];
+        assert!(HierarchyPage::decode_unverified(bytes).is_ok(), "control: the page as written");
+        for version in [1u8, 2, 4] {
+            let mut old = bytes.clone();
+            old[4] = version;
+            let err = HierarchyPage::decode_unverified(&old).unwrap_err();
+            assert!(err.to_string().contains("rebuild the scene"), "version {version}: {err}");
+        }
     }
 
     #[test]
@@ -1139,9 +1260,24 @@ mod tests {
         let mut b = PageBuilder::new(coarsest, PAGE_LEVELS);
         b.add(entry(levels[0][0])).unwrap();
         assert!(b.finish().is_err(), "no root");
-        let mut b = PageBuilder::new(coarsest, PAGE_LEVELS);
+        // Packs close in serial order, and a block cannot name a closed pack.
         let pack = PackRef { hash: content_hash(b"p"), bytes: 1 };
-        assert!(b.add_packed(entry(levels[0][0]), Some(pack)).is_err(), "a pack for a block rooting no page");
+        let mut b = PageBuilder::new(coarsest, PAGE_LEVELS);
+        assert!(b.pack_closed(1, pack.clone()).is_err(), "pack 1 before pack 0");
+        b.pack_closed(0, pack.clone()).unwrap();
+        let mut e = entry(levels[0][0]);
+        e.location = BlockLocation { pack: 0, offset: 0 };
+        assert!(b.add(e).is_err(), "a block in a closed pack");
+        // A page waiting for a pack that never closes.
+        let order = morton_post_order(&levels);
+        let mut b = PageBuilder::new(coarsest, PAGE_LEVELS);
+        for k in &order {
+            let mut e = entry(*k);
+            e.location = BlockLocation { pack: 0, offset: 0 };
+            assert!(b.add(e).unwrap().is_empty(), "no page can be sealed before its pack closes");
+        }
+        let err = b.finish().unwrap_err().to_string();
+        assert!(err.contains("never closed"), "{err}");
     }
 
     proptest! {
@@ -1149,8 +1285,8 @@ mod tests {
         fn mutated_pages_never_panic(flips in proptest::collection::vec((0usize..4096, any::<u8>()), 1..8), cut in 0usize..4096) {
             let levels = tree(&sample_level0());
             let coarsest = (levels.len() - 1) as u8;
-            let (pages, _, _, _) = build_packed(&morton_post_order(&levels), coarsest);
-            let mut bytes = pages[0].1.clone();
+            let packed = build_packed(&morton_post_order(&levels), coarsest, 64);
+            let mut bytes = packed.pages[0].1.clone();
             for (at, x) in flips {
                 let n = bytes.len();
                 bytes[at % n] ^= x;

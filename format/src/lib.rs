@@ -19,8 +19,8 @@ pub use codec::{
     BLOCK_MAGIC, CodecError, ColumnSizes, FLAG_COLOR, HEADER_LEN, VoxelColumns, decode_block, encode_block,
 };
 pub use hierarchy::{
-    BlockLocation, HierarchyPage, PAGE_LEVELS, PackRange, PackRef, PageBuilder, PageError, PageRef,
-    SceneIndex, load_scene_index,
+    BlockLocation, FinishedHierarchy, HierarchyPage, PAGE_LEVELS, PackRange, PackRef, PageBuilder, PageError,
+    PageRef, SceneIndex, load_scene_index,
 };
 pub use key::{BlockKey, KeyError};
 pub use manifest::{

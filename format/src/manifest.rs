@@ -5,7 +5,8 @@ use crate::{BLOCK_SIZE, BlockKey};
 
 /// Bumped whenever a reader of an older manifest would misread a newer one.
 /// 3: the block list moved into hierarchy pages (`hierarchy.rs`).
-pub const FORMAT_VERSION: u32 = 3;
+/// 4: packs span pages; a page lists several packs (page version 3).
+pub const FORMAT_VERSION: u32 = 4;
 
 /// Where the voxel grid sits in the source mesh's coordinates.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -114,8 +115,8 @@ pub struct Manifest {
     /// The page listing the blocks below the root; `None` when the root is on level 0.
     pub root_page: Option<PageRef>,
     /// The pack holding the root block's bytes (`root.location.pack == 0`):
-    /// the root page's pack, or a pack of the root alone when the root is on
-    /// level 0. `None` when the root is its own file.
+    /// the last pack the build closed (the root is the last block written).
+    /// `None` when the root is its own file.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub root_pack: Option<PackRef>,
 }
@@ -346,6 +347,12 @@ mod tests {
         let old = br#"{"format_version": 2, "name": "k", "blocks": []}"#;
         let err = Manifest::from_json(old).unwrap_err();
         assert!(matches!(err, ManifestError::Version(2)), "{err}");
+        assert!(err.to_string().contains("rebuild"), "{err}");
+        // Format 3 (one pack a page): its pages are version 2, which this reader refuses.
+        let mut m = sample();
+        m.format_version = 3;
+        let err = Manifest::from_json(&m.to_json()).unwrap_err();
+        assert!(matches!(err, ManifestError::Version(3)), "{err}");
         assert!(err.to_string().contains("rebuild"), "{err}");
     }
 }

@@ -369,11 +369,12 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 }
             };
             println!(
-                "published scene {:?} to {}: {} files ({} blocks, {} pages), {} bytes",
+                "published scene {:?} to {}: {} files ({} blocks in {} packs, {} pages), {} bytes",
                 r.id,
                 r.to.display(),
                 r.files,
                 r.blocks,
+                r.packs,
                 r.pages,
                 r.bytes
             );

@@ -2,19 +2,27 @@
 //! file host (nginx, `python3 -m http.server`, a bucket with website hosting) serves with no
 //! voxstream process.
 //!
-//! The site repeats the API's URL layout, so the viewer needs no second code path:
+//! The site repeats the API's layout for the manifest and pages and copies the store's packs as
+//! they are, so a scene is a few files (a pack holds 256 blocks), not one per block:
 //!
 //! ```text
 //! <to>/index.html                            the viewer page, with <meta name="voxstream-scene" content="<id>">
+//!                                            and <meta name="voxstream-static" content="packs">
 //! <to>/viewer.css, pkg/…, upload.*           the rest of the viewer's files
 //! <to>/api/scenes/<id>/manifest              the manifest JSON (as stored)
 //! <to>/api/scenes/<id>/pages/<key>.<hash>    every hierarchy page, content-addressed
-//! <to>/api/scenes/<id>/blocks/<key>.<hash>   every block, content-addressed
+//! <to>/api/scenes/<id>/packs/<hash>.vxp      every pack, content-addressed
 //! <to>/.voxstream-publish                    marker: this folder is a publish (so it may be replaced)
 //! ```
 //!
-//! The viewer fetches with URLs relative to its page, so the site works in any folder of a host.
-//! Every block and page is checked against its hash before it is written. The site is written
+//! The `voxstream-static` meta tells the viewer there is no API: it reads a block as
+//! `packs/<hash>.vxp?r=<start>-<end>` with `Range: bytes=<start>-<end>`. The query makes each
+//! block's URL its own, so no cache mixes two ranges of one file (Potree 2's loaders learned
+//! this), and a host that ignores Range and answers 200 with the whole pack still works (the
+//! viewer slices it and checks the block's hash). The viewer fetches with URLs relative to its
+//! page, so the site works in any folder of a host.
+//! Every pack is checked against its hash and every block in it against the block's hash, and
+//! every page against its hash, before it is written. The site is written
 //! into `<to>.tmp-*` beside `<to>` and renamed into place only when complete; an existing
 //! publish at `<to>` is replaced whole (never a folder that is not a publish).
 
@@ -25,7 +33,8 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, bail};
 use futures_util::FutureExt;
 use rayon::prelude::*;
-use voxstream_format::{PageRef, load_scene_index};
+use voxstream_format::hierarchy::{content_hash, pack_path};
+use voxstream_format::{PackRef, PageRef, load_scene_index};
 
 use crate::store::{self, StoredScene};
 
@@ -41,6 +50,7 @@ pub struct PublishReport {
     pub bytes: u64,
     pub blocks: u64,
     pub pages: u64,
+    pub packs: u64,
 }
 
 /// Where the viewer's files come from.
@@ -125,13 +135,61 @@ fn collect_dir(root: &Path, dir: &Path, out: &mut Vec<(String, Vec<u8>)>) -> any
     Ok(())
 }
 
-/// index.html with the scene named as the page's default.
+/// index.html with the scene named as the page's default, and marked as a static site (blocks
+/// are range reads of packs, there is no API).
 pub fn index_with_scene(html: &[u8], id: &str) -> anyhow::Result<Vec<u8>> {
     let html = std::str::from_utf8(html).context("the viewer's index.html is not UTF-8")?;
     let at = html.find("<head>").context("the viewer's index.html has no <head>")? + "<head>".len();
     // Scene ids are [a-z0-9_-]: nothing to escape.
-    Ok(format!("{}\n  <meta name=\"voxstream-scene\" content=\"{id}\">{}", &html[..at], &html[at..])
-        .into_bytes())
+    Ok(format!(
+        "{}\n  <meta name=\"voxstream-scene\" content=\"{id}\">\n  <meta name=\"voxstream-static\" content=\"packs\">{}",
+        &html[..at],
+        &html[at..]
+    )
+    .into_bytes())
+}
+
+/// A block as its pack holds it: key, hash and byte range.
+type PackedBlock = (voxstream_format::BlockKey, String, u64, u64);
+
+/// A pack's bytes, checked against its name and length, and each of its `blocks` against
+/// the block's hash.
+fn read_checked_pack(scene: &StoredScene, pack: &PackRef, blocks: &[PackedBlock]) -> anyhow::Result<Vec<u8>> {
+    let id = &scene.id;
+    let path = scene.pack_path(&pack.hash);
+    let bytes = fs::read(&path).with_context(|| format!("scene {id:?}: cannot read {}", path.display()))?;
+    if bytes.len() as u64 != pack.bytes {
+        bail!(
+            "scene {id:?}: {} is truncated or grown: {} bytes, its pages say {} (damaged store)",
+            pack_path(&pack.hash),
+            bytes.len(),
+            pack.bytes
+        );
+    }
+    if content_hash(&bytes) != pack.hash {
+        bail!("scene {id:?}: {} does not match its hash (damaged store)", pack_path(&pack.hash));
+    }
+    for (key, hash, start, end) in blocks {
+        if content_hash(&bytes[*start as usize..*end as usize]) != *hash {
+            bail!("block {key} of scene {id:?} differs from its hash in the hierarchy (damaged store)");
+        }
+    }
+    Ok(bytes)
+}
+
+/// Every pack the scene's hierarchy names, in a fixed order, with the blocks each holds.
+fn scene_packs(scene: &StoredScene) -> anyhow::Result<Vec<(PackRef, Vec<PackedBlock>)>> {
+    let mut by_pack: std::collections::HashMap<String, Vec<PackedBlock>> = Default::default();
+    for e in scene.blocks() {
+        let r = scene.index.pack_range(&e.key).with_context(|| {
+            format!("scene {:?}: block {} is in no pack (rebuild the scene)", scene.id, e.key)
+        })?;
+        by_pack.entry(r.pack.hash.clone()).or_default().push((e.key, e.hash.clone(), r.offset, r.end()));
+    }
+    let mut packs: Vec<(PackRef, Vec<PackedBlock>)> =
+        scene.index.packs().map(|p| (p.clone(), by_pack.remove(&p.hash).unwrap_or_default())).collect();
+    packs.sort_by(|a, b| a.0.hash.cmp(&b.0.hash));
+    Ok(packs)
 }
 
 fn write_file(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
@@ -149,8 +207,15 @@ fn write_site(
     viewer: &[(String, Vec<u8>)],
 ) -> anyhow::Result<PublishReport> {
     let id = &scene.id;
-    let mut report =
-        PublishReport { id: id.clone(), to: dir.to_path_buf(), files: 0, bytes: 0, blocks: 0, pages: 0 };
+    let mut report = PublishReport {
+        id: id.clone(),
+        to: dir.to_path_buf(),
+        files: 0,
+        bytes: 0,
+        blocks: 0,
+        pages: 0,
+        packs: 0,
+    };
     let add = |path: &Path, bytes: &[u8], report: &mut PublishReport| -> anyhow::Result<()> {
         write_file(path, bytes)?;
         report.files += 1;
@@ -169,40 +234,29 @@ fn write_site(
         add(&scene_dir.join("pages").join(format!("{}.{}", r.root, r.hash)), bytes, &mut report)?;
         report.pages += 1;
     }
-    // Blocks, in parallel, each checked against the hash its URL names.
-    let blocks = scene.blocks();
-    let blocks_dir = scene_dir.join("blocks");
-    fs::create_dir_all(&blocks_dir).with_context(|| format!("cannot create {}", blocks_dir.display()))?;
-    let bytes: u64 = blocks
+    // Packs as the store has them, in parallel, each and every block in it checked.
+    let packs = scene_packs(scene)?;
+    let packs_dir = scene_dir.join("packs");
+    fs::create_dir_all(&packs_dir).with_context(|| format!("cannot create {}", packs_dir.display()))?;
+    let bytes: u64 = packs
         .par_iter()
-        .map(|e| -> anyhow::Result<u64> {
-            let data = scene.read_block(e).map_err(|err| damaged_block(id, err))?;
-            write_file(&blocks_dir.join(format!("{}.{}", e.key, e.hash)), &data)?;
+        .map(|(p, blocks)| -> anyhow::Result<u64> {
+            let data = read_checked_pack(scene, p, blocks)?;
+            write_file(&scene_dir.join(pack_path(&p.hash)), &data)?;
             Ok(data.len() as u64)
         })
         .sum::<anyhow::Result<u64>>()?;
-    report.blocks = blocks.len() as u64;
-    report.files += report.blocks;
+    report.blocks = scene.blocks().len() as u64;
+    report.packs = packs.len() as u64;
+    report.files += report.packs;
     report.bytes += bytes;
     add(&dir.join(PUBLISH_MARKER), format!("scene {id}\n").as_bytes(), &mut report)?;
-    for d in [&blocks_dir, &scene_dir, dir] {
+    for d in [&packs_dir, &scene_dir, dir] {
         fs::File::open(d)
             .and_then(|f| f.sync_all())
             .with_context(|| format!("cannot sync {}", d.display()))?;
     }
     Ok(report)
-}
-
-/// A block that cannot be published, as an error naming the scene and the cause.
-fn damaged_block(id: &str, err: store::BlockReadError) -> anyhow::Error {
-    match err {
-        store::BlockReadError::Changed { key } => {
-            anyhow::anyhow!(
-                "block {key} of scene {id:?} differs from its hash in the hierarchy (damaged store)"
-            )
-        }
-        e => anyhow::anyhow!("scene {id:?}: {e} (damaged store)"),
-    }
 }
 
 /// Every hierarchy page of the scene with its bytes, each checked against its reference.
@@ -231,12 +285,14 @@ pub fn content_type(rel: &str) -> &'static str {
     }
 }
 
-/// Objects written at once by [`publish_to_bucket`] (each at most one block or page in memory).
-pub const BUCKET_CONCURRENCY: usize = 16;
+/// Objects written at once by [`publish_to_bucket`] (each at most one pack, ≤ 8 MiB, or one page
+/// in memory).
+pub const BUCKET_CONCURRENCY: usize = 8;
 
 /// Publishes scene `id` of the local store `store` to a bucket (S3, R2, MinIO, Garage with
-/// website hosting): blocks, pages and the viewer's files first, [`BUCKET_CONCURRENCY`] at a
-/// time, then the manifest, then `index.html`. Blocks and pages are content-addressed, so an
+/// website hosting) in the layout of [`publish`]: packs, pages and the viewer's files first,
+/// [`BUCKET_CONCURRENCY`] at a time, then the manifest, then `index.html`. Packs and pages are
+/// content-addressed, so an
 /// earlier publish at the same prefix keeps working until the manifest (one atomic PUT) switches
 /// to the new scene; a failed publish leaves the earlier one as it was.
 pub async fn publish_to_bucket(
@@ -262,17 +318,16 @@ pub async fn publish_to_bucket(
         bytes: 0,
         blocks: 0,
         pages: pages.len() as u64,
+        packs: 0,
     };
     // 1. Content-addressed objects and the viewer's files (not index.html).
-    let blocks: Vec<voxstream_format::BlockEntry> = scene.blocks().into_iter().cloned().collect();
-    let block_puts = futures_util::stream::iter(blocks.into_iter().map(|e| {
-        let rel = format!("{scene_prefix}/blocks/{}.{}", e.key, e.hash);
+    let packs = scene_packs(&scene)?;
+    report.packs = packs.len() as u64;
+    let pack_puts = futures_util::stream::iter(packs.into_iter().map(|(p, blocks)| {
+        let rel = format!("{scene_prefix}/{}", pack_path(&p.hash));
         let scene = scene.clone();
         async move {
-            let data = tokio::task::spawn_blocking(move || {
-                scene.read_block(&e).map_err(|err| damaged_block(&scene.id, err))
-            })
-            .await??;
+            let data = tokio::task::spawn_blocking(move || read_checked_pack(&scene, &p, &blocks)).await??;
             let n = data.len() as u64;
             bucket.put(&rel, data, "application/octet-stream", IMMUTABLE).await?;
             Ok::<u64, anyhow::Error>(n)
@@ -305,7 +360,7 @@ pub async fn publish_to_bucket(
         );
     }
     let index_html = index_html.context("the viewer has no index.html")?;
-    let (count, bytes) = block_puts
+    let (count, bytes) = pack_puts
         .chain(page_puts)
         .chain(futures_util::stream::iter(viewer_puts))
         .buffer_unordered(BUCKET_CONCURRENCY)
@@ -353,7 +408,10 @@ mod tests {
         let html = b"<!doctype html>\n<html><head>\n<title>x</title></head><body></body></html>";
         let out = String::from_utf8(index_with_scene(html, "koala").unwrap()).unwrap();
         assert!(
-            out.contains("<head>\n  <meta name=\"voxstream-scene\" content=\"koala\">\n<title>"),
+            out.contains(
+                "<head>\n  <meta name=\"voxstream-scene\" content=\"koala\">\n  \
+                 <meta name=\"voxstream-static\" content=\"packs\">\n<title>"
+            ),
             "{out}"
         );
         assert!(index_with_scene(b"<html><body></body></html>", "koala").is_err());

@@ -2,9 +2,9 @@
 //! serves them. Scenes are written by [`crate::pipeline::write`].
 //!
 //! Layout: `<store>/<id>/manifest.json`, `<store>/<id>/pages/<key>.vxh` and
-//! `<store>/<id>/packs/<blake3>.vxp` (one pack per page, holding the bytes of
-//! the blocks the page lists; `blocks/<key>.vxb` for blocks stored as their
-//! own files by older builds); directories starting with `.` (temp, trash,
+//! `<store>/<id>/packs/<blake3>.vxp` (256 blocks a pack, a pack spanning
+//! pages; each page lists the packs its blocks lie in; `blocks/<key>.vxb` for
+//! a block stored as its own file); directories starting with `.` (temp, trash,
 //! builds) are never listed.
 
 use std::fs;

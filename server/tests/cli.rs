@@ -54,9 +54,10 @@ fn write(dir: &tempfile::TempDir, name: &str, bytes: &[u8]) -> String {
     p.display().to_string()
 }
 
-/// `voxstream publish` writes a static site in the API's URL layout: every block and page named
-/// `<key>.<hash>` with bytes that hash to that name, the manifest as stored, index.html naming the
-/// scene; it replaces an earlier publish whole and refuses anything else.
+/// `voxstream publish` writes a static site: the store's packs as they are (`packs/<hash>.vxp`,
+/// bytes that hash to that name, no per-block file), every page named `<key>.<hash>`, the
+/// manifest as stored, index.html naming the scene and marking the site static; it replaces an
+/// earlier publish whole, refuses anything else, and refuses a damaged pack.
 #[test]
 fn publish_writes_a_static_site_and_refuses_bad_targets() {
     let dir = tempfile::tempdir().unwrap();
@@ -80,16 +81,21 @@ fn publish_writes_a_static_site_and_refuses_bad_targets() {
     let index = std::fs::read_to_string(site.join("index.html")).unwrap();
     assert!(index.contains("<meta name=\"voxstream-scene\" content=\"tri\">"), "{index}");
     assert!(site.join("pkg/voxstream_viewer_bg.wasm").is_file());
+    assert!(index.contains("<meta name=\"voxstream-static\" content=\"packs\">"), "{index}");
     let m = voxstream_format::Manifest::from_json(&manifest).unwrap();
-    let mut blocks = 0;
-    for entry in std::fs::read_dir(scene.join("blocks")).unwrap() {
+    assert!(!scene.join("blocks").exists(), "no per-block files");
+    let mut packs = Vec::new();
+    for entry in std::fs::read_dir(scene.join("packs")).unwrap() {
         let path = entry.unwrap().path();
         let name = path.file_name().unwrap().to_str().unwrap().to_string();
-        let (_, hash) = name.split_once('.').expect("blocks are <key>.<hash>");
-        assert_eq!(blake3::hash(&std::fs::read(&path).unwrap()).to_hex().as_str(), hash, "{name}");
-        blocks += 1;
+        let hash = name.strip_suffix(".vxp").expect("packs are <hash>.vxp");
+        let bytes = std::fs::read(&path).unwrap();
+        assert_eq!(blake3::hash(&bytes).to_hex().as_str(), hash, "{name}");
+        assert_eq!(bytes, std::fs::read(store.join("tri/packs").join(&name)).unwrap(), "{name} as stored");
+        packs.push(name);
     }
-    assert_eq!(blocks, m.block_count(), "every block of the scene, nothing else");
+    assert_eq!(packs.len(), std::fs::read_dir(store.join("tri/packs")).unwrap().count(), "every pack");
+    assert!(m.block_count() > 0);
     let root_page = m.root_page.as_ref().expect("a scene on 3 levels has a root page");
     let page = scene.join("pages").join(format!("{}.{}", root_page.root, root_page.hash));
     assert_eq!(blake3::hash(&std::fs::read(page).unwrap()).to_hex().as_str(), root_page.hash);
@@ -127,6 +133,14 @@ fn publish_writes_a_static_site_and_refuses_bad_targets() {
     let name = pack.file_name().unwrap().to_str().unwrap();
     assert!(err.contains("truncated") && err.contains(name), "{err}");
     assert_eq!(std::fs::read(scene.join("manifest")).unwrap(), manifest, "the earlier publish stays");
+    // A pack of the right length with one byte changed fails its hash.
+    let good = std::fs::read(site.join("api/scenes/tri/packs").join(name)).unwrap();
+    let mut bad = good.clone();
+    bad[good.len() / 2] ^= 1;
+    std::fs::write(&pack, &bad).unwrap();
+    let (ok, _, err) = voxstream(&args);
+    assert!(!ok, "a publish from a damaged pack succeeded");
+    assert!(err.contains("does not match its hash") && err.contains(name), "{err}");
 }
 
 /// Bad object-storage configuration is one clear error and a non-zero exit within seconds, naming

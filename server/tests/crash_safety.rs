@@ -140,7 +140,7 @@ async fn check_scene(base: &str, store: &Path, id: &str, http: &reqwest::Client)
         ));
     }
     for e in &blocks {
-        // Its range of its page's pack (every block is packed).
+        // Its range of its pack (every block is packed).
         let range = index.pack_range(&e.key).ok_or_else(|| format!("scene {id} block {}: no pack", e.key))?;
         let pack = std::fs::read(dir.join(voxstream_format::hierarchy::pack_path(&range.pack.hash)))
             .map_err(|err| format!("scene {id} block {}: {err}", e.key))?;

@@ -850,7 +850,7 @@ async fn served_blocks_are_the_reference_encoding_and_a_damaged_pack_is_a_clear_
     let distinct: std::collections::HashSet<&Vec<u8>> = reference.values().collect();
     assert_eq!(distinct.len(), reference.len());
 
-    // The root block is the last range of the root page's pack; the first range stays readable.
+    // The root block is the last range of the last pack; the first range stays readable.
     let root = m.index.pack_range(&m.root.key).unwrap();
     assert_eq!(root.end(), root.pack.bytes, "the root comes last in its pack");
     let first = m

@@ -222,7 +222,7 @@ fn render_and_check(url: &str, out: &Path, scene_dir: &Path, interact: bool) {
     assert!(lit < silhouette.len(), "the screenshot has no background pixel at all");
 
     // 6. CPU coverage of the drawn blocks, read back from the store the server used
-    //    (each block's range of its page's pack).
+    //    (each block's range of its pack).
     let id = scene_dir.file_name().and_then(|n| n.to_str()).expect("a scene folder");
     let scene = voxstream::store::open_scene(scene_dir.parent().expect("a store"), id)
         .unwrap_or_else(|e| panic!("{}: {e}", scene_dir.display()));
@@ -485,11 +485,15 @@ fn upload_page_builds_and_opens_scene() {
     server.abort();
 }
 
-/// `voxstream publish` writes a static site; a plain static file server (python3 -m http.server,
-/// no voxstream process) serves it and Chromium shows the scene with the same ready marker and
-/// silhouette check. The URL has no `?scene=`: the published index.html names it. Negative
-/// control: the viewer with absolute `/api/...` URLs, or without the meta tag, never gets ready
-/// here (there is no `/api/scenes` list on a static host).
+/// `voxstream publish` writes a static site of packs and pages (no per-block files); plain static
+/// file servers (no voxstream process) serve it and Chromium shows the scene with the same ready
+/// marker and silhouette check, reading blocks as `packs/<hash>.vxp?r=<start>-<end>` with a
+/// `Range` header: from tower-http's `ServeDir`, which answers 206, and from
+/// `python3 -m http.server`, which ignores Range and answers 200 with the whole pack (the viewer
+/// slices it). The URL has no `?scene=`: the published index.html names it. Each server's log
+/// shows the range requests and no per-block URL. Negative control: the viewer with absolute
+/// `/api/...` URLs, or without the meta tag, never gets ready here (there is no `/api/scenes`
+/// list or `/blocks/` URL on a static host).
 #[test]
 fn static_publish_renders_in_chromium() {
     let root = workspace_root();
@@ -510,14 +514,59 @@ fn static_publish_renders_in_chromium() {
         panic!("the server embeds no viewer: run bash scripts/build-web.sh, then cargo test again")
     };
     let published = voxstream::publish::publish(&store, &report.id, &site, viewer).expect("publish");
-    println!("published {} files, {} bytes", published.files, published.bytes);
+    println!(
+        "published {} files ({} packs for {} blocks, {} pages), {} bytes",
+        published.files, published.packs, published.blocks, published.pages, published.bytes
+    );
+    let scene = site.join("api/scenes").join(&report.id);
+    assert!(!scene.join("blocks").exists(), "per-block files were published");
+    let packs = std::fs::read_dir(scene.join("packs")).expect("the site has packs").count();
+    assert!(packs > 0 && packs as u64 == published.packs, "{packs} packs in the site");
 
+    // tower-http's ServeDir honours Range: every pack GET must be a 206 of a `?r=` URL.
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
+    // Each request: its URI, its Range header, the status answered.
+    type RequestLog = Arc<Mutex<Vec<(String, Option<String>, u16)>>>;
+    let seen: RequestLog = Arc::default();
+    let log = seen.clone();
+    let app = axum::Router::new().fallback_service(tower_http::services::ServeDir::new(&host_root)).layer(
+        axum::middleware::from_fn(move |req: axum::extract::Request, next: axum::middleware::Next| {
+            let log = log.clone();
+            async move {
+                let uri = req.uri().to_string();
+                let range = req.headers().get("range").and_then(|v| v.to_str().ok()).map(str::to_string);
+                let resp = next.run(req).await;
+                log.lock().unwrap().push((uri, range, resp.status().as_u16()));
+                resp
+            }
+        }),
+    );
+    let listener = rt.block_on(tokio::net::TcpListener::bind("127.0.0.1:0")).unwrap();
+    let addr = listener.local_addr().unwrap();
+    let server = rt.spawn(async move { axum::serve(listener, app).await });
+    let url = format!("http://{addr}/scans/koala/");
+    render_and_check(&url, &artifacts_dir().join("publish-206"), &report.scene_dir, false);
+    server.abort();
+    let seen = std::mem::take(&mut *seen.lock().unwrap());
+    let pack_gets: Vec<_> = seen.iter().filter(|(u, _, _)| u.contains("/packs/")).collect();
+    assert!(!pack_gets.is_empty(), "the viewer read no pack: {seen:?}");
+    for (uri, range, status) in &pack_gets {
+        let query = uri.split_once("?r=").map(|(_, q)| q.to_string());
+        assert!(query.is_some(), "a pack GET without its range in the URL: {uri}");
+        assert_eq!(range.as_deref(), query.map(|q| format!("bytes={q}")).as_deref(), "{uri}");
+        assert_eq!(*status, 206, "{uri}");
+    }
+    assert!(seen.iter().all(|(u, _, _)| !u.contains("/blocks/")), "per-block URLs asked for: {seen:?}");
+    println!("ServeDir: {} range requests answered 206", pack_gets.len());
+
+    // python3 -m http.server ignores Range: 200 with the whole pack.
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let log_path = dir.path().join("http.server.log");
     let mut server = Command::new("python3")
         .args(["-m", "http.server", "--bind", "127.0.0.1", &port.to_string(), "--directory"])
         .arg(&host_root)
         .stdout(Stdio::null())
-        .stderr(Stdio::null())
+        .stderr(std::fs::File::create(&log_path).unwrap())
         .spawn()
         .expect("python3 -m http.server (python3 is on every Debian machine)");
     let deadline = Instant::now() + Duration::from_secs(20);
@@ -534,6 +583,14 @@ fn static_publish_renders_in_chromium() {
     if let Err(e) = result {
         std::panic::resume_unwind(e);
     }
+    let log = std::fs::read_to_string(&log_path).unwrap();
+    let ranged = log
+        .lines()
+        .filter(|l| l.contains("/packs/") && l.contains(".vxp?r=") && l.contains("\" 200"))
+        .count();
+    assert!(ranged > 0, "no pack range URL answered 200 in the server's log:\n{log}");
+    assert!(!log.contains("/blocks/"), "per-block URLs asked for:\n{log}");
+    println!("python3 -m http.server: {ranged} pack range URLs answered 200 (whole pack, sliced)");
 }
 
 /// Failure handling in the browser: every level-0 block the page asks for fails for good, half

@@ -220,7 +220,7 @@ fn corrupt_and_missing_blocks_fall_back_to_their_ancestor() {
     let fine: Vec<BlockKey> = wanted.iter().filter(|k| k.level == finest).copied().collect();
     assert!(fine.len() >= 2, "need two fine blocks to damage, selection: {wanted:?}");
     let (corrupt, missing) = (fine[0], fine[fine.len() - 1]);
-    // Blocks are ranges of their page's pack: the corrupt one loses its second
+    // Blocks are ranges of packs: the corrupt one loses its second
     // half to garbage, the "missing" one is zeroed whole (no header, no block).
     let damage = |k: BlockKey, from_half: bool| {
         let r = offscreen.scene.index.pack_range(&k).unwrap_or_else(|| panic!("{k} is not packed"));

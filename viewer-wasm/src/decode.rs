@@ -1,7 +1,7 @@
 //! Fetched bytes → a validated block. The format crate checks the bytes
 //! themselves; this checks that they are the block we asked for and agree with
-//! the manifest, so a misrouted or stale response can never be drawn in the
-//! wrong place.
+//! the manifest (its voxel count and content hash), so a misrouted or stale
+//! response, or the wrong slice of a pack, can never be drawn in the wrong place.
 
 use voxstream_format::{Block, BlockEntry, BlockKey, CodecError, decode_block};
 
@@ -13,15 +13,34 @@ pub enum DecodeError {
     WrongKey { expected: BlockKey, got: BlockKey },
     #[error("block {key} holds {got} voxels, the manifest says {expected}")]
     WrongCount { key: BlockKey, expected: u32, got: u32 },
+    #[error("block {key}: the {bytes} bytes fetched have hash {got}, the hierarchy says {expected}")]
+    WrongHash { key: BlockKey, bytes: usize, got: String, expected: String },
 }
 
 /// Decodes the bytes fetched for `key`, checking them against its manifest entry.
 pub fn decode_fetched(key: BlockKey, entry: Option<&BlockEntry>, bytes: &[u8]) -> Result<Block, DecodeError> {
-    decode_checked(key, entry.map(|e| e.voxels), bytes)
+    decode_checked(key, entry.map(|e| e.voxels), entry.map(|e| e.hash.as_str()), bytes)
 }
 
-/// [`decode_fetched`] given only the voxel count the manifest states (what a worker knows).
-pub fn decode_checked(key: BlockKey, voxels: Option<u32>, bytes: &[u8]) -> Result<Block, DecodeError> {
+/// [`decode_fetched`] given only the voxel count and hash the hierarchy states (what a worker
+/// knows); `None` where it states none.
+pub fn decode_checked(
+    key: BlockKey,
+    voxels: Option<u32>,
+    hash: Option<&str>,
+    bytes: &[u8],
+) -> Result<Block, DecodeError> {
+    if let Some(expected) = hash {
+        let got = voxstream_format::hierarchy::content_hash(bytes);
+        if got != expected {
+            return Err(DecodeError::WrongHash {
+                key,
+                bytes: bytes.len(),
+                got,
+                expected: expected.to_string(),
+            });
+        }
+    }
     let block = decode_block(bytes).map_err(|source| DecodeError::Codec { key, source })?;
     if block.key != key {
         return Err(DecodeError::WrongKey { expected: key, got: block.key });
@@ -45,11 +64,11 @@ mod tests {
         let block = Block { key, voxels: vec![PackedVoxel::new([1, 2, 3], 0b11, 0)] };
         let entry = BlockEntry {
             key,
+            hash: voxstream_format::hierarchy::content_hash(&encode_block(&block)),
             bounds: VoxelBounds { min: [1, 66, 3], max: [2, 67, 4] },
             voxels: 1,
             faces: 2,
             bytes: 0,
-            hash: String::new(),
             geometric_error: 1.0,
             child_mask: 0,
             location: Default::default(),
@@ -69,6 +88,12 @@ mod tests {
         let bytes = encode_block(&block);
         let other = BlockKey::new(0, 0, 0, 0);
         assert!(matches!(decode_fetched(other, None, &bytes), Err(DecodeError::WrongKey { .. })));
+        // The wrong slice of a pack (one byte short) fails its hash before decoding.
+        assert!(matches!(
+            decode_fetched(block.key, Some(&entry), &bytes[..bytes.len() - 1]),
+            Err(DecodeError::WrongHash { .. })
+        ));
+        entry.hash = voxstream_format::hierarchy::content_hash(&bytes);
         entry.voxels = 7;
         assert!(matches!(
             decode_fetched(block.key, Some(&entry), &bytes),

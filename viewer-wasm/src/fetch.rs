@@ -21,10 +21,51 @@ pub enum BlockSource {
     /// as ranges of `packs/<hash>.vxp` (or, from older builds, `blocks/<key>.vxb`).
     #[cfg(not(target_arch = "wasm32"))]
     SceneDir(std::path::PathBuf),
-    /// `.../api/scenes/<id>`: `/manifest` and `/blocks/<key>.<hash>` (content-addressed,
-    /// cached by the browser as immutable).
+    /// `.../api/scenes/<id>`: `/manifest`, `/pages/<key>.<hash>` and the blocks, content-addressed
+    /// and cached by the browser as immutable: through the API each at `/blocks/<key>.<hash>`; on
+    /// a static site (`static_packs`, from `voxstream publish`) as a range of
+    /// `/packs/<hash>.vxp`, at `?r=<start>-<end>` with `Range: bytes=<start>-<end>`.
     #[cfg(target_arch = "wasm32")]
-    Http { scene_url: String },
+    Http { scene_url: String, static_packs: bool },
+}
+
+/// How to GET one block: its URL and, on a static site, its bytes' range of the pack the URL
+/// names (inclusive, as HTTP's `Range: bytes=start-end`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct BlockRequest {
+    pub url: String,
+    pub range: Option<(u64, u64)>,
+}
+
+/// The request for a block: its own API URL (immutable when `hash` is given), or, on a static
+/// site, its range of its pack with the range also in the query, so each block's URL is its own
+/// and no cache mixes two ranges of one pack.
+pub fn block_request(
+    scene_url: &str,
+    static_packs: bool,
+    key: BlockKey,
+    hash: Option<&str>,
+    range: Option<&PackRange>,
+) -> BlockRequest {
+    match (static_packs, range) {
+        (true, Some(r)) if r.bytes > 0 => {
+            let (start, end) = (r.offset, r.end() - 1);
+            BlockRequest {
+                url: format!(
+                    "{scene_url}/{}?r={start}-{end}",
+                    voxstream_format::hierarchy::pack_path(&r.pack.hash)
+                ),
+                range: Some((start, end)),
+            }
+        }
+        _ => BlockRequest {
+            url: match hash {
+                Some(h) => format!("{scene_url}/blocks/{key}.{h}"),
+                None => format!("{scene_url}/blocks/{key}"),
+            },
+            range: None,
+        },
+    }
 }
 
 impl BlockSource {
@@ -33,7 +74,7 @@ impl BlockSource {
             #[cfg(not(target_arch = "wasm32"))]
             BlockSource::SceneDir(dir) => read_file(&dir.join("manifest.json"), "manifest"),
             #[cfg(target_arch = "wasm32")]
-            BlockSource::Http { scene_url } => {
+            BlockSource::Http { scene_url, .. } => {
                 http::get_bytes(&format!("{scene_url}/manifest"), "manifest").await
             }
         }
@@ -48,7 +89,7 @@ impl BlockSource {
                 read_file(&dir.join(voxstream_format::hierarchy::page_path(&page.root)), &what)
             }
             #[cfg(target_arch = "wasm32")]
-            BlockSource::Http { scene_url } => {
+            BlockSource::Http { scene_url, .. } => {
                 http::get_bytes(&format!("{scene_url}/pages/{}.{}", page.root, page.hash), &what).await
             }
         }
@@ -61,7 +102,7 @@ impl BlockSource {
         page: &PageRef,
         signal: Option<&web_sys::AbortSignal>,
     ) -> Result<Vec<u8>, FetchError> {
-        let BlockSource::Http { scene_url } = self;
+        let BlockSource::Http { scene_url, .. } = self;
         let what = format!("hierarchy page {}", page.root);
         http::get_bytes_with(&format!("{scene_url}/pages/{}.{}", page.root, page.hash), &what, signal).await
     }
@@ -72,25 +113,30 @@ impl BlockSource {
         &self,
         key: BlockKey,
         hash: Option<&str>,
+        range: Option<&PackRange>,
         signal: Option<&web_sys::AbortSignal>,
     ) -> Result<Vec<u8>, FetchError> {
-        http::get_bytes_with(&self.block_url(key, hash), &format!("block {key}"), signal).await
+        let request = self.block_request(key, hash, range);
+        http::get_block(&request, &format!("block {key}"), signal).await
     }
 
-    /// The URL of a block (immutable when `hash` is given).
+    /// How to GET a block (see [`block_request`]).
     #[cfg(target_arch = "wasm32")]
-    pub fn block_url(&self, key: BlockKey, hash: Option<&str>) -> String {
-        let BlockSource::Http { scene_url } = self;
-        match hash {
-            Some(h) => format!("{scene_url}/blocks/{key}.{h}"),
-            None => format!("{scene_url}/blocks/{key}"),
-        }
+    pub fn block_request(
+        &self,
+        key: BlockKey,
+        hash: Option<&str>,
+        range: Option<&PackRange>,
+    ) -> BlockRequest {
+        let BlockSource::Http { scene_url, static_packs } = self;
+        block_request(scene_url, *static_packs, key, hash, range)
     }
 
     /// A block's bytes; `hash` is its blake3 from the manifest, which makes the
     /// URL immutable (without it the server answers with a revalidated URL).
-    /// `range` is where a store directory keeps it (`SceneIndex::pack_range`;
-    /// `None`: its own file); the server finds that itself.
+    /// `range` is where the scene keeps it (`SceneIndex::pack_range`; `None`: its own file):
+    /// read from a store directory or, on a static site, a range request; the API server
+    /// finds it itself.
     pub async fn block_bytes(
         &self,
         key: BlockKey,
@@ -110,14 +156,7 @@ impl BlockSource {
                 }
             }
             #[cfg(target_arch = "wasm32")]
-            BlockSource::Http { scene_url } => {
-                let _ = range;
-                let url = match hash {
-                    Some(h) => format!("{scene_url}/blocks/{key}.{h}"),
-                    None => format!("{scene_url}/blocks/{key}"),
-                };
-                http::get_bytes(&url, &format!("block {key}")).await
-            }
+            BlockSource::Http { .. } => self.block_bytes_with(key, hash, range, None).await,
         }
     }
 }
@@ -190,11 +229,86 @@ pub(crate) mod http {
         let buffer = JsFuture::from(response.array_buffer().map_err(failed)?).await.map_err(failed)?;
         Ok(js_sys::Uint8Array::new(&buffer).to_vec())
     }
+
+    /// A block's bytes: a plain GET, or a range request whose answer may be a 206 with the
+    /// range or a 200 with the whole pack (a host that ignores Range), then sliced here. The
+    /// same rules as web/block-fetch.js, which the decode workers use.
+    pub async fn get_block(
+        request: &super::BlockRequest,
+        what: &str,
+        signal: Option<&web_sys::AbortSignal>,
+    ) -> Result<Vec<u8>, FetchError> {
+        let Some((start, end)) = request.range else {
+            return get_bytes_with(&request.url, what, signal).await;
+        };
+        let failed = |e: JsValue| FetchError::Failed { what: what.to_string(), message: js_message(&e) };
+        let window = web_sys::window().ok_or_else(|| failed(JsValue::from_str("no window")))?;
+        let init = web_sys::RequestInit::new();
+        if let Some(signal) = signal {
+            init.set_signal(Some(signal));
+        }
+        let headers = web_sys::Headers::new().map_err(failed)?;
+        headers.set("Range", &format!("bytes={start}-{end}")).map_err(failed)?;
+        init.set_headers(&headers);
+        let response: web_sys::Response = JsFuture::from(window.fetch_with_str_and_init(&request.url, &init))
+            .await
+            .map_err(failed)?
+            .dyn_into()
+            .map_err(failed)?;
+        let status = response.status();
+        match status {
+            200 | 206 => {}
+            404 => return Err(FetchError::NotFound { what: what.to_string() }),
+            status => return Err(FetchError::Status { what: what.to_string(), status }),
+        }
+        let buffer = JsFuture::from(response.array_buffer().map_err(failed)?).await.map_err(failed)?;
+        let body = js_sys::Uint8Array::new(&buffer).to_vec();
+        super::slice_range_answer(status, body, start, end)
+            .map_err(|message| FetchError::Failed { what: what.to_string(), message })
+    }
+}
+
+/// The block's bytes from the answer to `Range: bytes=start-end`: a 206 must be exactly the
+/// range; a 200 (the host ignored Range) is the whole pack, sliced here.
+pub fn slice_range_answer(status: u16, mut body: Vec<u8>, start: u64, end: u64) -> Result<Vec<u8>, String> {
+    let want = end.saturating_sub(start) + 1;
+    match status {
+        206 if body.len() as u64 == want => Ok(body),
+        206 => Err(format!("HTTP 206 with {} bytes, asked for {want}", body.len())),
+        _ if (body.len() as u64) <= end => {
+            Err(format!("the pack is {} bytes, the block ends at byte {end}", body.len()))
+        }
+        _ => {
+            body.truncate(end as usize + 1);
+            Ok(body.split_off(start as usize))
+        }
+    }
 }
 
 #[cfg(all(test, not(target_arch = "wasm32")))]
 mod tests {
     use super::*;
+
+    #[test]
+    fn static_sites_name_a_range_of_the_pack_in_the_url() {
+        let pack = voxstream_format::PackRef { hash: "cd".repeat(32), bytes: 100 };
+        let range = PackRange { pack, offset: 10, bytes: 5 };
+        let key = BlockKey::new(0, 1, 2, 3);
+        let api = block_request("api/scenes/k", false, key, Some("ab"), Some(&range));
+        assert_eq!(api, BlockRequest { url: "api/scenes/k/blocks/0-1-2-3.ab".into(), range: None });
+        let site = block_request("api/scenes/k", true, key, Some("ab"), Some(&range));
+        let url = format!("api/scenes/k/packs/{}.vxp?r=10-14", "cd".repeat(32));
+        assert_eq!(site, BlockRequest { url, range: Some((10, 14)) });
+        // A 206 must be the range; a 200 is the whole pack, sliced; a short pack is an error.
+        let pack_bytes: Vec<u8> = (0..100).collect();
+        assert_eq!(
+            slice_range_answer(206, pack_bytes[10..15].to_vec(), 10, 14).unwrap(),
+            &pack_bytes[10..15]
+        );
+        assert!(slice_range_answer(206, pack_bytes[10..16].to_vec(), 10, 14).is_err());
+        assert_eq!(slice_range_answer(200, pack_bytes.clone(), 10, 14).unwrap(), &pack_bytes[10..15]);
+        assert!(slice_range_answer(200, pack_bytes[..14].to_vec(), 10, 14).is_err());
+    }
 
     #[test]
     fn scene_dir_reads_the_store_layout() {

@@ -292,11 +292,12 @@ pub(crate) mod tests {
         let mut builder = PageBuilder::new(level, PAGE_LEVELS);
         let mut pages = std::collections::HashMap::new();
         for e in all {
-            if let Some((r, bytes)) = builder.add(e).unwrap() {
+            for (r, bytes) in builder.add(e).unwrap() {
                 pages.insert(r.hash.clone(), bytes);
             }
         }
-        let (root, root_page) = builder.finish().unwrap();
+        let top = builder.finish().unwrap();
+        let (root, root_page) = (top.root, top.root_page);
         let m = voxstream_format::test_support::manifest("pyramid", res, levels, root, root_page);
         m.validate().unwrap();
         let index = load_scene_index(&m, |r| {
@@ -420,7 +421,7 @@ pub(crate) mod tests {
         let mut page = voxstream_format::HierarchyPage {
             root: root_page.root,
             page_levels: PAGE_LEVELS,
-            pack: None,
+            packs: vec![],
             child_pages: vec![],
             entries,
         };

@@ -141,6 +141,14 @@ fn meta_scene() -> Option<String> {
     el.get_attribute("content").filter(|s| !s.is_empty())
 }
 
+/// Whether the page is a static publish (`<meta name="voxstream-static" content="packs">`,
+/// written by `voxstream publish`): no API, blocks are range reads of packs.
+fn meta_static_packs() -> bool {
+    let Some(doc) = window().document() else { return false };
+    let Ok(Some(el)) = doc.query_selector("meta[name=\"voxstream-static\"]") else { return false };
+    el.get_attribute("content").as_deref() == Some("packs")
+}
+
 /// The scene id: `?scene=<id>`, else the page's `voxstream-scene` meta tag, else the first
 /// scene the server lists. URLs are relative to the page (`api/scenes/...`), so the viewer
 /// works at a server's root and from a static publish in any folder.
@@ -216,8 +224,13 @@ async fn run() -> Result<(), String> {
 
     let id = scene_id().await?;
     show_status(&format!("loading scene {id}…"));
+    let static_packs = meta_static_packs();
+    if static_packs {
+        log("voxstream: static site: blocks are range reads of packs");
+    }
     let source = BlockSource::Http {
         scene_url: format!("api/scenes/{}", String::from(js_sys::encode_uri_component(&id))),
+        static_packs,
     };
     let manifest_bytes = source.manifest_bytes().await.map_err(|e| e.to_string())?;
     let manifest = Manifest::from_json(&manifest_bytes).map_err(|e| format!("scene {id}: {e}"))?;
@@ -465,8 +478,10 @@ impl App {
             if let (Request::Block(key), Some(pool)) = (&request, self.decoder.as_mut()) {
                 // Fetch and decode in a worker; the main thread only uploads.
                 let entry = self.scene.index.block(key);
-                let url = self.source.block_url(*key, entry.map(|e| e.hash.as_str()));
-                pool.submit(*key, &url, entry.map(|e| e.voxels));
+                let hash = entry.map(|e| e.hash.as_str());
+                let range = self.scene.index.pack_range(key);
+                let block = self.source.block_request(*key, hash, range.as_ref());
+                pool.submit(*key, &block, entry.map(|e| e.voxels), hash);
                 continue;
             }
             let source = self.source.clone();
@@ -492,9 +507,11 @@ impl App {
                 }
                 Request::Block(key) => {
                     let hash = self.scene.index.block(&key).map(|e| e.hash.clone());
+                    let range = self.scene.index.pack_range(&key);
                     wasm_bindgen_futures::spawn_local(async move {
-                        let result: Result<Vec<u8>, FetchError> =
-                            source.block_bytes_with(key, hash.as_deref(), signal.as_ref()).await;
+                        let result: Result<Vec<u8>, FetchError> = source
+                            .block_bytes_with(key, hash.as_deref(), range.as_ref(), signal.as_ref())
+                            .await;
                         with_app(|app| {
                             if app.aborts.remove(&request_id(&Request::Block(key))).is_none() {
                                 return;

@@ -17,12 +17,13 @@ const WORKERS: usize = 2;
 
 /// Runs in a worker: the voxels of the block `key` in `bytes` as raw
 /// PackedVoxel bytes, after the same checks as the main-thread path
-/// (`voxels` < 0: no manifest count to check).
+/// (`voxels` < 0: no manifest count to check; `hash` empty: no hash to check).
 #[wasm_bindgen]
-pub fn decode_block_for_worker(key: &str, bytes: &[u8], voxels: i32) -> Result<Vec<u8>, JsValue> {
+pub fn decode_block_for_worker(key: &str, bytes: &[u8], voxels: i32, hash: &str) -> Result<Vec<u8>, JsValue> {
     let key: BlockKey = key.parse().map_err(|e| JsValue::from_str(&format!("block key {key}: {e}")))?;
     let expected = u32::try_from(voxels).ok();
-    let block = decode_checked(key, expected, bytes).map_err(|e| JsValue::from_str(&e.to_string()))?;
+    let hash = Some(hash).filter(|h| !h.is_empty());
+    let block = decode_checked(key, expected, hash, bytes).map_err(|e| JsValue::from_str(&e.to_string()))?;
     Ok(bytemuck::cast_slice(&block.voxels).to_vec())
 }
 
@@ -166,8 +167,15 @@ impl DecodePool {
         Ok(Self { workers, next_id: 0, next_worker: 0, owner: HashMap::new(), ids: HashMap::new() })
     }
 
-    /// Asks a worker to fetch `url` and decode block `key`.
-    pub fn submit(&mut self, key: BlockKey, url: &str, voxels: Option<u32>) {
+    /// Asks a worker to fetch `request` and decode block `key`, checking its voxel count and
+    /// content hash when the hierarchy states them.
+    pub fn submit(
+        &mut self,
+        key: BlockKey,
+        request: &crate::fetch::BlockRequest,
+        voxels: Option<u32>,
+        hash: Option<&str>,
+    ) {
         let id = self.next_id;
         self.next_id = self.next_id.wrapping_add(1);
         let w = self.next_worker;
@@ -177,9 +185,15 @@ impl DecodePool {
             let _ = js_sys::Reflect::set(&msg, &JsValue::from_str(k), &v);
         };
         set("id", JsValue::from(id));
-        set("url", JsValue::from_str(url));
+        set("url", JsValue::from_str(&request.url));
+        if let Some((start, end)) = request.range {
+            // Numbers in JS: exact below 2^53, far beyond any pack.
+            set("start", JsValue::from(start as f64));
+            set("end", JsValue::from(end as f64));
+        }
         set("key", JsValue::from_str(&key.to_string()));
         set("voxels", JsValue::from(voxels.map_or(-1, |v| v as i32)));
+        set("hash", JsValue::from_str(hash.unwrap_or("")));
         if self.workers[w].post_message(&msg).is_ok() {
             self.owner.insert(id, w);
             self.ids.insert(key, id);

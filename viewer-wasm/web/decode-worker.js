@@ -2,11 +2,14 @@
 // own wasm (voxstream_format), off the main thread. The main thread gets the
 // voxels as a transferred ArrayBuffer, ready to upload.
 //
-//   in:  { id, url, key, voxels }   voxels: the count the manifest states, or -1
+//   in:  { id, url, key, voxels, hash, start?, end? }
+//        voxels: the count the manifest states, or -1; hash: the block's blake3, or ''
+//        start/end: on a static site, the block's bytes [start, end] (inclusive) of the pack at url
 //        { abort: id }              the view no longer needs it
 //   out: { id, key, ok: true, voxels: ArrayBuffer, fetched }
 //        { id, key, ok: false, error, fetched }
 import init, { decode_block_for_worker } from './pkg/voxstream_viewer.js';
+import { fetchBlockBytes } from './block-fetch.js';
 
 const ready = init();
 const inFlight = new Map();
@@ -17,17 +20,17 @@ self.onmessage = async (event) => {
     inFlight.get(msg.abort)?.abort();
     return;
   }
-  const { id, url, key, voxels } = msg;
+  const { id, url, key, voxels, hash, start, end } = msg;
   const abort = new AbortController();
   inFlight.set(id, abort);
   let fetched = 0;
   try {
-    const response = await fetch(url, { signal: abort.signal });
-    if (!response.ok) throw new Error(`block ${key}: HTTP ${response.status}`);
-    const bytes = new Uint8Array(await response.arrayBuffer());
-    fetched = bytes.byteLength;
+    const range = start === undefined ? null : { start, end };
+    const got = await fetchBlockBytes(url, range, key, abort.signal);
+    fetched = got.fetched;
     await ready;
-    const out = decode_block_for_worker(key, bytes, voxels);
+    // The hash check catches a wrong slice or a host that sent other bytes.
+    const out = decode_block_for_worker(key, got.bytes, voxels, hash || '');
     self.postMessage({ id, key, ok: true, voxels: out.buffer, fetched }, [out.buffer]);
   } catch (e) {
     const error = e && e.name === 'AbortError' ? 'aborted' : String(e && e.message ? e.message : e);

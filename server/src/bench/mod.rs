@@ -220,7 +220,7 @@ struct Bench<'a> {
 }
 
 /// The published scene's files by kind: `manifest.json`, `pages/`, the block
-/// bytes (`packs/`, one pack a page; `blocks/` in stores written before packs), the rest.
+/// bytes (`packs/`, 256 blocks a pack; `blocks/` in stores written before packs), the rest.
 pub fn scene_files(scene: &Path) -> std::io::Result<SceneFiles> {
     let mut files = SceneFiles::default();
     for entry in std::fs::read_dir(scene)? {

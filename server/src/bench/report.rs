@@ -135,7 +135,7 @@ pub struct SceneFiles {
     pub manifest_bytes: u64,
     pub pages: u64,
     pub page_bytes: u64,
-    /// Files holding block bytes (packs, one per hierarchy page) and their bytes.
+    /// Files holding block bytes (packs, 256 blocks each) and their bytes.
     pub block_files: u64,
     pub block_bytes: u64,
     /// Anything else under the scene directory (nothing, today).

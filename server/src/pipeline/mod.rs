@@ -233,7 +233,7 @@ impl MemoryPlan {
         if levels > 1 { levels as u64 * FULL_LOD_BLOCK_BYTES as u64 } else { 0 }
     }
 
-    /// The writer's queue and its open packs' buffers (one per page layer).
+    /// The writer's queue, its open pack's buffer and the pages held until that pack closes.
     fn writer(levels: u8) -> u64 {
         (WRITER_BYTES + write::pack_writer_bytes(levels)) as u64
     }

@@ -2,13 +2,14 @@
 //! pages into a scene directory and publishes it atomically.
 //!
 //! Layout: `<store>/<id>/manifest.json`, `<store>/<id>/pages/<key>.vxh` and
-//! `<store>/<id>/packs/<blake3>.vxp`: one pack per hierarchy page, the encoded
-//! bytes of the blocks the page lists, concatenated in the order they were
-//! finished (the pyramid's post order); the root block goes last into the root
-//! page's pack. A pack is appended to a temporary file while its page is open
-//! (blake3 hashed as it grows), synced once and renamed to its content address
-//! when the page's root block arrives; then the page, which names the pack, is
-//! written. A scene is written under `<store>/.tmp-<id>-<pid>-<n>` and renamed
+//! `<store>/<id>/packs/<blake3>.vxp`: the encoded bytes of blocks concatenated
+//! in the order they were finished (the pyramid's post order), a pack closing
+//! at [`PACK_MIN_BLOCKS`] blocks or [`PACK_MAX_BYTES`], so one pack spans
+//! several pages; the root block goes last, into the last pack. The one open
+//! pack is a temporary file (blake3 hashed as it grows), synced once and
+//! renamed to its content address when it closes; a page, which names its
+//! packs by hash, is written once its root block came and every pack it names
+//! is closed (until then the [`PageBuilder`] holds it). A scene is written under `<store>/.tmp-<id>-<pid>-<n>` and renamed
 //! into place only once every file is written and synced, so readers never see
 //! a half-written scene. Directories starting with `.` are never listed.
 //!
@@ -18,13 +19,12 @@
 //! is visible before that rename, so a crash before it leaves only a `.tmp-*`
 //! directory that start-up cleanup removes.
 
-use std::collections::BTreeMap;
 use std::fs;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
-use voxstream_format::hierarchy::{is_page_root_level, pack_path, page_path, page_root_of};
+use voxstream_format::hierarchy::{pack_path, page_path};
 use voxstream_format::{
     BLOCK_SIZE, Block, BlockEntry, BlockKey, BlockLocation, FORMAT_VERSION, GridFrame, LevelInfo, Manifest,
     PAGE_LEVELS, PackRef, PackedVoxel, PageBuilder, PageError, ResolutionChoice, SourceInfo, VoxelBounds,
@@ -184,35 +184,51 @@ pub fn post_order_key(key: &BlockKey) -> (u64, u8) {
 /// Buffer of each open pack file.
 pub const PACK_BUFFER_BYTES: usize = 64 << 10;
 
-/// Packs open at once when blocks come in post order: one per page layer
-/// (the pages on the path from the root to the current block), plus one.
-pub fn open_packs(levels: u8) -> usize {
-    (levels as usize).div_ceil(PAGE_LEVELS as usize) + 1
-}
+/// A pack closes once it holds this many blocks: the goal is at most one object per
+/// 256 blocks in a bucket, where every object costs a request and a listing entry.
+pub const PACK_MIN_BLOCKS: usize = 256;
 
-/// Memory the writer's open packs take (their buffers).
+/// ... or once it reaches this many bytes, whichever comes first. Past a few MB a request's
+/// fixed cost (≈ one round trip) is small next to its transfer, so bigger objects save little,
+/// while a bucket build holds whole packs in its upload queue ([`crate::bucket_build`]) and a
+/// static host's 200-instead-of-206 answer sends a whole pack: 8 MiB bounds both. Cedar Creek's
+/// blocks average about 20 KB, so 256 of them stay under it.
+pub const PACK_MAX_BYTES: u64 = 8 << 20;
+
+/// Memory a held page entry takes at most (the entry with its hash string, in a `Vec`).
+const HELD_ENTRY_BYTES: usize = 192;
+
+/// Memory the writer's one open pack (its buffer) and its held pages take at most. Pages wait
+/// for the open pack to close; every held page is rooted in it, so they hold at most its
+/// [`PACK_MIN_BLOCKS`] entries plus, for each page layer, the entries of one page filled
+/// before it ([`PageBuilder`]'s notes).
 pub fn pack_writer_bytes(levels: u8) -> usize {
-    open_packs(levels) * PACK_BUFFER_BYTES
+    let layers = (levels as usize).div_ceil(PAGE_LEVELS as usize);
+    let held = PACK_MIN_BLOCKS + layers * voxstream_format::hierarchy::MAX_PAGE_ENTRIES as usize;
+    PACK_BUFFER_BYTES + held * HELD_ENTRY_BYTES
 }
 
-/// A page's pack while its page is open: a temporary file in `packs/`,
-/// hashed as it grows.
+/// The pack being appended to: a temporary file in `packs/`, hashed as it grows.
 struct OpenPack {
+    serial: u32,
     path: PathBuf,
     file: BufWriter<fs::File>,
     hasher: blake3::Hasher,
     len: u64,
+    blocks: usize,
 }
 
 impl OpenPack {
-    fn create(packs_dir: &Path, page: &BlockKey) -> Result<Self, StoreError> {
-        let path = packs_dir.join(format!("{page}.open"));
+    fn create(packs_dir: &Path, serial: u32) -> Result<Self, StoreError> {
+        let path = packs_dir.join(format!("{serial}.open"));
         let file = fs::File::create(&path).map_err(io("create", &path))?;
         Ok(Self {
+            serial,
             path,
             file: BufWriter::with_capacity(PACK_BUFFER_BYTES, file),
             hasher: blake3::Hasher::new(),
             len: 0,
+            blocks: 0,
         })
     }
 
@@ -222,7 +238,12 @@ impl OpenPack {
         self.hasher.update(bytes);
         let at = self.len;
         self.len += bytes.len() as u64;
+        self.blocks += 1;
         Ok(at)
+    }
+
+    fn is_full(&self, max_bytes: u64) -> bool {
+        self.blocks >= PACK_MIN_BLOCKS || self.len >= max_bytes
     }
 
     /// Syncs the pack once and renames it to its content address in `scene_dir`.
@@ -251,24 +272,27 @@ pub const ENCODE_BYTES_PER_VOXEL: usize = 48;
 
 /// Takes finished blocks one at a time, in any order with children before
 /// parents, packs and encodes them on all cores in batches of at most
-/// `pending_limit` bytes, appends each, in the order it came, to its page's
-/// pack in a temporary scene directory, feeds its entry to the
-/// [`PageBuilder`] (closing the pack and writing the page when the page's
-/// root comes) and drops it. The packs' bytes depend on the order blocks
-/// come in: the build gives post order ([`post_order_key`]), and only
-/// [`open_packs`] packs are open at once then. [`BlockWriter::finish`] writes
-/// the manifest last and publishes the scene atomically; dropped before that,
-/// the writer removes what it wrote.
+/// `pending_limit` bytes, appends each, in the order it came, to the one open
+/// pack in a temporary scene directory (closed at [`PACK_MIN_BLOCKS`] blocks
+/// or [`PACK_MAX_BYTES`], and at the end), feeds its entry to the
+/// [`PageBuilder`] (which seals a page once its root came and its packs are
+/// closed; the writer then writes it) and drops it. The packs' bytes depend on
+/// the order blocks come in: the build gives post order ([`post_order_key`]),
+/// which also keeps the held pages few. [`BlockWriter::finish`] writes the
+/// manifest last and publishes the scene atomically; dropped before that, the
+/// writer removes what it wrote.
 pub struct BlockWriter {
     store: PathBuf,
     id: String,
     tmp: PathBuf,
     packs_dir: PathBuf,
-    /// Open packs by the root of the page they belong to (the root block's
-    /// own key for the root page's pack, which the root block closes).
-    packs: BTreeMap<BlockKey, OpenPack>,
-    coarsest: u8,
-    root_pack: Option<PackRef>,
+    /// The pack being filled, if any.
+    pack: Option<OpenPack>,
+    /// Serial of the next pack to open.
+    next_pack: u32,
+    /// [`PACK_MAX_BYTES`] (tests lower it).
+    pack_max_bytes: u64,
+    packs_closed: usize,
     pending: Vec<LodBlock>,
     pending_bytes: usize,
     pending_limit: usize,
@@ -298,9 +322,10 @@ impl BlockWriter {
             id: id.to_string(),
             tmp,
             packs_dir,
-            packs: BTreeMap::new(),
-            coarsest: levels - 1,
-            root_pack: None,
+            pack: None,
+            next_pack: 0,
+            pack_max_bytes: PACK_MAX_BYTES,
+            packs_closed: 0,
             pending: Vec::new(),
             pending_bytes: 0,
             pending_limit,
@@ -357,7 +382,8 @@ impl BlockWriter {
         self.place(entry, bytes)
     }
 
-    /// Appends one encoded block to its page's pack and records its entry.
+    /// Appends one encoded block to the open pack (opening one if needed),
+    /// records its entry, and closes the pack once it is full.
     fn place(&mut self, mut e: BlockEntry, bytes: &[u8]) -> Result<(), StoreError> {
         let level = self.levels.get_mut(e.key.level as usize).ok_or_else(|| StoreError::Damaged {
             id: self.id.clone(),
@@ -367,38 +393,43 @@ impl BlockWriter {
         level.voxels += e.voxels as u64;
         level.bytes += e.bytes as u64;
         self.written += 1;
-        let key = e.key;
-        // A block's bytes go to the pack of the page listing it; the root's
-        // (listed by the manifest) to the root page's, which it closes.
-        let home = page_root_of(&key, self.coarsest, PAGE_LEVELS).unwrap_or(key);
-        let pack = match self.packs.entry(home) {
-            std::collections::btree_map::Entry::Occupied(o) => o.into_mut(),
-            std::collections::btree_map::Entry::Vacant(v) => {
-                v.insert(OpenPack::create(&self.packs_dir, &home)?)
+        let pack = match self.pack.take() {
+            Some(p) => self.pack.insert(p),
+            None => {
+                let serial = self.next_pack;
+                self.next_pack += 1;
+                self.pack.insert(OpenPack::create(&self.packs_dir, serial)?)
             }
         };
-        e.location = BlockLocation { pack: 0, offset: pack.append(bytes)? };
-        let roots_page = is_page_root_level(key.level, self.coarsest, PAGE_LEVELS);
-        let closed = if roots_page || key.level == self.coarsest {
-            match self.packs.remove(&key).map(|p| p.close(&self.tmp)).transpose()? {
-                Some((pack, path)) => {
-                    if let Some(sink) = &self.finished_files {
-                        // Read back from the page cache: the writer holds no pack in memory.
-                        let bytes = fs::read(&path).map_err(io("read", &path))?;
-                        (sink.0)(&pack_path(&pack.hash), bytes).map_err(|e| self.sink_failed(e))?;
-                    }
-                    Some(pack)
-                }
-                None => None,
-            }
-        } else {
-            None
-        };
-        if key.level == self.coarsest {
-            self.root_pack = closed.clone();
+        e.location = BlockLocation { pack: pack.serial, offset: pack.append(bytes)? };
+        let full = pack.is_full(self.pack_max_bytes);
+        let pages = self.pages.add(e).map_err(page_err)?;
+        self.write_pages(pages)?;
+        if full {
+            self.close_pack()?;
         }
-        let page_pack = if roots_page { closed } else { None };
-        if let Some((page_ref, bytes)) = self.pages.add_packed(e, page_pack).map_err(page_err)? {
+        Ok(())
+    }
+
+    /// Closes the open pack (synced, renamed to its content address, handed to
+    /// `finished_files`) and writes the pages that were waiting for it.
+    fn close_pack(&mut self) -> Result<(), StoreError> {
+        let Some(open) = self.pack.take() else { return Ok(()) };
+        let serial = open.serial;
+        let (pack, path) = open.close(&self.tmp)?;
+        if let Some(sink) = &self.finished_files {
+            // Read back from the page cache: the writer holds no pack in memory.
+            let bytes = fs::read(&path).map_err(io("read", &path))?;
+            (sink.0)(&pack_path(&pack.hash), bytes).map_err(|e| self.sink_failed(e))?;
+        }
+        self.packs_closed += 1;
+        let pages = self.pages.pack_closed(serial, pack).map_err(page_err)?;
+        self.write_pages(pages)
+    }
+
+    /// Writes sealed pages (no sync of their own: [`sync_tree`] at the end).
+    fn write_pages(&self, pages: Vec<voxstream_format::hierarchy::FinishedPage>) -> Result<(), StoreError> {
+        for (page_ref, bytes) in pages {
             write_unsynced(&self.tmp.join(page_path(&page_ref.root)), &bytes)?;
             if let Some(sink) = &self.finished_files {
                 let name = crate::bucket_store::bucket_page_path(&page_ref.root, &page_ref.hash);
@@ -412,9 +443,14 @@ impl BlockWriter {
         StoreError::Damaged { id: self.id.clone(), message }
     }
 
-    /// Packs being appended to now.
-    pub fn open_packs(&self) -> usize {
-        self.packs.len()
+    /// Packs closed so far.
+    pub fn packs_closed(&self) -> usize {
+        self.packs_closed
+    }
+
+    /// Entries of pages held until the open pack closes.
+    pub fn held_page_entries(&self) -> usize {
+        self.pages.held_entries()
     }
 
     /// Blocks written so far.
@@ -432,11 +468,9 @@ impl BlockWriter {
         resolution_choice: ResolutionChoice,
     ) -> Result<Manifest, StoreError> {
         self.flush()?;
+        self.close_pack()?;
         let pages = std::mem::replace(&mut self.pages, PageBuilder::new(0, PAGE_LEVELS));
-        let (root, root_page) = pages.finish().map_err(page_err)?;
-        if let Some(k) = self.packs.keys().next() {
-            return Err(page_err(PageError::Order(format!("the pack of page {k} was never closed"))));
-        }
+        let top = pages.finish().map_err(page_err)?;
         let manifest = Manifest {
             format_version: FORMAT_VERSION,
             name,
@@ -446,9 +480,9 @@ impl BlockWriter {
             levels: std::mem::take(&mut self.levels),
             resolution_choice,
             page_levels: PAGE_LEVELS,
-            root,
-            root_page,
-            root_pack: self.root_pack.take(),
+            root: top.root,
+            root_page: top.root_page,
+            root_pack: top.root_pack,
         };
         write_unsynced(&self.tmp.join("manifest.json"), &manifest.to_json())?;
         sync_tree(&self.tmp, &[self.packs_dir.clone(), self.tmp.join("pages")])?;
@@ -579,13 +613,26 @@ mod tests {
         keys.into_iter().map(|key| LodBlock { key, voxels: vec![voxel] }).collect()
     }
 
-    fn most_open_packs(blocks: &[LodBlock], store: &Path, resolution: u32) -> (usize, Manifest) {
+    /// Writes `blocks` in the order given; returns the manifest, the packs' block counts in
+    /// the order they closed, and the most page entries held at once.
+    fn write_packed(
+        blocks: &[LodBlock],
+        store: &Path,
+        resolution: u32,
+        pack_max_bytes: u64,
+    ) -> (Manifest, Vec<usize>, usize) {
         let mut w = BlockWriter::create(store, "t", resolution, 1).unwrap();
-        let mut most = 0;
+        w.pack_max_bytes = pack_max_bytes;
+        let (mut per_pack, mut in_pack, mut most_held) = (Vec::new(), 0, 0);
         for b in blocks {
             w.add(b.clone()).unwrap();
             w.flush().unwrap();
-            most = most.max(w.open_packs());
+            in_pack += 1;
+            if w.packs_closed() > per_pack.len() {
+                per_pack.push(in_pack);
+                in_pack = 0;
+            }
+            most_held = most_held.max(w.held_page_entries());
         }
         let m = w
             .finish(
@@ -601,36 +648,48 @@ mod tests {
                 },
             )
             .unwrap();
-        (most, m)
+        if in_pack > 0 {
+            per_pack.push(in_pack);
+        }
+        (m, per_pack, most_held)
     }
 
-    /// Fails if the writer holds more packs open than one per page layer when
-    /// blocks come in post order (the build's order), i.e. if its files or
-    /// buffers grow with the scene; the control shows level order would.
+    /// Packs hold [`PACK_MIN_BLOCKS`] blocks each (the last one the rest) and span pages, every
+    /// block reads back from its range, and the pages held for the open pack stay within the
+    /// bound [`MemoryPlan`](crate::pipeline::MemoryPlan) counts. Control: with a tiny byte cap
+    /// the packs close on bytes instead, one block each.
     #[test]
-    fn post_order_keeps_one_pack_open_per_page_layer() {
-        let (resolution, coarsest) = (4096, 6);
-        let mut blocks = diagonal_tree(64, coarsest);
+    fn packs_span_pages_and_close_at_256_blocks() {
+        let (resolution, coarsest) = (65536, 10);
+        let mut blocks = diagonal_tree(1024, coarsest);
         blocks.sort_by_key(|b| post_order_key(&b.key));
         let dir = tempfile::tempdir().unwrap();
-        let (most, manifest) = most_open_packs(&blocks, dir.path(), resolution);
-        let bound = open_packs(level_count(resolution));
-        assert!(most <= bound, "{most} packs open at once, bound {bound}");
+        let (manifest, per_pack, most_held) = write_packed(&blocks, dir.path(), resolution, PACK_MAX_BYTES);
+        assert_eq!(per_pack.len(), blocks.len().div_ceil(PACK_MIN_BLOCKS), "{per_pack:?}");
+        assert!(per_pack[..per_pack.len() - 1].iter().all(|&n| n == PACK_MIN_BLOCKS), "{per_pack:?}");
+        let layers = (level_count(resolution) as usize).div_ceil(PAGE_LEVELS as usize);
+        let bound = PACK_MIN_BLOCKS + layers * voxstream_format::hierarchy::MAX_PAGE_ENTRIES as usize;
+        assert!(most_held > 0 && most_held <= bound, "{most_held} entries held, bound {bound}");
+        assert!(pack_writer_bytes(level_count(resolution)) >= bound * HELD_ENTRY_BYTES);
         let scene = crate::store::open_scene(dir.path(), "t").unwrap();
         assert_eq!(scene.manifest, manifest);
         assert_eq!(scene.blocks().len(), blocks.len());
         let pages = std::fs::read_dir(dir.path().join("t/pages")).unwrap().count();
         let packs = std::fs::read_dir(dir.path().join("t/packs")).unwrap().count();
-        assert_eq!((pages, packs), (9, 9), "the root page and 8 level-3 pages, a pack each");
+        assert_eq!(packs, per_pack.len());
+        assert!(pages > 2 * packs, "{pages} pages, {packs} packs: packs span pages");
+        assert_eq!(scene.index.packs().count(), packs);
         for e in scene.blocks() {
             let bytes = scene.read_block(e).unwrap();
             assert_eq!(voxstream_format::decode_block(&bytes).unwrap().key, e.key);
         }
-        // Control: level order (finest first) keeps every level-3 page's pack open at once.
-        blocks.sort_by_key(|b| (b.key.level, b.key));
+        // Control: a byte cap below one block's size closes a pack after every block.
+        let mut small = diagonal_tree(64, 6);
+        small.sort_by_key(|b| post_order_key(&b.key));
         let dir = tempfile::tempdir().unwrap();
-        let (level_order, _) = most_open_packs(&blocks, dir.path(), resolution);
-        assert!(level_order > bound, "level order opened only {level_order} packs");
+        let (_, per_pack, _) = write_packed(&small, dir.path(), 4096, 1);
+        assert_eq!(per_pack.len(), small.len(), "{per_pack:?}");
+        crate::store::open_scene(dir.path(), "t").unwrap();
     }
 
     /// Every directory of a store by the manifest text it holds.

@@ -13,6 +13,9 @@ use std::time::{Duration, Instant};
 use object_store::ObjectStore;
 use object_store::aws::AmazonS3Builder;
 
+/// Website requests name their bucket in the Host header: `<bucket>` + this.
+pub const WEB_ROOT_DOMAIN: &str = ".web.garage.localhost";
+
 pub struct Garage {
     child: Child,
     bin: PathBuf,
@@ -20,6 +23,9 @@ pub struct Garage {
     _dir: tempfile::TempDir,
     /// `http://127.0.0.1:<port>` of the S3 API.
     pub endpoint: String,
+    /// `http://127.0.0.1:<port>` of the website endpoint: a bucket with website access
+    /// ([`Garage::allow_website`]) is served there to requests with `Host: <bucket>` + [`WEB_ROOT_DOMAIN`].
+    pub web_endpoint: String,
     pub key_id: String,
     pub secret: String,
 }
@@ -46,7 +52,7 @@ impl Garage {
     pub fn start() -> Garage {
         let bin = garage_bin();
         let dir = tempfile::tempdir().unwrap();
-        let (rpc, s3, admin) = (free_port(), free_port(), free_port());
+        let (rpc, s3, admin, web) = (free_port(), free_port(), free_port(), free_port());
         let secret: String = (0..32).map(|_| format!("{:02x}", rand::random::<u8>())).collect();
         let config = dir.path().join("garage.toml");
         std::fs::write(
@@ -56,7 +62,8 @@ impl Garage {
                  replication_factor = 1\nrpc_bind_addr = \"127.0.0.1:{rpc}\"\n\
                  rpc_public_addr = \"127.0.0.1:{rpc}\"\nrpc_secret = \"{secret}\"\n\
                  [s3_api]\ns3_region = \"garage\"\napi_bind_addr = \"127.0.0.1:{s3}\"\n\
-                 root_domain = \".s3.garage.localhost\"\n[admin]\napi_bind_addr = \"127.0.0.1:{admin}\"\n",
+                 root_domain = \".s3.garage.localhost\"\n[admin]\napi_bind_addr = \"127.0.0.1:{admin}\"\n\
+                 [s3_web]\nbind_addr = \"127.0.0.1:{web}\"\nroot_domain = \"{WEB_ROOT_DOMAIN}\"\n",
                 meta = dir.path().join("meta").display(),
                 data = dir.path().join("data").display(),
             ),
@@ -78,6 +85,7 @@ impl Garage {
             config,
             _dir: dir,
             endpoint: format!("http://127.0.0.1:{s3}"),
+            web_endpoint: format!("http://127.0.0.1:{web}"),
             key_id: String::new(),
             secret: String::new(),
         };
@@ -124,6 +132,11 @@ impl Garage {
     pub fn create_bucket(&self, name: &str) {
         self.cli(&["bucket", "create", name]);
         self.cli(&["bucket", "allow", "--read", "--write", "--owner", name, "--key", &self.key_id]);
+    }
+
+    /// Serves `bucket` as a static website on [`Garage::web_endpoint`] (`index.html` as index).
+    pub fn allow_website(&self, bucket: &str) {
+        self.cli(&["bucket", "website", "--allow", bucket]);
     }
 
     /// The `AWS_*` variables a voxstream process needs for this node (in its environment, never
