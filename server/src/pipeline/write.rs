@@ -129,7 +129,7 @@ fn tight_bounds(b: &LodBlock) -> VoxelBounds {
     if b.voxels.is_empty() {
         return VoxelBounds { min: [u32::MAX; 3], max: [0; 3] };
     }
-    let (lo, hi) = (lo.map(|m| demorton3(m)), hi.map(|m| demorton3(m)));
+    let (lo, hi) = (lo.map(demorton3), hi.map(demorton3));
     VoxelBounds {
         min: std::array::from_fn(|a| base[a] + lo[a][a]),
         max: std::array::from_fn(|a| base[a] + hi[a][a] + 1),
