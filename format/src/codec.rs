@@ -37,7 +37,7 @@ pub const HEADER_LEN: usize = 28;
 /// Header flag: the block has a colour column.
 pub const FLAG_COLOR: u8 = 1;
 /// Octree depth of a 64³ block: 6 levels of 2³.
-const BLOCK_DEPTH: u32 = 6;
+pub const BLOCK_DEPTH: u32 = 6;
 
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
 pub enum CodecError {
@@ -127,25 +127,40 @@ fn predicted_faces(depth: u32, morton: &[u32]) -> Vec<u8> {
 
 fn octree_masks(depth: u32, morton: &[u32]) -> Vec<u8> {
     let mut out = Vec::new();
-    for d in 0..depth {
-        // Nodes at depth d + 1 are the prefixes `m >> shift`; group them by parent.
-        let shift = 3 * (depth - 1 - d);
-        let mut parent = None;
-        let mut last_child = None;
-        for &m in morton {
-            let child = m >> shift;
-            if last_child == Some(child) {
-                continue;
-            }
-            last_child = Some(child);
-            if parent != Some(child >> 3) {
-                parent = Some(child >> 3);
-                out.push(0);
-            }
-            *out.last_mut().expect("pushed") |= 1 << (child & 7);
-        }
-    }
+    write_octree_masks(depth, morton, &mut out);
     out
+}
+
+/// Appends the occupancy column: the octree's child masks, breadth first.
+///
+/// One pass over the voxels: a voxel opens a new node at every depth below
+/// the first where its path leaves the previous voxel's (Morton order keeps
+/// each node's voxels together), and sets its child bit in the node it shares.
+/// The nodes of each depth come out in order; the depths are then concatenated.
+fn write_octree_masks(depth: u32, morton: &[u32], out: &mut Vec<u8>) {
+    debug_assert!((1..=7).contains(&depth) && morton.windows(2).all(|w| w[0] < w[1]));
+    let Some(&first) = morton.first() else { return };
+    let depth = depth as usize;
+    // Masks of the nodes at each depth (0 = the root).
+    let mut levels: [Vec<u8>; 7] = Default::default();
+    let child_at = |m: u32, d: usize| (m >> (3 * (depth - 1 - d))) & 7;
+    for (d, level) in levels.iter_mut().enumerate().take(depth) {
+        level.push(1 << child_at(first, d));
+    }
+    let mut prev = first;
+    for &m in &morton[1..] {
+        // Shallowest depth whose child differs: the paths agree above it.
+        let diff_bits = 32 - (m ^ prev).leading_zeros() as usize;
+        let split = depth - diff_bits.div_ceil(3);
+        *levels[split].last_mut().expect("the first voxel opened every depth") |= 1 << child_at(m, split);
+        for (d, level) in levels.iter_mut().enumerate().take(depth).skip(split + 1) {
+            level.push(1 << child_at(m, d));
+        }
+        prev = m;
+    }
+    for level in &levels[..depth] {
+        out.extend_from_slice(level);
+    }
 }
 
 fn delta_plane(values: impl Iterator<Item = u8>, out: &mut Vec<u8>) {
@@ -192,21 +207,61 @@ impl VoxelColumns {
     fn sections(&self) -> [Vec<u8>; 5] {
         let n = self.len();
         let occupancy = octree_masks(self.depth, &self.morton);
-        let faces =
-            self.faces.iter().zip(predicted_faces(self.depth, &self.morton)).map(|(f, p)| f ^ p).collect();
+        let mut faces = Vec::with_capacity(n);
+        self.write_faces(false, &mut faces);
         let mut normals = Vec::with_capacity(2 * n);
-        delta_plane(self.normal.iter().map(|n| *n as u8), &mut normals);
-        delta_plane(self.normal.iter().map(|n| (n >> 8) as u8), &mut normals);
+        self.write_normals(&mut normals);
         let mut colors = Vec::with_capacity(3 * self.color.len());
-        for c in 0..3 {
-            delta_plane(self.color.iter().map(|rgb| rgb[c]), &mut colors);
-        }
+        self.write_colors(&mut colors);
         [occupancy, faces, normals, self.coverage.clone(), colors]
+    }
+
+    /// The faces column: each mask XOR the mask predicted from occupancy.
+    /// `predicted`: the caller knows every mask equals its prediction (a
+    /// level-0 block whose faces were marked over exactly these voxels), so
+    /// the column is zeros and the neighbour lookups are skipped.
+    fn write_faces(&self, predicted: bool, out: &mut Vec<u8>) {
+        if predicted {
+            debug_assert_eq!(
+                self.faces,
+                predicted_faces(self.depth, &self.morton),
+                "faces are not the prediction"
+            );
+            out.resize(out.len() + self.len(), 0);
+        } else {
+            let p = predicted_faces(self.depth, &self.morton);
+            out.extend(self.faces.iter().zip(p).map(|(f, p)| f ^ p));
+        }
+    }
+
+    fn write_normals(&self, out: &mut Vec<u8>) {
+        delta_plane(self.normal.iter().map(|n| *n as u8), out);
+        delta_plane(self.normal.iter().map(|n| (n >> 8) as u8), out);
+    }
+
+    fn write_colors(&self, out: &mut Vec<u8>) {
+        for c in 0..3 {
+            delta_plane(self.color.iter().map(|rgb| rgb[c]), out);
+        }
+    }
+
+    /// Appends the uncompressed payload (the sections in order) to `out`;
+    /// `faces_predicted` as in [`Self::write_faces`].
+    fn write_payload(&self, faces_predicted: bool, out: &mut Vec<u8>) {
+        let n = self.len();
+        out.reserve(n * (4 + self.coverage.len().min(1) + 3 * self.color.len().min(1)));
+        write_octree_masks(self.depth, &self.morton, out);
+        self.write_faces(faces_predicted, out);
+        self.write_normals(out);
+        out.extend_from_slice(&self.coverage);
+        self.write_colors(out);
     }
 
     /// The uncompressed payload.
     pub fn payload(&self) -> Vec<u8> {
-        self.sections().concat()
+        let mut out = Vec::new();
+        self.write_payload(false, &mut out);
+        out
     }
 
     /// Each column lz4-compressed on its own (the sum is a little more than
@@ -325,18 +380,40 @@ fn max_payload(count: usize, has_coverage: bool, has_color: bool) -> usize {
 pub fn encode_block(block: &Block) -> Vec<u8> {
     debug_assert!(block.voxels.windows(2).all(|w| w[0].morton() < w[1].morton()));
     debug_assert!(block.key.level > 0 || block.voxels.iter().all(|v| v.coverage() == FULL_COVERAGE));
-    let columns = VoxelColumns::from_block(block);
-    let raw = columns.payload();
+    encode_columns(block.key, &VoxelColumns::from_block(block), false)
+}
+
+/// Encodes a 64³ block given as columns: the bytes of [`encode_block`] for
+/// the block whose [`VoxelColumns::from_block`] they are (Morton codes
+/// strictly increasing, coverage present iff `key.level > 0`, colour empty
+/// or one per voxel). `faces_predicted`: every face mask is the one
+/// predicted from occupancy (true of a level-0 block whose masks were marked
+/// over exactly these voxels), which spares the codec its own prediction.
+pub fn encode_columns(key: BlockKey, columns: &VoxelColumns, faces_predicted: bool) -> Vec<u8> {
+    let n = columns.len();
+    assert!(columns.depth == BLOCK_DEPTH && n <= BLOCK_VOXELS, "not a 64³ block's columns");
+    assert_eq!(
+        columns.coverage.is_empty(),
+        key.level == 0 || n == 0,
+        "coverage is stored above level 0 only"
+    );
+    assert!(
+        columns.faces.len() == n
+            && columns.normal.len() == n
+            && (columns.color.is_empty() || columns.color.len() == n)
+    );
+    let mut raw = Vec::new();
+    columns.write_payload(faces_predicted, &mut raw);
     let packed = lz4_flex::block::compress(&raw);
     let flags = if columns.color.is_empty() { 0 } else { FLAG_COLOR };
 
     let mut out = Vec::with_capacity(HEADER_LEN + packed.len());
     out.extend_from_slice(&BLOCK_MAGIC);
-    out.extend_from_slice(&[block.key.level, flags, 0, 0]);
-    for c in block.key.coord() {
+    out.extend_from_slice(&[key.level, flags, 0, 0]);
+    for c in key.coord() {
         out.extend_from_slice(&c.to_le_bytes());
     }
-    out.extend_from_slice(&(columns.len() as u32).to_le_bytes());
+    out.extend_from_slice(&(n as u32).to_le_bytes());
     out.extend_from_slice(&(raw.len() as u32).to_le_bytes());
     out.extend_from_slice(&packed);
     out
@@ -414,6 +491,57 @@ mod tests {
             key,
             voxels: locals.into_iter().map(|(p, f, n)| PackedVoxel::new(p, f, oct_encode(n))).collect(),
         }
+    }
+
+    /// The breadth-first octree as first written (one pass per depth): the
+    /// reference for the one-pass `write_octree_masks`.
+    fn octree_masks_by_depth(depth: u32, morton: &[u32]) -> Vec<u8> {
+        let mut out = Vec::new();
+        for d in 0..depth {
+            let shift = 3 * (depth - 1 - d);
+            let (mut parent, mut last_child) = (None, None);
+            for &m in morton {
+                let child = m >> shift;
+                if last_child == Some(child) {
+                    continue;
+                }
+                last_child = Some(child);
+                if parent != Some(child >> 3) {
+                    parent = Some(child >> 3);
+                    out.push(0);
+                }
+                *out.last_mut().expect("pushed") |= 1 << (child & 7);
+            }
+        }
+        out
+    }
+
+    proptest! {
+        /// Fails if the one-pass octree differs from the per-depth one at any depth.
+        #[test]
+        fn one_pass_octree_matches_the_per_depth_one(depth in 1u32..=7, raw in proptest::collection::vec(any::<u32>(), 0..600)) {
+            let mut morton: Vec<u32> = raw.iter().map(|m| m % (1 << (3 * depth))).collect();
+            morton.sort_unstable();
+            morton.dedup();
+            prop_assert_eq!(octree_masks(depth, &morton), octree_masks_by_depth(depth, &morton));
+        }
+    }
+
+    /// Fails if `encode_columns` with the faces declared predicted differs from
+    /// `encode_block` on a block whose faces are the prediction.
+    #[test]
+    fn predicted_faces_encode_the_same_bytes() {
+        // A one-voxel-thick plane: no voxel is buried, so every predicted mask is a valid one.
+        let locals: Vec<Spec> =
+            (0..400u32).map(|i| ([i % 20 + 20, i / 20, 30], 0, [0.3, -0.2, 0.9])).collect();
+        let mut block = block_from(locals);
+        let morton: Vec<u32> = block.voxels.iter().map(PackedVoxel::morton).collect();
+        for (v, f) in block.voxels.iter_mut().zip(predicted_faces(BLOCK_DEPTH, &morton)) {
+            *v = PackedVoxel::new(v.local(), f, v.normal);
+        }
+        let columns = VoxelColumns::from_block(&block);
+        assert_eq!(encode_columns(block.key, &columns, true), encode_block(&block));
+        assert_eq!(decode_block(&encode_block(&block)), Ok(block));
     }
 
     fn block_from(locals: Vec<Spec>) -> Block {

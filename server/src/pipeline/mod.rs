@@ -351,8 +351,11 @@ fn level0_block(
     };
     mark_exposed_faces_lod(&mut block);
     let share = if levels > 1 { parent_share(&block) } else { Vec::new() };
+    let marked = block.voxels.len();
     block.voxels.retain(|v| v.voxel.faces != 0);
-    let encoded = (!block.voxels.is_empty()).then(|| write::encode_entry(&block));
+    // With no buried voxel dropped, every mask is the codec's own prediction.
+    let encode = if block.voxels.len() == marked { write::encode_marked_entry } else { write::encode_entry };
+    let encoded = (!block.voxels.is_empty()).then(|| encode(&block));
     Ok(Some(Level0 { key, share, encoded }))
 }
 
@@ -363,37 +366,149 @@ enum ToFold {
     End,
 }
 
+/// An encoded block with the bytes it holds in `committed` until written.
+type Encoded = ((voxstream_format::BlockEntry, Vec<u8>), usize);
+
+/// A block waiting its turn to be written: ready, or a coarse block being
+/// encoded on the rayon pool (its result comes on the channel).
+enum Queued {
+    Ready(Encoded),
+    Encoding(mpsc::Receiver<std::thread::Result<(voxstream_format::BlockEntry, Vec<u8>)>>, usize),
+}
+
+/// The fold's side of the writer: blocks enter in post order and are written
+/// in that order; coarse blocks are encoded on the rayon pool meanwhile.
+///
+/// Memory: a coarse block encoded off the fold thread holds its voxels and
+/// encoding in `committed` (within `limit`, the producer's) until written.
+/// When it does not fit, the queue is written out first, and a block that
+/// still does not fit is encoded on the fold thread, as the plan reserves
+/// (one coarse block, [`WRITER_BYTES`]).
+struct WriteQueue<'a> {
+    writer: &'a mut BlockWriter,
+    queue: std::collections::VecDeque<Queued>,
+    committed: &'a AtomicUsize,
+    limit: usize,
+    freed: mpsc::Sender<()>,
+}
+
+impl WriteQueue<'_> {
+    /// Queues a block already encoded (by a worker), holding `held` bytes.
+    fn push_ready(
+        &mut self,
+        encoded: Option<(voxstream_format::BlockEntry, Vec<u8>)>,
+        held: usize,
+    ) -> Result<(), BuildError> {
+        match encoded {
+            Some(e) => self.queue.push_back(Queued::Ready((e, held))),
+            None => self.release(held),
+        }
+        self.write_ready(false)
+    }
+
+    /// Queues a coarse block the pyramid completed, encoding it on the pool when its bytes fit.
+    fn push_coarse(&mut self, b: LodBlock) -> Result<(), BuildError> {
+        let held = b.voxels.capacity() * std::mem::size_of::<LodVoxel>()
+            + b.voxels.len() * ENCODE_BYTES_PER_VOXEL
+            + ENTRY_BYTES;
+        if !self.reserve(held) {
+            self.write_ready(true)?;
+            if !self.reserve(held) {
+                let encoded = write::encode_entry(&b);
+                drop(b);
+                return self.push_ready(Some(encoded), 0);
+            }
+        }
+        let (tx, rx) = mpsc::channel();
+        rayon::spawn(move || {
+            let _ =
+                tx.send(std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| write::encode_entry(&b))));
+        });
+        self.queue.push_back(Queued::Encoding(rx, held));
+        self.write_ready(false)
+    }
+
+    fn reserve(&self, bytes: usize) -> bool {
+        self.committed
+            .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |c| {
+                (c + bytes <= self.limit).then_some(c + bytes)
+            })
+            .is_ok()
+    }
+
+    fn release(&self, bytes: usize) {
+        self.committed.fetch_sub(bytes, Ordering::Relaxed);
+        let _ = self.freed.send(());
+    }
+
+    /// Writes the queue's head while it is ready; with `wait`, all of it.
+    fn write_ready(&mut self, wait: bool) -> Result<(), BuildError> {
+        while let Some(head) = self.queue.pop_front() {
+            let (encoded, held) = match head {
+                Queued::Ready(e) => e,
+                Queued::Encoding(rx, held) => {
+                    let got = if wait { rx.recv().ok() } else { rx.try_recv().ok() };
+                    match got {
+                        Some(Ok(e)) => (e, held),
+                        Some(Err(panic)) => std::panic::resume_unwind(panic),
+                        None if !wait => {
+                            self.queue.push_front(Queued::Encoding(rx, held));
+                            return Ok(());
+                        }
+                        None => unreachable!("an encoding job always sends its result"),
+                    }
+                }
+            };
+            let (entry, bytes) = encoded;
+            self.writer.add_encoded(entry, &bytes)?;
+            drop(bytes);
+            self.release(held);
+        }
+        Ok(())
+    }
+}
+
 /// The fold: takes level-0 results in Morton order, appends their shares to
-/// the pyramid, encodes the coarser blocks it completes (one at a time: an
-/// emitted block is out of the front, so the front's reserve holds it) and
-/// writes everything in post order. Frees each result's bytes in `committed`
-/// and says so on `freed`.
+/// the pyramid, has the coarser blocks it completes encoded on the pool and
+/// writes everything in post order ([`WriteQueue`]). Frees each result's
+/// bytes in `committed` once written and says so on `freed`.
 fn fold(
     from_producer: mpsc::Receiver<ToFold>,
     freed: mpsc::Sender<()>,
     committed: &AtomicUsize,
+    limit: usize,
     resolution: u32,
     writer: &mut BlockWriter,
 ) -> Result<(), BuildError> {
     let mut pyramid = Pyramid::new(resolution);
-    fn write_coarse(writer: &mut BlockWriter, b: LodBlock) -> Result<(), BuildError> {
-        let (entry, bytes) = write::encode_entry(&b);
-        drop(b);
-        Ok(writer.add_encoded(entry, &bytes)?)
-    }
-    for msg in from_producer {
+    let mut out = WriteQueue { writer, queue: Default::default(), committed, limit, freed };
+    loop {
+        let msg = match from_producer.try_recv() {
+            Ok(msg) => msg,
+            // Idle: finish the queued encodes first, so that their bytes are
+            // freed even if the producer now waits for memory.
+            Err(mpsc::TryRecvError::Empty) if !out.queue.is_empty() => {
+                out.write_ready(true)?;
+                continue;
+            }
+            Err(mpsc::TryRecvError::Empty) => match from_producer.recv() {
+                Ok(msg) => msg,
+                Err(mpsc::RecvError) => break,
+            },
+            Err(mpsc::TryRecvError::Disconnected) => break,
+        };
         match msg {
             ToFold::Block(mut l0) => {
                 let held = l0.bytes();
-                pyramid.push_share(l0.key, &l0.share, &mut |b| write_coarse(writer, b))?;
-                if let Some((entry, bytes)) = l0.encoded.take() {
-                    writer.add_encoded(entry, &bytes)?;
-                }
+                pyramid.push_share(l0.key, &l0.share, &mut |b| out.push_coarse(b))?;
+                let encoded = l0.encoded.take();
                 drop(l0);
-                committed.fetch_sub(held, Ordering::Relaxed);
-                let _ = freed.send(());
+                out.push_ready(encoded, held)?;
             }
-            ToFold::End => return pyramid.finish(&mut |b| write_coarse(writer, b)),
+            ToFold::End => {
+                pyramid.finish(&mut |b| out.push_coarse(b))?;
+                return out.write_ready(true);
+            }
         }
     }
     // The producer stopped without `End`: it failed, and returns its error.
@@ -416,9 +531,16 @@ fn voxelize_pyramid(
     let committed = AtomicUsize::new(0);
     let (to_fold, from_producer) = mpsc::channel();
     let (freed, on_freed) = mpsc::channel();
+    let pool = plan.pass3_pool(bins.index_bytes() as u64)? as usize;
+    let workers = (pool / WORKER_BYTES).clamp(1, rayon::current_num_threads());
+    // Capped: results running far ahead of the fold only cost memory (a
+    // 1 GiB build at 8192 otherwise peaked at 1005 MiB instead of ≈ 280).
+    let limit = (pool - workers * (WORKER_BYTES - IN_FLIGHT_BYTES))
+        .min(workers * IN_FLIGHT_BYTES + FOLD_BACKLOG_BYTES);
     std::thread::scope(|s| {
-        let folding = s.spawn(|| fold(from_producer, freed, &committed, frame.resolution, writer));
-        let produced = produce(bins, frame, opts, plan, progress, &committed, &to_fold, &on_freed);
+        let folding = s.spawn(|| fold(from_producer, freed, &committed, limit, frame.resolution, writer));
+        let produced =
+            produce(bins, frame, opts, (workers, limit), progress, &committed, &to_fold, &on_freed);
         drop(to_fold);
         let folded = folding.join().unwrap_or_else(|p| std::panic::resume_unwind(p));
         produced.and(folded)
@@ -436,7 +558,7 @@ fn produce(
     bins: &bin::Bins,
     frame: &voxstream_format::GridFrame,
     opts: &BuildOptions,
-    plan: &MemoryPlan,
+    (workers, limit): (usize, usize),
     progress: &ProgressSink,
     committed: &AtomicUsize,
     to_fold: &mpsc::Sender<ToFold>,
@@ -450,12 +572,6 @@ fn produce(
         done: Option<Result<Option<Level0>, BuildError>>,
     }
     let levels = level_count(frame.resolution);
-    let pool = plan.pass3_pool(bins.index_bytes() as u64)? as usize;
-    let workers = (pool / WORKER_BYTES).clamp(1, rayon::current_num_threads());
-    // Capped: results running far ahead of the fold only cost memory (a
-    // 1 GiB build at 8192 otherwise peaked at 1005 MiB instead of ≈ 280).
-    let limit = (pool - workers * (WORKER_BYTES - IN_FLIGHT_BYTES))
-        .min(workers * IN_FLIGHT_BYTES + FOLD_BACKLOG_BYTES);
     let window_len = 32 * workers;
     let total = bins.block_count().max(1);
     let mut blocks = bins.blocks();

@@ -27,7 +27,7 @@
 use std::collections::BTreeMap;
 
 use rayon::prelude::*;
-use voxstream_format::{BLOCK_SIZE, BLOCK_VOXELS, BlockKey, Face, demorton3, morton3};
+use voxstream_format::{BLOCK_SIZE, BLOCK_VOXELS, BlockKey, demorton3, morton3};
 
 use crate::pipeline::voxelize::{BuildVoxel, SparseBlock};
 
@@ -113,25 +113,28 @@ fn mark_faces<V: HasVoxel>(voxels: &mut [V]) {
         occupied[m as usize / 64] |= 1 << (m % 64);
     }
     let is_set = |m: u32| occupied[m as usize / 64] & (1 << (m % 64)) != 0;
-    // The neighbour one step along an axis, found in Morton space: the axis's
-    // bits are incremented or decremented in place (the carry or borrow runs
-    // through the other axes' bits, which are masked off and put back).
+    // The neighbour one step along an axis, found in Morton space. The axis's
+    // lowest bit says which side shares the voxel's 2³ cell: that neighbour
+    // is the bit flipped; the other lies across the cell, found by
+    // incrementing or decrementing the axis's bits in place (the carry or
+    // borrow runs through the other axes' bits, which are masked off and put back).
     let masks: [u32; 3] = std::array::from_fn(|a| morton3(BLOCK_SIZE - 1, 0, 0) << a);
     for v in voxels {
         let v = v.build_voxel();
         let m = v.morton;
         let mut mask = 0u8;
-        for f in Face::ALL {
-            let axis = masks[f.axis()];
+        for (a, &axis) in masks.iter().enumerate() {
+            let bit = 1u32 << a;
             let along = m & axis;
-            let exposed = if f.sign() < 0 {
-                along == 0 || !is_set((along.wrapping_sub(1) & axis) | (m & !axis))
+            let (below, above) = if m & bit == 0 {
+                let below = along == 0 || !is_set((along.wrapping_sub(1) & axis) | (m & !axis));
+                (below, !is_set(m | bit))
             } else {
-                along == axis || !is_set(((m | !axis).wrapping_add(1) & axis) | (m & !axis))
+                let above = along == axis || !is_set(((m | !axis).wrapping_add(1) & axis) | (m & !axis));
+                (!is_set(m & !bit), above)
             };
-            if exposed {
-                mask |= f.bit();
-            }
+            // Face bits: 2a is the negative side of axis a, 2a + 1 the positive.
+            mask |= (below as u8) << (2 * a) | (above as u8) << (2 * a + 1);
         }
         v.faces = mask;
     }
@@ -423,6 +426,7 @@ pub fn build_levels(mut level0: Vec<SparseBlock>, resolution: u32) -> Vec<Vec<Lo
 #[cfg(test)]
 mod tests {
     use super::*;
+    use voxstream_format::Face;
 
     fn block_of(key: BlockKey, points: &[[u32; 3]]) -> SparseBlock {
         let mut voxels: Vec<BuildVoxel> = points

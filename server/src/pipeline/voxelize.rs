@@ -10,7 +10,7 @@
 use std::collections::BTreeMap;
 
 use rayon::prelude::*;
-use voxstream_format::{BLOCK_SIZE, BLOCK_VOXELS, BlockKey, GridFrame, morton3};
+use voxstream_format::{BLOCK_SIZE, BLOCK_VOXELS, BlockKey, GridFrame};
 
 use crate::pipeline::progress::{ProgressSink, Stage, StageCounter};
 use crate::pipeline::read::TriangleMesh;
@@ -455,13 +455,44 @@ fn voxel_range(t: &[[f64; 3]; 3], res: i64) -> ([i64; 3], [i64; 3]) {
 /// reused block after block: finishing a block clears only the voxels it set.
 pub(crate) struct BlockVoxelizer {
     bits: Vec<u64>,
-    normals: Vec<[f32; 3]>,
-    /// Area-weighted colour sums and the area behind them; allocated on the first coloured triangle.
-    colors: Vec<[f32; 4]>,
+    /// Each voxel's sums side by side (one cache line serves a hit): the
+    /// area-weighted normal sum, then, once a coloured triangle came, the
+    /// area-weighted colour sum and the area behind it. `stride` floats a voxel.
+    sums: Vec<f32>,
+    /// 3 (normals) or 7 (normals and colours).
+    stride: usize,
 }
 
+/// Floats a voxel takes in [`BlockVoxelizer::sums`] without and with colour.
+const NORMAL_STRIDE: usize = 3;
+const COLOR_STRIDE: usize = 7;
+
 /// Heap bytes of one [`BlockVoxelizer`] with colours: what an in-flight block costs.
-pub(crate) const BLOCK_VOXELIZER_BYTES: usize = BLOCK_VOXELS / 8 + BLOCK_VOXELS * (12 + 16);
+pub(crate) const BLOCK_VOXELIZER_BYTES: usize = BLOCK_VOXELS / 8 + BLOCK_VOXELS * COLOR_STRIDE * 4;
+
+/// `morton3(c, 0, 0)` for every block-local coordinate: a voxel's Morton code
+/// is three lookups (`SPREAD[x] | SPREAD[y] << 1 | SPREAD[z] << 2`).
+const SPREAD: [u32; BLOCK_SIZE as usize] = {
+    let mut t = [0u32; BLOCK_SIZE as usize];
+    let mut c = 0;
+    while c < t.len() {
+        let mut bit = 0;
+        while bit < 6 {
+            t[c] |= ((c as u32 >> bit) & 1) << (3 * bit);
+            bit += 1;
+        }
+        c += 1;
+    }
+    t
+};
+
+/// Block-local Morton code of a voxel whose local coordinates are below 64.
+#[inline]
+fn local_morton(l: [i64; 3]) -> usize {
+    // The masks only spare the bounds checks: callers pass coordinates inside the block.
+    (SPREAD[(l[0] & 63) as usize] | SPREAD[(l[1] & 63) as usize] << 1 | SPREAD[(l[2] & 63) as usize] << 2)
+        as usize
+}
 
 thread_local! {
     /// Each worker thread's brick, allocated once (rayon's `map_init` would
@@ -479,6 +510,21 @@ pub(crate) fn with_block_voxelizer<T>(f: impl FnOnce(&mut BlockVoxelizer) -> T) 
     })
 }
 
+/// One triangle's part of a block, as [`BlockVoxelizer::add`] hands it on.
+struct Hits<'t> {
+    tri: &'t [[f64; 3]; 3],
+    /// The triangle's (unnormalised) normal.
+    n: [f64; 3],
+    /// The block's first voxel in grid units.
+    base: [i64; 3],
+    /// The block's part of the triangle's bounds, closed.
+    lo: [i64; 3],
+    hi: [i64; 3],
+    /// Every voxel of `[lo, hi]` is touched (see `add`); only the topology's targets are left to test.
+    one_row: bool,
+    topology: Topology,
+}
+
 impl BlockVoxelizer {
     /// Drops whatever an interrupted block left behind (cheap when already clear).
     fn clear(&mut self) {
@@ -488,7 +534,21 @@ impl BlockVoxelizer {
     }
 
     pub(crate) fn new() -> Self {
-        Self { bits: vec![0; BLOCK_VOXELS / 64], normals: vec![[0.0; 3]; BLOCK_VOXELS], colors: Vec::new() }
+        Self {
+            bits: vec![0; BLOCK_VOXELS / 64],
+            sums: vec![0.0; BLOCK_VOXELS * NORMAL_STRIDE],
+            stride: NORMAL_STRIDE,
+        }
+    }
+
+    /// Widens the sums to hold colours (on the first coloured triangle), keeping the normal sums.
+    fn add_color_sums(&mut self) {
+        let mut sums = vec![0.0; BLOCK_VOXELS * COLOR_STRIDE];
+        for (wide, narrow) in sums.chunks_exact_mut(COLOR_STRIDE).zip(self.sums.chunks_exact(NORMAL_STRIDE)) {
+            wide[..NORMAL_STRIDE].copy_from_slice(narrow);
+        }
+        self.sums = sums;
+        self.stride = COLOR_STRIDE;
     }
 
     /// Adds a valid grid-space triangle (see [`to_grid`]) to block `key`.
@@ -502,42 +562,58 @@ impl BlockVoxelizer {
     ) {
         let base = key.coord().map(|c| c as i64 * BLOCK_SIZE as i64);
         let n = cross(sub(tri[1], tri[0]), sub(tri[2], tri[0]));
-        let nf = n.map(|c| c as f32);
-        // Colour weight: the triangle's area in voxel units.
-        let weighted = color.map(|c| {
+        // What a hit adds to the voxel's sums: the normal, then (colour) the
+        // colour weighted by the triangle's area in voxel units, and that area.
+        let mut add = [0.0f32; COLOR_STRIDE];
+        for a in 0..3 {
+            add[a] = n[a] as f32;
+        }
+        if let Some(c) = color {
             let area = (0.5 * norm(n)) as f32;
-            [c[0] * area, c[1] * area, c[2] * area, area]
-        });
-        if weighted.is_some() && self.colors.is_empty() {
-            self.colors = vec![[0.0; 4]; BLOCK_VOXELS];
+            add[3..].copy_from_slice(&[c[0] * area, c[1] * area, c[2] * area, area]);
+            if self.stride != COLOR_STRIDE {
+                self.add_color_sums();
+            }
         }
         let (full_lo, full_hi) = voxel_range(tri, res);
         let lo: [i64; 3] = std::array::from_fn(|a| full_lo[a].max(base[a]));
         let hi: [i64; 3] = std::array::from_fn(|a| full_hi[a].min(base[a] + BLOCK_SIZE as i64 - 1));
+        // The triangle's whole bounds (not the block's part) lie inside one
+        // voxel, or one row of voxels, open in the other two axes: it is
+        // connected and spans the row from end to end, so it touches every
+        // voxel of the row (the SAT would say the same, at many times the cost).
+        let one_row = (0..3).filter(|&a| full_hi[a] > full_lo[a]).count() <= 1;
+        let hits = Hits { tri, n, base, lo, hi, one_row, topology };
+        // Uncoloured triangles add nothing past the normal, even to a coloured brick.
+        match (self.stride, color.is_some()) {
+            (COLOR_STRIDE, true) => self.add_hits::<COLOR_STRIDE, COLOR_STRIDE>(&hits, &add),
+            (COLOR_STRIDE, false) => self.add_hits::<COLOR_STRIDE, NORMAL_STRIDE>(&hits, &add),
+            _ => self.add_hits::<NORMAL_STRIDE, NORMAL_STRIDE>(&hits, &add),
+        }
+    }
+
+    /// Sets every voxel of `hits` that the triangle meets, adding the first
+    /// `WIDTH` floats of `add` to its sums (`STRIDE` floats a voxel: constants,
+    /// so the update is a few fixed adds).
+    #[inline]
+    fn add_hits<const STRIDE: usize, const WIDTH: usize>(&mut self, h: &Hits, add: &[f32; COLOR_STRIDE]) {
+        debug_assert_eq!(self.stride, STRIDE);
+        let (bits, sums, base) = (&mut self.bits, &mut self.sums, h.base);
         let mut set = |v: [i64; 3]| {
-            let l = [v[0] - base[0], v[1] - base[1], v[2] - base[2]].map(|c| c as u32);
-            let m = morton3(l[0], l[1], l[2]) as usize;
-            self.bits[m / 64] |= 1 << (m % 64);
-            let s = &mut self.normals[m];
-            for a in 0..3 {
-                s[a] += nf[a];
-            }
-            if let Some(w) = weighted {
-                let c = &mut self.colors[m];
-                for a in 0..4 {
-                    c[a] += w[a];
-                }
+            let m = local_morton([v[0] - base[0], v[1] - base[1], v[2] - base[2]]);
+            bits[m / 64] |= 1 << (m % 64);
+            let s: &mut [f32; STRIDE] =
+                (&mut sums[m * STRIDE..(m + 1) * STRIDE]).try_into().expect("STRIDE floats");
+            for a in 0..WIDTH {
+                s[a] += add[a];
             }
         };
-        if (0..3).filter(|&a| full_hi[a] > full_lo[a]).count() <= 1 {
-            // The triangle's bounds lie inside one voxel, or one row of voxels,
-            // open in the other two axes: it is connected and spans the row from
-            // end to end, so it touches every voxel of the row (the SAT would say
-            // the same, at many times the cost).
+        let (lo, hi) = (h.lo, h.hi);
+        if h.one_row {
             for x in lo[0]..=hi[0] {
                 for y in lo[1]..=hi[1] {
                     for z in lo[2]..=hi[2] {
-                        if meets_segments(tri, [x, y, z], topology) {
+                        if meets_segments(h.tri, [x, y, z], h.topology) {
                             set([x, y, z]);
                         }
                     }
@@ -545,7 +621,7 @@ impl BlockVoxelizer {
             }
             return;
         }
-        for_each_touched_voxel(tri, n, lo, hi, topology, set);
+        for_each_touched_voxel(h.tri, h.n, lo, hi, h.topology, set);
     }
 
     /// The block's voxels in Morton order (`None` when empty); leaves the brick clear.
@@ -557,6 +633,16 @@ impl BlockVoxelizer {
     /// The block's voxels in Morton order, each passed through `f`, in a vector
     /// of exact capacity (the build counts its bytes); leaves the brick clear.
     pub(crate) fn finish_map<T>(&mut self, f: impl Fn(BuildVoxel) -> T) -> Vec<T> {
+        if self.stride == COLOR_STRIDE {
+            self.drain_voxels::<COLOR_STRIDE, T>(f)
+        } else {
+            self.drain_voxels::<NORMAL_STRIDE, T>(f)
+        }
+    }
+
+    /// [`Self::finish_map`] for a brick of `STRIDE` floats a voxel.
+    fn drain_voxels<const STRIDE: usize, T>(&mut self, f: impl Fn(BuildVoxel) -> T) -> Vec<T> {
+        debug_assert_eq!(self.stride, STRIDE);
         let count = self.bits.iter().map(|w| w.count_ones() as usize).sum();
         let mut out = Vec::with_capacity(count);
         for w in 0..self.bits.len() {
@@ -564,14 +650,17 @@ impl BlockVoxelizer {
             while bits != 0 {
                 let m = (w * 64) as u32 + bits.trailing_zeros();
                 bits &= bits - 1;
-                let normal_sum = std::mem::take(&mut self.normals[m as usize]);
-                let [r, g, b, weight] =
-                    self.colors.get_mut(m as usize).map(std::mem::take).unwrap_or_default();
+                let at = m as usize * STRIDE;
+                let s: &mut [f32; STRIDE] =
+                    (&mut self.sums[at..at + STRIDE]).try_into().expect("STRIDE floats");
+                let mut sum = [0.0f32; COLOR_STRIDE];
+                sum[..STRIDE].copy_from_slice(s);
+                *s = [0.0; STRIDE];
                 out.push(f(BuildVoxel {
                     morton: m,
-                    normal_sum,
-                    color_sum: [r, g, b],
-                    color_weight: weight,
+                    normal_sum: [sum[0], sum[1], sum[2]],
+                    color_sum: [sum[3], sum[4], sum[5]],
+                    color_weight: sum[6],
                     faces: 0,
                 }));
             }
@@ -730,18 +819,32 @@ pub fn for_each_touched_voxel(
             let base = a - b * cu as f64 - c * cv as f64;
             let w0 = fast_floor(base - lo_off - SLACK).max(lo[w]);
             let w1 = fast_floor(base - hi_off + SLACK).min(hi[w]);
-            for cw in w0..=w1 {
+            let touches = |cw: i64| {
                 let mw = centre(cw, w);
-                let touches = (0..7).all(|i| {
+                (0..7).all(|i| {
                     let k = voxel_axes[i];
                     let d = part[i] + sat.axes[k][w] * mw;
                     d >= sat.lo[k] && d <= sat.hi[k]
-                });
+                })
+            };
+            // Each axis's `d` is monotone in cw (a fixed product and sum of an
+            // increasing exact centre, and rounding is monotone), so each test
+            // passes on an interval of the column and all of them on the
+            // intersection: only its ends need finding, from both sides.
+            let mut first = w0;
+            while first <= w1 && !touches(first) {
+                first += 1;
+            }
+            let mut last = w1;
+            while last > first && !touches(last) {
+                last -= 1;
+            }
+            for cw in first..=last {
                 let mut p = [0i64; 3];
                 p[u] = cu;
                 p[v] = cv;
                 p[w] = cw;
-                if touches && meets_segments(tri, p, topology) {
+                if meets_segments(tri, p, topology) {
                     hit(p);
                 }
             }
@@ -850,6 +953,19 @@ pub(crate) fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
 mod tests {
     use super::*;
     use rand::{Rng, SeedableRng, rngs::StdRng};
+    use voxstream_format::morton3;
+
+    /// Fails if the table lookup differs from `morton3` anywhere in a block.
+    #[test]
+    fn local_morton_is_morton3() {
+        for z in 0..64 {
+            for y in 0..64 {
+                for x in 0..64 {
+                    assert_eq!(local_morton([x, y, z]), morton3(x as u32, y as u32, z as u32) as usize);
+                }
+            }
+        }
+    }
 
     /// Every voxel of the block the SAT says the triangle touches (the reference),
     /// searched over the triangle's bounds grown by two voxels.

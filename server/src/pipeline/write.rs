@@ -26,9 +26,10 @@ use std::path::{Path, PathBuf};
 use rayon::prelude::*;
 use voxstream_format::hierarchy::{pack_path, page_path};
 use voxstream_format::{
-    BLOCK_SIZE, Block, BlockEntry, BlockKey, BlockLocation, FORMAT_VERSION, GridFrame, LevelInfo, Manifest,
-    PAGE_LEVELS, PackRef, PackedVoxel, PageBuilder, PageError, ResolutionChoice, SourceInfo, VoxelBounds,
-    coverage_from_count, encode_block, oct_encode,
+    BLOCK_DEPTH, BLOCK_SIZE, Block, BlockEntry, BlockKey, BlockLocation, FORMAT_VERSION, GridFrame,
+    LevelInfo, Manifest, PAGE_LEVELS, PackRef, PackedVoxel, PageBuilder, PageError, ResolutionChoice,
+    SourceInfo, VoxelBounds, VoxelColumns, coverage_from_count, demorton3, encode_columns, morton3,
+    oct_encode,
 };
 
 use crate::pipeline::progress::{ProgressSink, Stage, StageCounter};
@@ -79,18 +80,60 @@ pub fn packed_block(b: &LodBlock) -> Block {
     }
 }
 
+/// The codec's columns of [`packed_block`], straight from the voxels: what
+/// `VoxelColumns::from_block(&packed_block(b))` gives (tested), without the
+/// packed form's Morton → position → Morton round trip.
+fn block_columns(b: &LodBlock) -> VoxelColumns {
+    let level = b.key.level;
+    let v = &b.voxels;
+    let has_color = v.iter().any(|v| v.voxel.color_weight > 0.0);
+    VoxelColumns {
+        depth: BLOCK_DEPTH,
+        morton: v.iter().map(|v| v.voxel.morton).collect(),
+        faces: v.iter().map(|v| v.voxel.faces).collect(),
+        normal: v.iter().map(|v| oct_encode(v.voxel.normal_sum) as u16).collect(),
+        coverage: if level == 0 {
+            Vec::new()
+        } else {
+            v.iter().map(|v| coverage_from_count(v.solid as u64, level)).collect()
+        },
+        color: if has_color { v.iter().map(|v| srgb8_average(&v.voxel)).collect() } else { Vec::new() },
+    }
+}
+
+/// A voxel's stored colour in a block that has colour: the area-weighted
+/// average as sRGB8, or the neutral grey without weight (as [`average_color`]).
+fn srgb8_average(v: &crate::pipeline::voxelize::BuildVoxel) -> [u8; 3] {
+    if v.color_weight > 0.0 && v.color_weight.is_finite() {
+        v.color_sum.map(|c| linear_to_srgb8(c / v.color_weight))
+    } else {
+        NEUTRAL_SRGB8
+    }
+}
+
+/// The block's tight bounds in grid units. Per axis, a coordinate's bits
+/// masked out of the Morton code order the same way as the coordinate, so
+/// the extremes are taken in Morton space and decoded once.
 fn tight_bounds(b: &LodBlock) -> VoxelBounds {
     let base = b.key.coord().map(|c| c * BLOCK_SIZE);
-    let mut min = [u32::MAX; 3];
-    let mut max = [0u32; 3];
+    let axis: [u32; 3] = std::array::from_fn(|a| morton3(BLOCK_SIZE - 1, 0, 0) << a);
+    let mut lo = axis;
+    let mut hi = [0u32; 3];
     for v in &b.voxels {
-        let p = local_position(&v.voxel);
         for a in 0..3 {
-            min[a] = min[a].min(base[a] + p[a]);
-            max[a] = max[a].max(base[a] + p[a] + 1);
+            let m = v.voxel.morton & axis[a];
+            lo[a] = lo[a].min(m);
+            hi[a] = hi[a].max(m);
         }
     }
-    VoxelBounds { min, max }
+    if b.voxels.is_empty() {
+        return VoxelBounds { min: [u32::MAX; 3], max: [0; 3] };
+    }
+    let (lo, hi) = (lo.map(demorton3), hi.map(demorton3));
+    VoxelBounds {
+        min: std::array::from_fn(|a| base[a] + lo[a][a]),
+        max: std::array::from_fn(|a| base[a] + hi[a][a] + 1),
+    }
 }
 
 /// What a scene is made of before it is written (the in-memory reference path).
@@ -505,13 +548,24 @@ fn page_err(e: PageError) -> StoreError {
 /// page builder fills it in; location still a file: the writer places it)
 /// and its bytes.
 pub fn encode_entry(b: &LodBlock) -> (BlockEntry, Vec<u8>) {
-    let packed = packed_block(b);
-    let bytes = encode_block(&packed);
+    encode_entry_with(b, false)
+}
+
+/// [`encode_entry`] for a level-0 block whose face masks were marked over
+/// exactly its voxels (no buried voxel dropped since): each mask is then the
+/// codec's prediction, which it need not compute again.
+pub fn encode_marked_entry(b: &LodBlock) -> (BlockEntry, Vec<u8>) {
+    encode_entry_with(b, true)
+}
+
+fn encode_entry_with(b: &LodBlock, faces_predicted: bool) -> (BlockEntry, Vec<u8>) {
+    let columns = block_columns(b);
+    let bytes = encode_columns(b.key, &columns, faces_predicted);
     let entry = BlockEntry {
         key: b.key,
         bounds: tight_bounds(b),
-        voxels: packed.voxels.len() as u32,
-        faces: packed.face_count(),
+        voxels: columns.len() as u32,
+        faces: columns.faces.iter().map(|f| f.count_ones()).sum(),
         bytes: bytes.len() as u32,
         hash: blake3::hash(&bytes).to_hex().to_string(),
         geometric_error: b.geometric_error(),
@@ -734,6 +788,75 @@ mod tests {
             "the replaced scene was gone during the hook: {during:?}"
         );
         assert_eq!(manifests_in(store.path()), BTreeMap::from([("s".to_string(), "new".to_string())]));
+    }
+
+    /// Fails if the columns taken straight from the voxels differ from those
+    /// of the packed block (the definition), or the entry's bounds and face
+    /// count from those of the packed voxels: random blocks on levels 0–3,
+    /// with and without colour (weights zero, positive, infinite, NaN), with
+    /// buried and zero-sum voxels.
+    #[test]
+    fn entries_match_the_packed_block() {
+        use crate::pipeline::pyramid::LodVoxel;
+        use crate::pipeline::voxelize::BuildVoxel;
+        use rand::{Rng, SeedableRng, rngs::StdRng};
+        let mut rng = StdRng::seed_from_u64(8);
+        for round in 0..300 {
+            let level = (round % 4) as u8;
+            let colored = round % 3 != 0;
+            let n = [1, 2, 50, 3000][round % 4];
+            let mut morton: Vec<u32> = (0..n).map(|_| rng.random_range(0..1u32 << 18)).collect();
+            morton.sort_unstable();
+            morton.dedup();
+            let voxels: Vec<LodVoxel> = morton
+                .iter()
+                .map(|&m| {
+                    let w = match rng.random_range(0..8) {
+                        0 => 0.0,
+                        1 => f32::INFINITY,
+                        2 => f32::NAN,
+                        _ => rng.random_range(0.0..5.0),
+                    };
+                    let normal_sum = if rng.random_range(0..20) == 0 {
+                        [0.0; 3]
+                    } else {
+                        std::array::from_fn(|_| rng.random_range(-100.0..100.0))
+                    };
+                    LodVoxel {
+                        voxel: BuildVoxel {
+                            morton: m,
+                            normal_sum,
+                            color_sum: if colored {
+                                std::array::from_fn(|_| rng.random_range(0.0..5.0))
+                            } else {
+                                [0.0; 3]
+                            },
+                            color_weight: if colored { w } else { 0.0 },
+                            faces: rng.random_range(1..64),
+                        },
+                        solid: if level == 0 { 1 } else { rng.random_range(1..=1u32 << (3 * level)) },
+                        error: 0.0,
+                    }
+                })
+                .collect();
+            let b = LodBlock { key: BlockKey::new(level, 3, 1, 2), voxels };
+            let packed = packed_block(&b);
+            assert_eq!(block_columns(&b), VoxelColumns::from_block(&packed), "round {round}");
+            let (entry, bytes) = encode_entry(&b);
+            assert_eq!(bytes, voxstream_format::encode_block(&packed), "round {round}");
+            let base = b.key.coord().map(|c| c * BLOCK_SIZE);
+            let mut min = [u32::MAX; 3];
+            let mut max = [0u32; 3];
+            for v in &packed.voxels {
+                let p = v.local();
+                for a in 0..3 {
+                    min[a] = min[a].min(base[a] + p[a]);
+                    max[a] = max[a].max(base[a] + p[a] + 1);
+                }
+            }
+            assert_eq!(entry.bounds, VoxelBounds { min, max }, "round {round}");
+            assert_eq!((entry.voxels, entry.faces), (packed.voxels.len() as u32, packed.face_count()));
+        }
     }
 
     #[test]
