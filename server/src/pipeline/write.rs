@@ -635,6 +635,8 @@ fn exchange_dirs(_a: &Path, _b: &Path) -> std::io::Result<()> {
 
 #[cfg(test)]
 mod tests {
+    use std::collections::BTreeMap;
+
     use voxstream_format::BlockKey;
 
     use super::*;

@@ -123,9 +123,23 @@ impl Garage {
         }
     }
 
-    /// Runs the `garage` CLI against this node; panics with its output when it fails.
+    /// Runs the `garage` CLI against this node; panics with its output and the node's log when it
+    /// still fails after 5 s. A node that has just started (or applied its layout) can refuse an
+    /// admin command for a moment; CI saw that once in `static_ranges`.
     pub fn cli(&self, args: &[&str]) -> String {
-        self.try_cli(args).unwrap_or_else(|e| panic!("garage {args:?}: {e}"))
+        let started = Instant::now();
+        loop {
+            match self.try_cli(args) {
+                Ok(out) => return out,
+                Err(e) if started.elapsed() >= Duration::from_secs(5) => {
+                    panic!("garage {args:?}: {e}\nnode log:\n{}", self.log())
+                }
+                Err(e) => {
+                    eprintln!("garage {args:?} failed, trying again: {e}");
+                    std::thread::sleep(Duration::from_millis(200));
+                }
+            }
+        }
     }
 
     /// Creates a bucket the test key may read and write.
