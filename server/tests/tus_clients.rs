@@ -10,21 +10,16 @@
 
 mod common;
 
-use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use common::serve::spawn_listening;
-use common::tus::tools_venv;
+use common::tus::{root, run, tus_js, tuspy};
 
 use serde_json::Value;
 
 const TOKEN: &str = "tus-clients-token";
 const CHUNK: u64 = 1 << 20;
-
-fn root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
-}
 
 struct Server {
     child: Child,
@@ -47,19 +42,6 @@ fn serve() -> Server {
         .stderr(Stdio::null());
     let (child, base) = spawn_listening(cmd);
     Server { child, base, _dir: dir }
-}
-
-/// Runs a client step; its stdout's last line.
-fn run(mut cmd: Command, what: &str) -> String {
-    let out = cmd.current_dir(root()).output().unwrap_or_else(|e| panic!("cannot start {what}: {e}"));
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{what} failed ({}):\n{stdout}\n{}",
-        out.status,
-        String::from_utf8_lossy(&out.stderr)
-    );
-    stdout.lines().last().unwrap_or_default().trim().to_string()
 }
 
 async fn head(http: &reqwest::Client, url: &str) -> reqwest::Response {
@@ -149,45 +131,26 @@ async fn cut_and_resume_with(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn tuspy_is_cut_and_resumes_from_the_upload_url() {
-    let python = tools_venv().join("bin/python");
-    let script = root().join("tests/tus/tuspy_client.py");
     let mesh = root().join("data/koala.obj");
-    let command = |args: &[&str]| {
-        let mut c = Command::new(&python);
-        c.arg(&script).args(args);
-        c
-    };
     let (mesh, chunk) = (mesh.to_str().unwrap(), CHUNK.to_string());
     cut_and_resume_with(
         "tuspy",
         "py-koala",
-        |base| command(&["create", &format!("{base}/api/uploads"), mesh, TOKEN, "py-koala", &chunk]),
-        |base, url| command(&["resume", &format!("{base}/api/uploads"), url, mesh, TOKEN, &chunk]),
+        |base| tuspy(&["create", &format!("{base}/api/uploads"), mesh, TOKEN, "py-koala", &chunk]),
+        |base, url| tuspy(&["resume", &format!("{base}/api/uploads"), url, mesh, TOKEN, &chunk]),
     )
     .await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn tus_js_client_is_cut_and_resumes_from_the_upload_url() {
-    let module = root().join("tests/browser/node_modules/tus-js-client/package.json");
-    assert!(
-        module.is_file(),
-        "{} is missing: run bash scripts/setup.sh (npm ci in tests/browser)",
-        module.display()
-    );
-    let script = root().join("tests/browser/tus_client.mjs");
     let mesh = root().join("data/koala.obj");
-    let command = |args: &[&str]| {
-        let mut c = Command::new("node");
-        c.arg(&script).args(args);
-        c
-    };
     let (mesh, chunk) = (mesh.to_str().unwrap(), CHUNK.to_string());
     cut_and_resume_with(
         "tus-js-client",
         "js-koala",
-        |base| command(&["create", &format!("{base}/api/uploads"), mesh, TOKEN, "js-koala", &chunk]),
-        |_, url| command(&["resume", url, mesh, TOKEN, &chunk]),
+        |base| tus_js(&["create", &format!("{base}/api/uploads"), mesh, TOKEN, "js-koala", &chunk]),
+        |_, url| tus_js(&["resume", url, mesh, TOKEN, &chunk]),
     )
     .await;
 }
