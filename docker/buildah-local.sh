@@ -28,11 +28,10 @@ BUILDER_BASE=localhost/voxstream-base/rust:bookworm
 IMAGE=localhost/voxstream:dev
 MIRROR=http://deb.debian.org/debian
 
+SCRIPT_NAME=buildah-local
+# shellcheck source=scripts/lib/preamble.sh
+. "$(dirname "${BASH_SOURCE[0]}")/../scripts/lib/preamble.sh"
 log() { printf '\n=== buildah-local: %s\n' "$*" >&2; }
-die() {
-  printf 'buildah-local: ERROR: %s\n' "$*" >&2
-  exit 1
-}
 
 [ "$(id -u)" -eq 0 ] || die "run as root (buildah with vfs storage and chroot isolation)"
 for tool in buildah debootstrap curl; do

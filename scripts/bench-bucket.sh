@@ -18,7 +18,9 @@ RESOLUTION="${RESOLUTION:-512}"
 TARGET="${CARGO_TARGET_DIR:-target}"
 BIN_DIR="$TARGET/$([ "$PROFILE" = dev ] && echo debug || echo "$PROFILE")"
 
-log() { printf 'bench-bucket: %s\n' "$*" >&2; }
+SCRIPT_NAME=bench-bucket
+# shellcheck source=scripts/lib/preamble.sh
+. scripts/lib/preamble.sh # the script has cd-ed to the repository root
 GARAGE="$(bash scripts/garage.sh)"
 cargo build --profile "$PROFILE" -p voxstream --bin voxstream >&2
 cargo bench --profile "$PROFILE" -p voxstream --bench loadtest --no-run >&2
@@ -32,7 +34,6 @@ cleanup() {
   rm -rf "$WORK"
 }
 trap cleanup EXIT
-free_port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'; }
 
 RPC=$(free_port) S3=$(free_port) ADMIN=$(free_port)
 cat >"$WORK/garage.toml" <<EOF

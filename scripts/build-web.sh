@@ -31,11 +31,9 @@ TARGET="wasm32-unknown-unknown"
 TARGET_DIR="${VOXSTREAM_WASM_TARGET_DIR:-${CARGO_TARGET_DIR:-$ROOT/target}/wasm}"
 DIST="$ROOT/viewer-wasm/dist"
 
-log() { printf 'build-web: %s\n' "$*" >&2; }
-die() {
-  printf 'build-web: ERROR: %s\n' "$*" >&2
-  exit 1
-}
+SCRIPT_NAME=build-web
+# shellcheck source=scripts/lib/preamble.sh
+. "$(dirname "${BASH_SOURCE[0]}")/lib/preamble.sh"
 
 LOCKED=()
 [ "${VOXSTREAM_LOCKED:-0}" = "1" ] && LOCKED=(--locked)

@@ -43,18 +43,12 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 CARGO_HOME="${CARGO_HOME:-$HOME/.cargo}"
 export PATH="$CARGO_HOME/bin:$PATH:/usr/sbin"
 
-log() { printf 'cluster: %s\n' "$*" >&2; }
-die() {
-  printf 'cluster: ERROR: %s\n' "$*" >&2
-  exit 1
-}
+SCRIPT_NAME=cluster
+# shellcheck source=scripts/lib/preamble.sh
+. "$(dirname "${BASH_SOURCE[0]}")/lib/preamble.sh"
 
 BUCKET="voxstream"
 PREFIX="scenes"
-
-free_port() {
-  python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1]); s.close()'
-}
 
 wait_for() {
   # wait_for SECONDS WHAT CMD... : retries CMD until it succeeds or SECONDS pass.

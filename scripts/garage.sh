@@ -22,11 +22,9 @@ BIN="$DEST/bin/garage"
 CARGO_HOME="${CARGO_HOME:-$HOME/.cargo}"
 export PATH="$CARGO_HOME/bin:$PATH"
 
-log() { printf 'garage.sh: %s\n' "$*" >&2; }
-die() {
-  printf 'garage.sh: ERROR: %s\n' "$*" >&2
-  exit 1
-}
+SCRIPT_NAME=garage.sh
+# shellcheck source=scripts/lib/preamble.sh
+. "$(dirname "${BASH_SOURCE[0]}")/lib/preamble.sh"
 
 if [ -x "$BIN" ] && "$BIN" --version >/dev/null 2>&1; then
   printf '%s\n' "$BIN"

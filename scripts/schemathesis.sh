@@ -43,11 +43,9 @@ cd "$ROOT"
 CARGO_HOME="${CARGO_HOME:-$HOME/.cargo}"
 export PATH="$CARGO_HOME/bin:$PATH"
 
-log() { printf 'schemathesis.sh: %s\n' "$*" >&2; }
-die() {
-  printf 'schemathesis.sh: ERROR: %s\n' "$*" >&2
-  exit 1
-}
+SCRIPT_NAME=schemathesis.sh
+# shellcheck source=scripts/lib/preamble.sh
+. "$(dirname "${BASH_SOURCE[0]}")/lib/preamble.sh"
 
 HERE="$ROOT/scripts/schemathesis"
 REQS="$HERE/requirements.txt"

@@ -17,11 +17,9 @@ cd "$ROOT"
 CARGO_HOME="${CARGO_HOME:-$HOME/.cargo}"
 export PATH="$CARGO_HOME/bin:$PATH"
 
-log() { printf 'serve: %s\n' "$*" >&2; }
-die() {
-  printf 'serve: ERROR: %s\n' "$*" >&2
-  exit 1
-}
+SCRIPT_NAME=serve
+# shellcheck source=scripts/lib/preamble.sh
+. "$(dirname "${BASH_SOURCE[0]}")/lib/preamble.sh"
 
 ADDR="${VOXSTREAM_ADDR:-127.0.0.1:8080}"
 STORE="store"

@@ -26,11 +26,9 @@ WASM_BINDGEN_VERSION="0.2.130"
 CARGO_HOME="${CARGO_HOME:-$HOME/.cargo}"
 export PATH="$CARGO_HOME/bin:$PATH"
 
-log() { printf 'setup: %s\n' "$*" >&2; }
-die() {
-  printf 'setup: ERROR: %s\n' "$*" >&2
-  exit 1
-}
+SCRIPT_NAME=setup
+# shellcheck source=scripts/lib/preamble.sh
+. "$(dirname "${BASH_SOURCE[0]}")/lib/preamble.sh"
 
 NO_INSTALL="${VOXSTREAM_SETUP_NO_INSTALL:-0}"
 
