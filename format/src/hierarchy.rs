@@ -1139,7 +1139,6 @@ mod tests {
         packs: Vec<(PackRef, Vec<u8>)>,
         open: Vec<u8>,
         items: usize,
-        per_pack: usize,
         pages: usize,
     }
 
@@ -1168,7 +1167,7 @@ mod tests {
 
         fn run(order: &[BlockKey], coarsest: u8, per_pack: usize) -> (Self, FinishedHierarchy) {
             let b = PageBuilder::new(coarsest, PAGE_LEVELS).with_pages_in_packs();
-            let mut w = Self { b, packs: Vec::new(), open: Vec::new(), items: 0, per_pack, pages: 0 };
+            let mut w = Self { b, packs: Vec::new(), open: Vec::new(), items: 0, pages: 0 };
             for k in order {
                 let mut e = entry(*k);
                 e.location = BlockLocation { pack: w.serial(), offset: w.open.len() as u64 };
