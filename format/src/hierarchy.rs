@@ -850,12 +850,16 @@ pub struct SceneIndex {
     root: BlockKey,
     /// The pack holding the root block (the manifest's `root_pack`).
     root_pack: Option<PackRef>,
+    /// The pack holding the root page (the manifest's `root_page_pack`).
+    root_page_pack: Option<PackRef>,
     /// Each loaded page's packs, by page root.
     packs: HashMap<BlockKey, Vec<PackRef>>,
     entries: HashMap<BlockKey, BlockEntry>,
     /// Pages named by a loaded page (or the manifest) and not loaded yet, by root, each with the
     /// pack its bytes lie in (`None`: its own file).
     pending: BTreeMap<BlockKey, (PageRef, Option<PackRef>)>,
+    /// Pages loaded, by root, with their pack (a server answers page URLs from these).
+    loaded: HashMap<BlockKey, (PageRef, Option<PackRef>)>,
     pages_loaded: usize,
     page_bytes_loaded: u64,
 }
@@ -876,9 +880,11 @@ impl SceneIndex {
             page_levels: manifest.page_levels,
             root: manifest.root.key,
             root_pack: manifest.root_pack.clone(),
+            root_page_pack: manifest.root_page_pack.clone(),
             packs: HashMap::new(),
             entries,
             pending,
+            loaded: HashMap::new(),
             pages_loaded: 0,
             page_bytes_loaded: 0,
         }
@@ -911,6 +917,7 @@ impl SceneIndex {
         let mut seen = std::collections::HashSet::new();
         self.root_pack
             .iter()
+            .chain(self.root_page_pack.iter())
             .chain(self.packs.values().flatten())
             .filter(move |p| seen.insert(p.hash.as_str()))
     }
@@ -952,6 +959,13 @@ impl SceneIndex {
         Some(PackRange { pack: pack.clone()?, offset: r.location.offset, bytes: r.bytes })
     }
 
+    /// A loaded page's reference and, when it lies in a pack, its range there.
+    pub fn loaded_page(&self, root: &BlockKey) -> Option<(&PageRef, Option<PackRange>)> {
+        let (r, pack) = self.loaded.get(root)?;
+        let range = pack.clone().map(|pack| PackRange { pack, offset: r.location.offset, bytes: r.bytes });
+        Some((r, range))
+    }
+
     pub fn pages_loaded(&self) -> usize {
         self.pages_loaded
     }
@@ -988,8 +1002,9 @@ impl SceneIndex {
                 page.root
             )));
         }
-        if let Some((r, _)) = self.pending.remove(&page.root) {
+        if let Some((r, pack)) = self.pending.remove(&page.root) {
             self.page_bytes_loaded += r.bytes as u64;
+            self.loaded.insert(page.root, (r, pack));
         }
         for c in page.child_pages {
             // `validate` checked the index against the page's pack list.

@@ -24,7 +24,7 @@ use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
-use voxstream_format::hierarchy::{pack_path, page_path};
+use voxstream_format::hierarchy::pack_path;
 use voxstream_format::{
     BLOCK_DEPTH, BLOCK_SIZE, Block, BlockEntry, BlockKey, BlockLocation, FORMAT_VERSION, GridFrame,
     LevelInfo, Manifest, PAGE_LEVELS, PackRef, PackedVoxel, PageBuilder, PageError, ResolutionChoice,
@@ -258,7 +258,8 @@ struct OpenPack {
     file: BufWriter<fs::File>,
     hasher: blake3::Hasher,
     len: u64,
-    blocks: usize,
+    /// Blocks and pages appended.
+    items: usize,
 }
 
 impl OpenPack {
@@ -271,7 +272,7 @@ impl OpenPack {
             file: BufWriter::with_capacity(PACK_BUFFER_BYTES, file),
             hasher: blake3::Hasher::new(),
             len: 0,
-            blocks: 0,
+            items: 0,
         })
     }
 
@@ -281,12 +282,12 @@ impl OpenPack {
         self.hasher.update(bytes);
         let at = self.len;
         self.len += bytes.len() as u64;
-        self.blocks += 1;
+        self.items += 1;
         Ok(at)
     }
 
     fn is_full(&self, max_bytes: u64) -> bool {
-        self.blocks >= PACK_MIN_BLOCKS || self.len >= max_bytes
+        self.items >= PACK_MIN_BLOCKS || self.len >= max_bytes
     }
 
     /// Syncs the pack once and renames it to its content address in `scene_dir`.
@@ -372,7 +373,7 @@ impl BlockWriter {
             pending: Vec::new(),
             pending_bytes: 0,
             pending_limit,
-            pages: PageBuilder::new(levels - 1, PAGE_LEVELS),
+            pages: PageBuilder::new(levels - 1, PAGE_LEVELS).with_pages_in_packs(),
             written: 0,
             levels: (0..levels)
                 .map(|l| LevelInfo { level: l, resolution: resolution >> l, blocks: 0, voxels: 0, bytes: 0 })
@@ -381,9 +382,7 @@ impl BlockWriter {
             finished_files: None,
             on_published: None,
         };
-        for d in [&writer.packs_dir, &writer.tmp.join("pages")] {
-            fs::create_dir_all(d).map_err(io("create directory", d))?;
-        }
+        fs::create_dir_all(&writer.packs_dir).map_err(io("create directory", &writer.packs_dir))?;
         Ok(writer)
     }
 
@@ -436,26 +435,30 @@ impl BlockWriter {
         level.voxels += e.voxels as u64;
         level.bytes += e.bytes as u64;
         self.written += 1;
-        let pack = match self.pack.take() {
-            Some(p) => self.pack.insert(p),
-            None => {
-                let serial = self.next_pack;
-                self.next_pack += 1;
-                self.pack.insert(OpenPack::create(&self.packs_dir, serial)?)
-            }
-        };
+        let pack = self.open_pack()?;
         e.location = BlockLocation { pack: pack.serial, offset: pack.append(bytes)? };
-        let full = pack.is_full(self.pack_max_bytes);
         let pages = self.pages.add(e).map_err(page_err)?;
-        self.write_pages(pages)?;
-        if full {
+        self.place_pages(pages)?;
+        if self.pack.as_ref().is_some_and(|p| p.is_full(self.pack_max_bytes)) {
             self.close_pack()?;
         }
         Ok(())
     }
 
+    /// The pack being filled, opened if there is none.
+    fn open_pack(&mut self) -> Result<&mut OpenPack, StoreError> {
+        match self.pack.take() {
+            Some(p) => Ok(self.pack.insert(p)),
+            None => {
+                let serial = self.next_pack;
+                self.next_pack += 1;
+                Ok(self.pack.insert(OpenPack::create(&self.packs_dir, serial)?))
+            }
+        }
+    }
+
     /// Closes the open pack (synced, renamed to its content address, handed to
-    /// `finished_files`) and writes the pages that were waiting for it.
+    /// `finished_files`) and appends the pages that were waiting for it to the next pack.
     fn close_pack(&mut self) -> Result<(), StoreError> {
         let Some(open) = self.pack.take() else { return Ok(()) };
         let serial = open.serial;
@@ -467,17 +470,19 @@ impl BlockWriter {
         }
         self.packs_closed += 1;
         let pages = self.pages.pack_closed(serial, pack).map_err(page_err)?;
-        self.write_pages(pages)
+        self.place_pages(pages)
     }
 
-    /// Writes sealed pages (no sync of their own: [`sync_tree`] at the end).
-    fn write_pages(&self, pages: Vec<voxstream_format::hierarchy::FinishedPage>) -> Result<(), StoreError> {
+    /// Appends sealed pages to the open pack (opened if needed) and tells the page builder where
+    /// they are: pages are items of packs like blocks, so a scene is one object per pack.
+    fn place_pages(
+        &mut self,
+        pages: Vec<voxstream_format::hierarchy::FinishedPage>,
+    ) -> Result<(), StoreError> {
         for (page_ref, bytes) in pages {
-            write_unsynced(&self.tmp.join(page_path(&page_ref.root)), &bytes)?;
-            if let Some(sink) = &self.finished_files {
-                let name = crate::bucket_store::bucket_page_path(&page_ref.root, &page_ref.hash);
-                (sink.0)(&name, bytes).map_err(|e| self.sink_failed(e))?;
-            }
+            let pack = self.open_pack()?;
+            let (serial, offset) = (pack.serial, pack.append(&bytes)?);
+            self.pages.page_placed(page_ref.root, serial, offset).map_err(page_err)?;
         }
         Ok(())
     }
@@ -511,7 +516,10 @@ impl BlockWriter {
         resolution_choice: ResolutionChoice,
     ) -> Result<Manifest, StoreError> {
         self.flush()?;
-        self.close_pack()?;
+        // Each close can seal the next page layer into a new pack; the root page's pack ends it.
+        while self.pack.is_some() {
+            self.close_pack()?;
+        }
         let pages = std::mem::replace(&mut self.pages, PageBuilder::new(0, PAGE_LEVELS));
         let top = pages.finish().map_err(page_err)?;
         let manifest = Manifest {
@@ -526,9 +534,10 @@ impl BlockWriter {
             root: top.root,
             root_page: top.root_page,
             root_pack: top.root_pack,
+            root_page_pack: top.root_page_pack,
         };
         write_unsynced(&self.tmp.join("manifest.json"), &manifest.to_json())?;
-        sync_tree(&self.tmp, &[self.packs_dir.clone(), self.tmp.join("pages")])?;
+        sync_tree(&self.tmp, std::slice::from_ref(&self.packs_dir))?;
         let on_published = |id: &str| {
             if let Some(hook) = &self.on_published {
                 (hook.0)(id)
@@ -710,10 +719,11 @@ mod tests {
         (m, per_pack, most_held)
     }
 
-    /// Packs hold [`PACK_MIN_BLOCKS`] blocks each (the last one the rest) and span pages, every
-    /// block reads back from its range, and the pages held for the open pack stay within the
-    /// bound [`MemoryPlan`](crate::pipeline::MemoryPlan) counts. Control: with a tiny byte cap
-    /// the packs close on bytes instead, one block each.
+    /// Packs hold [`PACK_MIN_BLOCKS`] items each (blocks and the pages sealed while they were
+    /// open), span pages, and the scene has no page files: every page and block reads back from a
+    /// pack range. The pages held for the open pack stay within the bound
+    /// [`MemoryPlan`](crate::pipeline::MemoryPlan) counts. Control: with a tiny byte cap the packs
+    /// close on bytes instead, one item each.
     #[test]
     fn packs_span_pages_and_close_at_256_blocks() {
         let (resolution, coarsest) = (65536, 10);
@@ -721,8 +731,6 @@ mod tests {
         blocks.sort_by_key(|b| post_order_key(&b.key));
         let dir = tempfile::tempdir().unwrap();
         let (manifest, per_pack, most_held) = write_packed(&blocks, dir.path(), resolution, PACK_MAX_BYTES);
-        assert_eq!(per_pack.len(), blocks.len().div_ceil(PACK_MIN_BLOCKS), "{per_pack:?}");
-        assert!(per_pack[..per_pack.len() - 1].iter().all(|&n| n == PACK_MIN_BLOCKS), "{per_pack:?}");
         let layers = (level_count(resolution) as usize).div_ceil(PAGE_LEVELS as usize);
         let bound = PACK_MIN_BLOCKS + layers * voxstream_format::hierarchy::MAX_PAGE_ENTRIES as usize;
         assert!(most_held > 0 && most_held <= bound, "{most_held} entries held, bound {bound}");
@@ -730,22 +738,31 @@ mod tests {
         let scene = crate::store::open_scene(dir.path(), "t").unwrap();
         assert_eq!(scene.manifest, manifest);
         assert_eq!(scene.blocks().len(), blocks.len());
-        let pages = std::fs::read_dir(dir.path().join("t/pages")).unwrap().count();
+        assert!(!dir.path().join("t/pages").exists(), "pages live in packs");
+        let pages = scene.index.pages_loaded();
         let packs = std::fs::read_dir(dir.path().join("t/packs")).unwrap().count();
-        assert_eq!(packs, per_pack.len());
+        let items = blocks.len() + pages;
+        // Full packs but for the last few: each page layer's last pages close one more pack.
+        assert!(
+            (items.div_ceil(PACK_MIN_BLOCKS)..=items.div_ceil(PACK_MIN_BLOCKS) + layers).contains(&packs),
+            "{packs} packs for {items} items"
+        );
         assert!(pages > 2 * packs, "{pages} pages, {packs} packs: packs span pages");
+        assert!(per_pack.iter().all(|&n| n <= PACK_MIN_BLOCKS), "{per_pack:?}");
         assert_eq!(scene.index.packs().count(), packs);
         for e in scene.blocks() {
             let bytes = scene.read_block(e).unwrap();
             assert_eq!(voxstream_format::decode_block(&bytes).unwrap().key, e.key);
         }
-        // Control: a byte cap below one block's size closes a pack after every block.
+        // Control: a byte cap below one block's size closes a pack after every block (with the
+        // pages sealed by it), where the default cap needs one pack.
         let mut small = diagonal_tree(64, 6);
         small.sort_by_key(|b| post_order_key(&b.key));
         let dir = tempfile::tempdir().unwrap();
-        let (_, per_pack, _) = write_packed(&small, dir.path(), 4096, 1);
-        assert_eq!(per_pack.len(), small.len(), "{per_pack:?}");
+        write_packed(&small, dir.path(), 4096, 1);
         crate::store::open_scene(dir.path(), "t").unwrap();
+        let packs = std::fs::read_dir(dir.path().join("t/packs")).unwrap().count();
+        assert!(packs >= small.len(), "{packs} packs for {} blocks", small.len());
     }
 
     /// Every directory of a store by the manifest text it holds.
