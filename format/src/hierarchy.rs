@@ -959,6 +959,13 @@ impl SceneIndex {
         Some(PackRange { pack: pack.clone()?, offset: r.location.offset, bytes: r.bytes })
     }
 
+    /// Every loaded page's reference and, when it lies in a pack, its range there.
+    pub fn loaded_pages(&self) -> impl Iterator<Item = (&PageRef, Option<PackRange>)> {
+        self.loaded.values().map(|(r, pack)| {
+            (r, pack.clone().map(|pack| PackRange { pack, offset: r.location.offset, bytes: r.bytes }))
+        })
+    }
+
     /// A loaded page's reference and, when it lies in a pack, its range there.
     pub fn loaded_page(&self, root: &BlockKey) -> Option<(&PageRef, Option<PackRange>)> {
         let (r, pack) = self.loaded.get(root)?;
