@@ -20,12 +20,11 @@ use crate::bucket_build::{StagedScene, stage_in_bucket};
 use crate::bucket_store::BucketStore;
 use crate::catalog::{Catalog, now_unix};
 use crate::coordinator::{Claim, Coordinator, PublishError};
-use crate::jobs::{Job, JobState, UPLOAD_EXPIRY_SECS, parse_topology};
+use crate::jobs::{Job, JobState, UPLOAD_EXPIRY_SECS};
 use crate::metrics::Metrics;
 use crate::objstore::Bucket;
 use crate::pipeline::progress::Progress;
-use crate::pipeline::voxelize::Topology;
-use crate::pipeline::{BuildError, BuildOptions, Resolution};
+use crate::pipeline::{BuildError, BuildOptions};
 
 /// How often an idle replica looks for a job to claim.
 const CLAIM_POLL: Duration = Duration::from_millis(500);
@@ -246,13 +245,8 @@ impl ClusterJobs {
         // More build options are coming (memory budget, ...): keep their defaults.
         #[allow(clippy::needless_update)]
         let opts = BuildOptions {
-            resolution: job.resolution.map_or(Resolution::Auto, Resolution::Explicit),
-            max_resolution: job.max_resolution,
-            name: Some(job.scene_id.clone()),
-            topology: parse_topology(&job.topology).unwrap_or(Topology::Conservative),
-            cancel: Some(cancel.clone()),
             temp_dir: Some(scratch.path().to_path_buf()),
-            ..Default::default()
+            ..job.build_options(cancel.clone())
         };
         let bucket = self.bucket.clone();
         let handle = tokio::runtime::Handle::current();

@@ -99,6 +99,21 @@ pub struct Job {
     pub input_blake3: Option<String>,
 }
 
+impl Job {
+    /// The build options this job asks for (resolution, cap, scene name, topology), cancelled
+    /// through `cancel`; both the local runner and the cluster's builders start from these.
+    pub fn build_options(&self, cancel: Arc<AtomicBool>) -> BuildOptions {
+        BuildOptions {
+            resolution: self.resolution.map_or(Resolution::Auto, Resolution::Explicit),
+            max_resolution: self.max_resolution,
+            name: Some(self.scene_id.clone()),
+            topology: parse_topology(&self.topology).unwrap_or(Topology::Conservative),
+            cancel: Some(cancel),
+            ..Default::default()
+        }
+    }
+}
+
 pub fn parse_topology(name: &str) -> Option<Topology> {
     match name {
         "conservative" => Some(Topology::Conservative),
@@ -371,14 +386,7 @@ impl JobManager {
         let started = Instant::now();
         let input = self.input_path(&job);
         let store = self.store.clone();
-        // More build options are coming (memory budget, ...): keep their defaults.
-        #[allow(clippy::needless_update)]
         let opts = BuildOptions {
-            resolution: job.resolution.map_or(Resolution::Auto, Resolution::Explicit),
-            max_resolution: job.max_resolution,
-            name: Some(job.scene_id.clone()),
-            topology: parse_topology(&job.topology).unwrap_or(Topology::Conservative),
-            cancel: Some(h.cancel.clone()),
             // Readers switch to the new manifest before the replaced scene's blocks are removed.
             on_published: Some(OnPublished(Arc::new({
                 let catalog = self.catalog.clone();
@@ -388,7 +396,7 @@ impl JobManager {
                     }
                 }
             }))),
-            ..Default::default()
+            ..job.build_options(h.cancel.clone())
         };
         let tx = h.tx.clone();
         let result = tokio::task::spawn_blocking(move || {
