@@ -1,17 +1,19 @@
 //! Write: packs finished blocks, encodes them, writes them and the hierarchy
 //! pages into a scene directory and publishes it atomically.
 //!
-//! Layout: `<store>/<id>/manifest.json`, `<store>/<id>/pages/<key>.vxh` and
-//! `<store>/<id>/packs/<blake3>.vxp`: the encoded bytes of blocks concatenated
-//! in the order they were finished (the pyramid's post order), a pack closing
-//! at [`PACK_MIN_BLOCKS`] blocks or [`PACK_MAX_BYTES`], so one pack spans
-//! several pages; the root block goes last, into the last pack. The one open
-//! pack is a temporary file (blake3 hashed as it grows), synced once and
-//! renamed to its content address when it closes; a page, which names its
-//! packs by hash, is written once its root block came and every pack it names
-//! is closed (until then the [`PageBuilder`] holds it). A scene is written under `<store>/.tmp-<id>-<pid>-<n>` and renamed
-//! into place only once every file is written and synced, so readers never see
-//! a half-written scene. Directories starting with `.` are never listed.
+//! Layout: `<store>/<id>/manifest.json` and `<store>/<id>/packs/<blake3>.vxp`:
+//! the encoded bytes of blocks, and the hierarchy pages, concatenated in the
+//! order they were finished (the pyramid's post order), a pack closing at
+//! [`PACK_MAX_ITEMS`] items or [`PACK_MAX_BYTES`], so one pack spans several
+//! pages; the root block and the root page go last. The one open pack is a
+//! temporary file (blake3 hashed as it grows), synced once and renamed to its
+//! content address when it closes. A page names its blocks' packs and its
+//! child pages' pack ranges, so it is sealed and appended once its root block
+//! came and every pack it names is closed (until then the [`PageBuilder`]
+//! holds it). A scene is written under `<store>/.tmp-<id>-<pid>-<n>` and
+//! renamed into place only once every file is written and synced, so readers
+//! never see a half-written scene. Directories starting with `.` are never
+//! listed.
 //!
 //! Durability is batched: block bytes are appended to packs and pages written
 //! without a sync each, and [`sync_tree`] makes the whole temporary directory
@@ -227,15 +229,17 @@ pub fn post_order_key(key: &BlockKey) -> (u64, u8) {
 /// Buffer of each open pack file.
 pub const PACK_BUFFER_BYTES: usize = 64 << 10;
 
-/// A pack closes once it holds this many blocks: the goal is at most one object per
-/// 256 blocks in a bucket, where every object costs a request and a listing entry.
-pub const PACK_MIN_BLOCKS: usize = 256;
+/// A pack closes once it holds this many items (blocks and the pages sealed while it is open).
+/// The goal is at most one object per 256 blocks in a bucket, where every object costs a request
+/// and a listing entry; a scene's last page layers each close one small pack (a parent page names
+/// its children's pack, known only once that pack is closed), so the cap is twice the goal.
+pub const PACK_MAX_ITEMS: usize = 512;
 
 /// ... or once it reaches this many bytes, whichever comes first. Past a few MB a request's
 /// fixed cost (≈ one round trip) is small next to its transfer, so bigger objects save little,
 /// while a bucket build holds whole packs in its upload queue ([`crate::bucket_build`]) and a
 /// static host's 200-instead-of-206 answer sends a whole pack: 8 MiB bounds both. Cedar Creek's
-/// blocks average about 20 KB, so 256 of them stay under it.
+/// blocks average about 20 KB, so its packs close on bytes at about 400 blocks.
 pub const PACK_MAX_BYTES: u64 = 8 << 20;
 
 /// Memory a held page entry takes at most (the entry with its hash string, in a `Vec`).
@@ -243,11 +247,11 @@ const HELD_ENTRY_BYTES: usize = 192;
 
 /// Memory the writer's one open pack (its buffer) and its held pages take at most. Pages wait
 /// for the open pack to close; every held page is rooted in it, so they hold at most its
-/// [`PACK_MIN_BLOCKS`] entries plus, for each page layer, the entries of one page filled
+/// [`PACK_MAX_ITEMS`] entries plus, for each page layer, the entries of one page filled
 /// before it ([`PageBuilder`]'s notes).
 pub fn pack_writer_bytes(levels: u8) -> usize {
     let layers = (levels as usize).div_ceil(PAGE_LEVELS as usize);
-    let held = PACK_MIN_BLOCKS + layers * voxstream_format::hierarchy::MAX_PAGE_ENTRIES as usize;
+    let held = PACK_MAX_ITEMS + layers * voxstream_format::hierarchy::MAX_PAGE_ENTRIES as usize;
     PACK_BUFFER_BYTES + held * HELD_ENTRY_BYTES
 }
 
@@ -287,7 +291,7 @@ impl OpenPack {
     }
 
     fn is_full(&self, max_bytes: u64) -> bool {
-        self.items >= PACK_MIN_BLOCKS || self.len >= max_bytes
+        self.items >= PACK_MAX_ITEMS || self.len >= max_bytes
     }
 
     /// Syncs the pack once and renames it to its content address in `scene_dir`.
@@ -317,7 +321,7 @@ pub const ENCODE_BYTES_PER_VOXEL: usize = 48;
 /// Takes finished blocks one at a time, in any order with children before
 /// parents, packs and encodes them on all cores in batches of at most
 /// `pending_limit` bytes, appends each, in the order it came, to the one open
-/// pack in a temporary scene directory (closed at [`PACK_MIN_BLOCKS`] blocks
+/// pack in a temporary scene directory (closed at [`PACK_MAX_ITEMS`] items
 /// or [`PACK_MAX_BYTES`], and at the end), feeds its entry to the
 /// [`PageBuilder`] (which seals a page once its root came and its packs are
 /// closed; the writer then writes it) and drops it. The packs' bytes depend on
@@ -719,20 +723,20 @@ mod tests {
         (m, per_pack, most_held)
     }
 
-    /// Packs hold [`PACK_MIN_BLOCKS`] items each (blocks and the pages sealed while they were
+    /// Packs hold [`PACK_MAX_ITEMS`] items each (blocks and the pages sealed while they were
     /// open), span pages, and the scene has no page files: every page and block reads back from a
     /// pack range. The pages held for the open pack stay within the bound
     /// [`MemoryPlan`](crate::pipeline::MemoryPlan) counts. Control: with a tiny byte cap the packs
     /// close on bytes instead, one item each.
     #[test]
-    fn packs_span_pages_and_close_at_256_blocks() {
+    fn packs_span_pages_and_close_at_the_item_cap() {
         let (resolution, coarsest) = (65536, 10);
         let mut blocks = diagonal_tree(1024, coarsest);
         blocks.sort_by_key(|b| post_order_key(&b.key));
         let dir = tempfile::tempdir().unwrap();
         let (manifest, per_pack, most_held) = write_packed(&blocks, dir.path(), resolution, PACK_MAX_BYTES);
         let layers = (level_count(resolution) as usize).div_ceil(PAGE_LEVELS as usize);
-        let bound = PACK_MIN_BLOCKS + layers * voxstream_format::hierarchy::MAX_PAGE_ENTRIES as usize;
+        let bound = PACK_MAX_ITEMS + layers * voxstream_format::hierarchy::MAX_PAGE_ENTRIES as usize;
         assert!(most_held > 0 && most_held <= bound, "{most_held} entries held, bound {bound}");
         assert!(pack_writer_bytes(level_count(resolution)) >= bound * HELD_ENTRY_BYTES);
         let scene = crate::store::open_scene(dir.path(), "t").unwrap();
@@ -744,11 +748,11 @@ mod tests {
         let items = blocks.len() + pages;
         // Full packs but for the last few: each page layer's last pages close one more pack.
         assert!(
-            (items.div_ceil(PACK_MIN_BLOCKS)..=items.div_ceil(PACK_MIN_BLOCKS) + layers).contains(&packs),
+            (items.div_ceil(PACK_MAX_ITEMS)..=items.div_ceil(PACK_MAX_ITEMS) + layers).contains(&packs),
             "{packs} packs for {items} items"
         );
         assert!(pages > 2 * packs, "{pages} pages, {packs} packs: packs span pages");
-        assert!(per_pack.iter().all(|&n| n <= PACK_MIN_BLOCKS), "{per_pack:?}");
+        assert!(per_pack.iter().all(|&n| n <= PACK_MAX_ITEMS), "{per_pack:?}");
         assert_eq!(scene.index.packs().count(), packs);
         for e in scene.blocks() {
             let bytes = scene.read_block(e).unwrap();
