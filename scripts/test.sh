@@ -110,7 +110,8 @@ step "fuzz targets compile" cargo check --manifest-path fuzz/Cargo.toml --no-def
 # Garage (compiled once into ~/.cache/voxstream-tools: about 9 minutes cold on 2 cores, instant warm)
 # and nginx-light, which the object-store and cluster tests start as real processes.
 step "cluster tools (garage, nginx)" bash scripts/cluster.sh tools
-step "cargo test" cargo test --workspace "${LOCKED[@]}" "${PROFILE_ARGS[@]}" "$@"
+# --no-fail-fast: one failing test binary must not hide the others' results.
+step "cargo test" cargo test --workspace --no-fail-fast "${LOCKED[@]}" "${PROFILE_ARGS[@]}" "$@"
 # After cargo test, on the voxstream binary it built: `cargo build` alone would compile it again
 # (without the dev-dependencies' features, which cargo test unifies in). --no-run is a no-op here.
 api_contract() {

@@ -127,7 +127,7 @@ fn main() {
     let dir = Path::new(&dir);
     let manifest = Manifest::from_json(&std::fs::read(dir.join("manifest.json")).expect("manifest"))
         .expect("valid manifest");
-    let index = voxstream_format::load_scene_index(&manifest, |r| {
+    let index = voxstream_format::load_scene_index(&manifest, |r, _| {
         std::fs::read(dir.join(voxstream_format::hierarchy::page_path(&r.root)))
     })
     .expect("hierarchy pages");

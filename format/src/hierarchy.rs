@@ -23,17 +23,18 @@
 //! block is its own file `blocks/<key>.vxb` (no writer makes those any more;
 //! the tests' unpacked pages use it).
 //!
-//! Binary page layout (little endian), version 3:
+//! Binary page layout (little endian), version 4:
 //!
 //! ```text
 //! 0  magic "VXHP"
-//! 4  version u8 (3), page_levels u8, reserved 2 zero bytes
+//! 4  version u8 (4), page_levels u8, reserved 2 zero bytes
 //! 8  root: level u8, x, y, z u32
 //! 21 entry count u32, child page count u32, pack count u32 (at most the entry count)
 //! 33 payload length u32 (decompressed; must equal what the counts imply)
 //! 37 lz4 block of the payload:
 //!    packs        count × (blake3 32, length u64)                                 = 40 bytes
-//!    child pages  count × (level u8, x, y, z u32, bytes u32, blake3 32)        = 49 bytes
+//!    child pages  count × (level u8, x, y, z u32, bytes u32, blake3 32,
+//!                          pack u32, offset u64)                                  = 61 bytes
 //!    entries      count × (level u8, x, y, z u32, child_mask u8,
 //!                          bounds min 3 × u8, max 3 × u8 (block-local, 0..=64),
 //!                          voxels u32, faces u32, bytes u32, geometric_error f32,
@@ -41,7 +42,7 @@
 //! ```
 //!
 //! Versions 1 and 2 (one pack per page, named in the header) belong to format-3
-//! scenes, which the manifest check refuses with a rebuild message; a page of
+//! scenes and version 3 (child pages as files) to format-4 scenes, which the manifest check refuses with a rebuild message; a page of
 //! another version is refused the same way.
 //!
 //! **Invariant:** [`HierarchyPage::decode`] never panics and never allocates
@@ -60,11 +61,11 @@ use crate::{BLOCK_SIZE, BlockEntry, BlockKey, Manifest, VoxelBounds};
 /// Levels one page spans below its root.
 pub const PAGE_LEVELS: u8 = 3;
 pub const PAGE_MAGIC: [u8; 4] = *b"VXHP";
-const PAGE_VERSION: u8 = 3;
+const PAGE_VERSION: u8 = 4;
 /// The page header, the shortest any page can be.
 pub const PAGE_HEADER_LEN: usize = 37;
 const PACK_REF_LEN: usize = 40;
-const CHILD_PAGE_LEN: usize = 49;
+const CHILD_PAGE_LEN: usize = 61;
 const ENTRY_LEN: usize = 80;
 /// A page holds at most the full subtree of `page_levels ≤ 4` levels: 8 + 64 + 512 + 4096 blocks.
 pub const MAX_PAGE_ENTRIES: u32 = 8 + 64 + 512 + 4096;
@@ -142,6 +143,12 @@ pub struct PageRef {
     /// blake3 of the page bytes, hex.
     pub hash: String,
     pub bytes: u32,
+    /// Where the page's bytes are: its own file `pages/<root>.vxh`, or `[offset, offset + bytes)`
+    /// of the pack at `location.pack` in the naming page's pack list (the manifest's
+    /// `root_page_pack` for the root page). Pages live in packs so a scene is one object per
+    /// pack, not one per page as well.
+    #[serde(default, skip_serializing_if = "BlockLocation::is_file")]
+    pub location: BlockLocation,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -292,6 +299,8 @@ impl HierarchyPage {
             put_key(&mut raw, &c.root);
             raw.extend_from_slice(&c.bytes.to_le_bytes());
             put_hash(&mut raw, &c.hash);
+            raw.extend_from_slice(&c.location.pack.to_le_bytes());
+            raw.extend_from_slice(&c.location.offset.to_le_bytes());
         }
         for e in &self.entries {
             put_key(&mut raw, &e.key);
@@ -396,7 +405,8 @@ impl HierarchyPage {
             .map(|_| {
                 let root = r.key();
                 let bytes = r.u32();
-                PageRef { root, bytes, hash: hex(&r.take::<32>()) }
+                let hash = hex(&r.take::<32>());
+                PageRef { root, bytes, hash, location: BlockLocation { pack: r.u32(), offset: r.u64() } }
             })
             .collect();
         let mut list = Vec::with_capacity(entries as usize);
@@ -511,12 +521,32 @@ impl HierarchyPage {
                 }
             }
         }
+        for c in self.child_pages.iter().filter(|c| !c.location.is_file()) {
+            let Some(p) = self.packs.get(c.location.pack as usize) else {
+                return bad(format!(
+                    "child page {} names pack {} of {}",
+                    c.root,
+                    c.location.pack,
+                    self.packs.len()
+                ));
+            };
+            if !range_in_pack(c.location.offset, c.bytes, p.bytes) {
+                return bad(format!(
+                    "child page {} lies at bytes {}..{} of a {}-byte pack",
+                    c.root,
+                    c.location.offset,
+                    c.location.offset as u128 + c.bytes as u128,
+                    p.bytes
+                ));
+            }
+        }
         let mut used = vec![false; self.packs.len()];
-        for e in self.entries.iter().filter(|e| !e.location.is_file()) {
-            used[e.location.pack as usize] = true;
+        let blocks = self.entries.iter().map(|e| e.location);
+        for location in blocks.chain(self.child_pages.iter().map(|c| c.location)).filter(|l| !l.is_file()) {
+            used[location.pack as usize] = true;
         }
         if let Some(i) = used.iter().position(|u| !u) {
-            return bad(format!("pack {i} of the page holds none of its blocks"));
+            return bad(format!("pack {i} of the page holds none of its blocks or child pages"));
         }
         let deepest: Vec<BlockKey> = self
             .entries
@@ -545,7 +575,12 @@ impl HierarchyPage {
 
     /// The reference naming this page's bytes.
     pub fn reference(&self, bytes: &[u8]) -> PageRef {
-        PageRef { root: self.root, hash: content_hash(bytes), bytes: bytes.len() as u32 }
+        PageRef {
+            root: self.root,
+            hash: content_hash(bytes),
+            bytes: bytes.len() as u32,
+            location: BlockLocation::FILE,
+        }
     }
 }
 
@@ -576,6 +611,8 @@ struct OpenPage {
 pub struct PageBuilder {
     coarsest: u8,
     page_levels: u8,
+    /// Whether sealed pages go into packs ([`Self::page_placed`]) rather than files of their own.
+    pages_in_packs: bool,
     open: BTreeMap<BlockKey, OpenPage>,
     held: BTreeMap<BlockKey, OpenPage>,
     masks: HashMap<BlockKey, u8>,
@@ -589,12 +626,14 @@ pub struct PageBuilder {
 pub type FinishedPage = (PageRef, Vec<u8>);
 
 /// The hierarchy's top once every block is added: the root block's entry (a
-/// packed root names pack 0, `root_pack`), the root page, and the root's pack.
+/// packed root names pack 0, `root_pack`), the root page (in a pack: pack 0,
+/// `root_page_pack`), and those packs.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FinishedHierarchy {
     pub root: BlockEntry,
     pub root_page: Option<PageRef>,
     pub root_pack: Option<PackRef>,
+    pub root_page_pack: Option<PackRef>,
 }
 
 impl PageBuilder {
@@ -602,6 +641,7 @@ impl PageBuilder {
         Self {
             coarsest,
             page_levels: page_levels.clamp(1, 4),
+            pages_in_packs: false,
             open: BTreeMap::new(),
             held: BTreeMap::new(),
             masks: HashMap::new(),
@@ -609,6 +649,34 @@ impl PageBuilder {
             root: None,
             root_page: None,
         }
+    }
+
+    /// Pages are placed in packs: each page [`Self::add`] or [`Self::pack_closed`] returns must
+    /// be appended to the open pack and reported with [`Self::page_placed`]; its parent is then
+    /// sealed once that pack is closed too.
+    pub fn with_pages_in_packs(mut self) -> Self {
+        self.pages_in_packs = true;
+        self
+    }
+
+    /// The sealed page rooted at `root` lies at `offset` of pack `serial` (still open).
+    pub fn page_placed(&mut self, root: BlockKey, serial: u32, offset: u64) -> Result<(), PageError> {
+        if !self.pages_in_packs || serial == NO_PACK || (serial as usize) < self.closed_packs.len() {
+            return Err(PageError::Order(format!("page {root} placed in pack {serial}, which is not open")));
+        }
+        let slot = match page_root_of(&root, self.coarsest, self.page_levels) {
+            Some(parent) => self
+                .open
+                .get_mut(&parent)
+                .or_else(|| self.held.get_mut(&parent))
+                .and_then(|p| p.child_pages.iter_mut().find(|c| c.root == root)),
+            None => self.root_page.as_mut().filter(|r| r.root == root),
+        };
+        let Some(reference) = slot.filter(|r| r.location.is_file()) else {
+            return Err(PageError::Order(format!("page {root} was not sealed or was placed twice")));
+        };
+        reference.location = BlockLocation { pack: serial, offset };
+        Ok(())
     }
 
     /// Records a finished block; `entry.child_mask` is filled in here from the
@@ -678,11 +746,11 @@ impl PageBuilder {
     }
 
     fn sealable(&self, page: &OpenPage) -> bool {
+        let closed = |l: &BlockLocation| l.is_file() || (l.pack as usize) < self.closed_packs.len();
+        let placed = |c: &PageRef| !self.pages_in_packs || (!c.location.is_file() && closed(&c.location));
         page.unsealed_children == 0
-            && page
-                .entries
-                .iter()
-                .all(|e| e.location.is_file() || (e.location.pack as usize) < self.closed_packs.len())
+            && page.entries.iter().all(|e| closed(&e.location))
+            && page.child_pages.iter().all(placed)
     }
 
     /// Seals every held page whose packs are closed and whose child pages are
@@ -716,8 +784,9 @@ impl PageBuilder {
 
     /// Encodes a page, its pack serials mapped to indices into its pack list.
     fn seal(&self, root: BlockKey, open: OpenPage) -> Result<FinishedPage, PageError> {
-        let mut serials: Vec<u32> =
-            open.entries.iter().filter(|e| !e.location.is_file()).map(|e| e.location.pack).collect();
+        let locations =
+            open.entries.iter().map(|e| e.location).chain(open.child_pages.iter().map(|c| c.location));
+        let mut serials: Vec<u32> = locations.filter(|l| !l.is_file()).map(|l| l.pack).collect();
         serials.sort_unstable();
         serials.dedup();
         let mut page = HierarchyPage {
@@ -729,6 +798,9 @@ impl PageBuilder {
         };
         for e in page.entries.iter_mut().filter(|e| !e.location.is_file()) {
             e.location.pack = serials.binary_search(&e.location.pack).expect("collected above") as u32;
+        }
+        for c in page.child_pages.iter_mut().filter(|c| !c.location.is_file()) {
+            c.location.pack = serials.binary_search(&c.location.pack).expect("collected above") as u32;
         }
         page.entries.sort_by_key(|e| e.key);
         page.child_pages.sort_by_key(|c| c.root);
@@ -755,7 +827,18 @@ impl PageBuilder {
             root.location.pack = 0;
             Some(pack)
         };
-        Ok(FinishedHierarchy { root, root_page: self.root_page, root_pack })
+        let mut root_page = self.root_page;
+        let root_page_pack = match root_page.as_mut() {
+            Some(page) if self.pages_in_packs => {
+                let pack = self.closed_packs.get(page.location.pack as usize).cloned().ok_or_else(|| {
+                    PageError::Order(format!("the root page's pack {} was never closed", page.location.pack))
+                })?;
+                page.location.pack = 0;
+                Some(pack)
+            }
+            _ => None,
+        };
+        Ok(FinishedHierarchy { root, root_page, root_pack, root_page_pack })
     }
 }
 
@@ -767,11 +850,16 @@ pub struct SceneIndex {
     root: BlockKey,
     /// The pack holding the root block (the manifest's `root_pack`).
     root_pack: Option<PackRef>,
+    /// The pack holding the root page (the manifest's `root_page_pack`).
+    root_page_pack: Option<PackRef>,
     /// Each loaded page's packs, by page root.
     packs: HashMap<BlockKey, Vec<PackRef>>,
     entries: HashMap<BlockKey, BlockEntry>,
-    /// Pages named by a loaded page (or the manifest) and not loaded yet, by root.
-    pending: BTreeMap<BlockKey, PageRef>,
+    /// Pages named by a loaded page (or the manifest) and not loaded yet, by root, each with the
+    /// pack its bytes lie in (`None`: its own file).
+    pending: BTreeMap<BlockKey, (PageRef, Option<PackRef>)>,
+    /// Pages loaded, by root, with their pack (a server answers page URLs from these).
+    loaded: HashMap<BlockKey, (PageRef, Option<PackRef>)>,
     pages_loaded: usize,
     page_bytes_loaded: u64,
 }
@@ -780,14 +868,23 @@ impl SceneIndex {
     pub fn new(manifest: &Manifest) -> Self {
         let mut entries = HashMap::new();
         entries.insert(manifest.root.key, manifest.root.clone());
-        let pending = manifest.root_page.iter().map(|r| (r.root, r.clone())).collect();
+        let pending = manifest
+            .root_page
+            .iter()
+            .map(|r| {
+                let pack = if r.location.is_file() { None } else { manifest.root_page_pack.clone() };
+                (r.root, (r.clone(), pack))
+            })
+            .collect();
         Self {
             page_levels: manifest.page_levels,
             root: manifest.root.key,
             root_pack: manifest.root_pack.clone(),
+            root_page_pack: manifest.root_page_pack.clone(),
             packs: HashMap::new(),
             entries,
             pending,
+            loaded: HashMap::new(),
             pages_loaded: 0,
             page_bytes_loaded: 0,
         }
@@ -820,6 +917,7 @@ impl SceneIndex {
         let mut seen = std::collections::HashSet::new();
         self.root_pack
             .iter()
+            .chain(self.root_page_pack.iter())
             .chain(self.packs.values().flatten())
             .filter(move |p| seen.insert(p.hash.as_str()))
     }
@@ -847,11 +945,32 @@ impl SceneIndex {
         if e.child_mask == 0 {
             return None;
         }
-        self.pending.get(key)
+        self.pending.get(key).map(|(r, _)| r)
     }
 
     pub fn missing_pages(&self) -> impl Iterator<Item = &PageRef> {
-        self.pending.values()
+        self.pending.values().map(|(r, _)| r)
+    }
+
+    /// Where in a pack a page named but not loaded yet lies; `None` when it is its own file
+    /// (`pages/<root>.vxh`) or not named.
+    pub fn page_range(&self, root: &BlockKey) -> Option<PackRange> {
+        let (r, pack) = self.pending.get(root)?;
+        Some(PackRange { pack: pack.clone()?, offset: r.location.offset, bytes: r.bytes })
+    }
+
+    /// Every loaded page's reference and, when it lies in a pack, its range there.
+    pub fn loaded_pages(&self) -> impl Iterator<Item = (&PageRef, Option<PackRange>)> {
+        self.loaded.values().map(|(r, pack)| {
+            (r, pack.clone().map(|pack| PackRange { pack, offset: r.location.offset, bytes: r.bytes }))
+        })
+    }
+
+    /// A loaded page's reference and, when it lies in a pack, its range there.
+    pub fn loaded_page(&self, root: &BlockKey) -> Option<(&PageRef, Option<PackRange>)> {
+        let (r, pack) = self.loaded.get(root)?;
+        let range = pack.clone().map(|pack| PackRange { pack, offset: r.location.offset, bytes: r.bytes });
+        Some((r, range))
     }
 
     pub fn pages_loaded(&self) -> usize {
@@ -890,11 +1009,14 @@ impl SceneIndex {
                 page.root
             )));
         }
-        if let Some(r) = self.pending.remove(&page.root) {
+        if let Some((r, pack)) = self.pending.remove(&page.root) {
             self.page_bytes_loaded += r.bytes as u64;
+            self.loaded.insert(page.root, (r, pack));
         }
         for c in page.child_pages {
-            self.pending.insert(c.root, c);
+            // `validate` checked the index against the page's pack list.
+            let pack = (!c.location.is_file()).then(|| page.packs[c.location.pack as usize].clone());
+            self.pending.insert(c.root, (c, pack));
         }
         if !page.packs.is_empty() {
             self.packs.insert(page.root, page.packs);
@@ -916,16 +1038,18 @@ pub enum IndexError<E: std::error::Error + 'static> {
     Page(#[from] PageError),
 }
 
-/// Loads every page of a scene through `read` (bytes of the page a reference names).
+/// Loads every page of a scene through `read` (bytes of the page a reference names: the pack
+/// range given, or its own file when `None`).
 pub fn load_scene_index<E: std::error::Error + 'static>(
     manifest: &Manifest,
-    mut read: impl FnMut(&PageRef) -> Result<Vec<u8>, E>,
+    mut read: impl FnMut(&PageRef, Option<PackRange>) -> Result<Vec<u8>, E>,
 ) -> Result<SceneIndex, IndexError<E>> {
     let mut index = SceneIndex::new(manifest);
     loop {
         let next = index.missing_pages().next().cloned();
         let Some(r) = next else { break };
-        let bytes = read(&r).map_err(|source| IndexError::Read { root: r.root, source })?;
+        let range = index.page_range(&r.root);
+        let bytes = read(&r, range).map_err(|source| IndexError::Read { root: r.root, source })?;
         index.insert_page(HierarchyPage::decode(&bytes, &r)?)?;
     }
     Ok(index)
@@ -996,7 +1120,12 @@ mod tests {
         let (mut serial, mut len, mut in_pack) = (0u32, 0u64, 0usize);
         let mut out = Packed {
             pages: Vec::new(),
-            top: FinishedHierarchy { root: entry(order[0]), root_page: None, root_pack: None },
+            top: FinishedHierarchy {
+                root: entry(order[0]),
+                root_page: None,
+                root_pack: None,
+                root_page_pack: None,
+            },
             packs: Vec::new(),
             most_held: 0,
         };
@@ -1023,6 +1152,129 @@ mod tests {
         }
         out.top = b.finish().unwrap();
         out
+    }
+
+    /// A writer that puts blocks and pages into packs: each sealed page is appended to the open
+    /// pack (which closes after `per_pack` items), as the store's writer will.
+    struct PagePackWriter {
+        b: PageBuilder,
+        packs: Vec<(PackRef, Vec<u8>)>,
+        open: Vec<u8>,
+        items: usize,
+        pages: usize,
+    }
+
+    impl PagePackWriter {
+        fn serial(&self) -> u32 {
+            self.packs.len() as u32
+        }
+
+        fn place(&mut self, sealed: Vec<FinishedPage>) {
+            for (r, bytes) in sealed {
+                self.b.page_placed(r.root, self.serial(), self.open.len() as u64).unwrap();
+                self.open.extend(bytes);
+                self.items += 1;
+                self.pages += 1;
+            }
+        }
+
+        fn close(&mut self) {
+            let bytes = std::mem::take(&mut self.open);
+            let pack = PackRef { hash: content_hash(&bytes), bytes: bytes.len() as u64 };
+            self.packs.push((pack.clone(), bytes));
+            self.items = 0;
+            let sealed = self.b.pack_closed(self.serial() - 1, pack).unwrap();
+            self.place(sealed);
+        }
+
+        fn run(order: &[BlockKey], coarsest: u8, per_pack: usize) -> (Self, FinishedHierarchy) {
+            let b = PageBuilder::new(coarsest, PAGE_LEVELS).with_pages_in_packs();
+            let mut w = Self { b, packs: Vec::new(), open: Vec::new(), items: 0, pages: 0 };
+            for k in order {
+                let mut e = entry(*k);
+                e.location = BlockLocation { pack: w.serial(), offset: w.open.len() as u64 };
+                w.open.extend(std::iter::repeat_n(k.level, e.bytes as usize));
+                w.items += 1;
+                let sealed = w.b.add(e).unwrap();
+                w.place(sealed);
+                if w.items >= per_pack {
+                    w.close();
+                }
+            }
+            // Each close may seal the next page layer into a new pack; the root page ends it.
+            while !w.open.is_empty() {
+                w.close();
+            }
+            let top = std::mem::replace(&mut w.b, PageBuilder::new(coarsest, PAGE_LEVELS)).finish().unwrap();
+            (w, top)
+        }
+    }
+
+    /// Fails if a page can be sealed before the pack holding a child page is closed, if any
+    /// page is left as a file of its own, or if the index cannot read pages by range; the
+    /// control reads one page from a pack with a byte changed.
+    #[test]
+    fn pages_in_packs_are_read_by_range() {
+        let levels = tree(&sample_level0());
+        let coarsest = (levels.len() - 1) as u8;
+        let order = morton_post_order(&levels);
+        let (w, top) = PagePackWriter::run(&order, coarsest, 256);
+        let all: BTreeSet<BlockKey> = levels.iter().flatten().copied().collect();
+        assert_eq!(w.pages, 1 + levels[2].len());
+        // One object per pack: blocks and pages together, 256 items a pack but for the last
+        // page layers' packs at the end.
+        let items = all.len() + w.pages;
+        assert!(w.packs.len() <= items / 256 + 3, "{} packs for {items} items", w.packs.len());
+        let mut manifest = manifest_for(top.root.clone(), top.root_page.clone(), coarsest);
+        manifest.root_pack = top.root_pack.clone();
+        manifest.root_page_pack = top.root_page_pack.clone();
+        manifest.validate().unwrap();
+        let by_hash: HashMap<String, Vec<u8>> =
+            w.packs.iter().map(|(p, b)| (p.hash.clone(), b.clone())).collect();
+        let read = |packs: &HashMap<String, Vec<u8>>, r: &PageRef, range: Option<PackRange>| {
+            let range =
+                range.ok_or_else(|| std::io::Error::other(format!("page {} is not in a pack", r.root)))?;
+            let pack = packs.get(&range.pack.hash).ok_or_else(|| std::io::Error::other("no such pack"))?;
+            Ok::<_, std::io::Error>(pack[range.offset as usize..range.end() as usize].to_vec())
+        };
+        let index = load_scene_index(&manifest, |r, range| read(&by_hash, r, range)).unwrap();
+        assert!(index.is_complete());
+        assert_eq!(index.pages_loaded(), w.pages);
+        let known: BTreeSet<BlockKey> = index.blocks().map(|e| e.key).collect();
+        assert_eq!(known, all, "every block is reachable through pages read from packs");
+        for k in &all {
+            let r = index.pack_range(k).expect("every block is packed");
+            let pack = &by_hash[&r.pack.hash];
+            assert!(pack[r.offset as usize..r.end() as usize].iter().all(|&b| b == k.level), "block {k}");
+        }
+        // Control: a page's bytes changed inside its pack no longer match the reference.
+        let (root_page_pack, root_page) = (top.root_page_pack.unwrap(), top.root_page.unwrap());
+        let mut broken = by_hash.clone();
+        broken.get_mut(&root_page_pack.hash).unwrap()[root_page.location.offset as usize + 40] ^= 1;
+        let err = load_scene_index(&manifest, |r, range| read(&broken, r, range)).unwrap_err();
+        assert!(err.to_string().contains("hash"), "{err}");
+    }
+
+    /// Placing a page in a pack that is already closed, or a page twice, is an order error.
+    #[test]
+    fn pages_are_placed_once_in_the_open_pack() {
+        let levels = tree(&sample_level0());
+        let coarsest = (levels.len() - 1) as u8;
+        let mut b = PageBuilder::new(coarsest, PAGE_LEVELS).with_pages_in_packs();
+        let mut sealed = Vec::new();
+        for k in morton_post_order(&levels) {
+            let mut e = entry(k);
+            e.location = BlockLocation { pack: 0, offset: 0 };
+            if k.level == coarsest {
+                sealed.extend(b.pack_closed(0, PackRef { hash: "ab".repeat(32), bytes: 1 << 20 }).unwrap());
+                e.location.pack = 1;
+            }
+            sealed.extend(b.add(e).unwrap());
+        }
+        let (first, _) = sealed.first().cloned().expect("pages sealed once pack 0 closed");
+        assert!(matches!(b.page_placed(first.root, 0, 0), Err(PageError::Order(_))), "pack 0 is closed");
+        b.page_placed(first.root, 1, 0).unwrap();
+        assert!(matches!(b.page_placed(first.root, 1, 0), Err(PageError::Order(_))), "placed twice");
     }
 
     /// Post-order by Morton code of the level-0 descendants: the out-of-core pyramid's order.
@@ -1084,7 +1336,7 @@ mod tests {
         let store: HashMap<String, Vec<u8>> =
             pages_a.iter().map(|(r, b)| (r.hash.clone(), b.clone())).collect();
         let manifest = manifest_for(root_a, ref_a, coarsest);
-        let index = load_scene_index(&manifest, |r| {
+        let index = load_scene_index(&manifest, |r, _| {
             store.get(&r.hash).cloned().ok_or_else(|| std::io::Error::other("missing"))
         })
         .unwrap();
@@ -1167,7 +1419,7 @@ mod tests {
         let mut manifest = manifest_for(top.root.clone(), top.root_page.clone(), coarsest);
         manifest.root_pack = top.root_pack.clone();
         manifest.validate().unwrap();
-        let index = load_scene_index(&manifest, |r| {
+        let index = load_scene_index(&manifest, |r, _| {
             store.get(&r.hash).cloned().ok_or_else(|| std::io::Error::other("missing"))
         })
         .unwrap();
@@ -1239,7 +1491,7 @@ mod tests {
         let (pages, _, _) = build(&levels.iter().flatten().copied().collect::<Vec<_>>(), coarsest);
         let (_, bytes) = &pages[0];
         assert!(HierarchyPage::decode_unverified(bytes).is_ok(), "control: the page as written");
-        for version in [1u8, 2, 4] {
+        for version in [1u8, 2, 3, 5] {
             let mut old = bytes.clone();
             old[4] = version;
             let err = HierarchyPage::decode_unverified(&old).unwrap_err();

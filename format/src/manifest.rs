@@ -6,7 +6,7 @@ use crate::{BLOCK_SIZE, BlockKey};
 /// Bumped whenever a reader of an older manifest would misread a newer one.
 /// 3: the block list moved into hierarchy pages (`hierarchy.rs`).
 /// 4: packs span pages; a page lists several packs (page version 3).
-pub const FORMAT_VERSION: u32 = 4;
+pub const FORMAT_VERSION: u32 = 5;
 
 /// Where the voxel grid sits in the source mesh's coordinates.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -119,6 +119,10 @@ pub struct Manifest {
     /// `None` when the root is its own file.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub root_pack: Option<PackRef>,
+    /// The pack holding the root page's bytes (`root_page.location.pack == 0`); `None` when the
+    /// root page is its own file or there is no root page.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub root_page_pack: Option<PackRef>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -199,6 +203,15 @@ impl Manifest {
                         && is_content_hash(&p.hash)
                         && range_in_pack(root.location.offset, root.bytes, p.bytes) => {}
                 _ => return bad("the root block's pack range is not in the root pack".into()),
+            }
+        }
+        if let Some(page) = self.root_page.as_ref().filter(|p| !p.location.is_file()) {
+            match &self.root_page_pack {
+                Some(p)
+                    if page.location.pack == 0
+                        && is_content_hash(&p.hash)
+                        && range_in_pack(page.location.offset, page.bytes, p.bytes) => {}
+                _ => return bad("the root page's pack range is not in the root page's pack".into()),
             }
         }
         if self.resolution_choice.resolution != self.grid.resolution {
@@ -287,8 +300,14 @@ mod tests {
             },
             page_levels: 3,
             root,
-            root_page: Some(PageRef { root: BlockKey::new(1, 0, 0, 0), hash: "cd".repeat(32), bytes: 99 }),
+            root_page: Some(PageRef {
+                root: BlockKey::new(1, 0, 0, 0),
+                hash: "cd".repeat(32),
+                bytes: 99,
+                location: BlockLocation::FILE,
+            }),
             root_pack: None,
+            root_page_pack: None,
         }
     }
 

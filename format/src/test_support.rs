@@ -32,5 +32,6 @@ pub fn manifest(
         root,
         root_page,
         root_pack: None,
+        root_page_pack: None,
     }
 }

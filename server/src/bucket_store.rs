@@ -14,7 +14,7 @@ use object_store::ObjectStore;
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
 use prometheus_client::metrics::gauge::Gauge;
-use voxstream_format::hierarchy::{HierarchyPage, content_hash, pack_path};
+use voxstream_format::hierarchy::{HierarchyPage, PackRange, content_hash, pack_path};
 use voxstream_format::{BlockEntry, BlockKey, Manifest, PageRef, SceneIndex};
 
 use crate::objstore::Bucket;
@@ -155,13 +155,14 @@ impl BucketStore {
         let damaged = |message: String| StoreError::Damaged { id: id.to_string(), message };
         let mut index = SceneIndex::new(manifest);
         loop {
-            let wanted: Vec<PageRef> = index.missing_pages().cloned().collect();
+            let wanted: Vec<(PageRef, Option<PackRange>)> =
+                index.missing_pages().map(|r| (r.clone(), index.page_range(&r.root))).collect();
             if wanted.is_empty() {
                 break;
             }
             let pages: Vec<_> = futures_util::stream::iter(wanted)
-                .map(|r| async move {
-                    let bytes = self.page(id, &r.root, &r.hash).await;
+                .map(|(r, range)| async move {
+                    let bytes = self.page(id, &r, range).await;
                     (r, bytes)
                 })
                 .buffer_unordered(PAGE_FETCHES)
@@ -179,16 +180,38 @@ impl BucketStore {
 
     /// A hierarchy page's bytes, checked against `hash` (a page named by a hash it does not have is
     /// missing: the scene was replaced).
-    pub async fn page(&self, id: &str, root: &BlockKey, hash: &str) -> Result<Bytes, BucketReadError> {
+    pub async fn page(
+        &self,
+        id: &str,
+        page: &PageRef,
+        range: Option<PackRange>,
+    ) -> Result<Bytes, BucketReadError> {
+        let hash = &page.hash;
         let key = CacheKey::Page(hash.to_string());
         if let Some(bytes) = self.cache.get(&key).await {
             self.metrics.count(&key, true);
             return Ok(bytes);
         }
         self.metrics.count(&key, false);
-        let rel = format!("{id}/{}", bucket_page_path(root, hash));
-        let bytes = self.get(&rel).await?;
-        if content_hash(&bytes) != hash {
+        let (rel, bytes) = match range {
+            // Pages live in packs: one ranged GET, like a block.
+            Some(r) => {
+                let rel = format!("{id}/{}", pack_path(&r.pack.hash));
+                let bytes = self
+                    .bucket
+                    .store
+                    .get_range(&self.bucket.path(&rel), r.offset..r.end())
+                    .await
+                    .map_err(|e| self.failed(&rel, e))?;
+                (rel, bytes)
+            }
+            None => {
+                let rel = format!("{id}/{}", bucket_page_path(&page.root, hash));
+                let bytes = self.get(&rel).await?;
+                (rel, bytes)
+            }
+        };
+        if content_hash(&bytes) != *hash {
             return Err(BucketReadError::Missing(format!("{} with hash {hash}", self.describe(&rel))));
         }
         self.insert(key, bytes.clone()).await;

@@ -262,8 +262,11 @@ fn write_site(
 /// Every hierarchy page of the scene with its bytes, each checked against its reference.
 fn scene_pages(scene: &StoredScene) -> anyhow::Result<Vec<(PageRef, Vec<u8>)>> {
     let mut pages: Vec<(PageRef, Vec<u8>)> = Vec::new();
-    load_scene_index(&scene.manifest, |r| {
-        let bytes = fs::read(scene.page_path(&r.root))?;
+    load_scene_index(&scene.manifest, |r, range| {
+        let bytes = match range {
+            Some(range) => crate::store::read_pack_range(scene.dir(), &range)?,
+            None => fs::read(scene.page_path(&r.root))?,
+        };
         pages.push((r.clone(), bytes.clone()));
         Ok::<_, std::io::Error>(bytes)
     })

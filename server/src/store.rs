@@ -13,7 +13,7 @@ use std::sync::Arc;
 
 use axum::body::Bytes;
 use futures_util::{StreamExt, TryStreamExt};
-use voxstream_format::hierarchy::{content_hash, pack_path, page_path};
+use voxstream_format::hierarchy::{PackRange, content_hash, pack_path, page_path};
 use voxstream_format::{BlockEntry, BlockKey, Manifest, SceneIndex, load_scene_index};
 
 use crate::bucket_store::{BucketReadError, BucketStore};
@@ -213,21 +213,30 @@ impl StoredScene {
     /// page (any more).
     pub async fn read_page(&self, root: &BlockKey, hash: &str) -> Result<Option<Bytes>, String> {
         match &self.files {
-            SceneFiles::Dir(_) => {
-                let path = self.page_path(root);
-                let bytes = tokio::task::spawn_blocking(move || fs::read(path))
-                    .await
-                    .map_err(|e| e.to_string())?
-                    .ok();
+            SceneFiles::Dir(dir) => {
+                let (dir, root, range) =
+                    (dir.clone(), *root, self.index.loaded_page(root).and_then(|(_, r)| r));
+                let bytes = tokio::task::spawn_blocking(move || match range {
+                    Some(range) => read_pack_range(&dir, &range),
+                    None => fs::read(dir.join(page_path(&root))),
+                })
+                .await
+                .map_err(|e| e.to_string())?
+                .ok();
                 // Checked on every read, as blocks are: a replaced scene must not answer an old URL
                 // with new bytes.
                 Ok(bytes.filter(|b| content_hash(b) == hash).map(Bytes::from))
             }
-            SceneFiles::Bucket(bucket) => match bucket.page(&self.id, root, hash).await {
-                Ok(bytes) => Ok(Some(bytes)),
-                Err(BucketReadError::Missing(_)) => Ok(None),
-                Err(e) => Err(e.to_string()),
-            },
+            SceneFiles::Bucket(bucket) => {
+                let Some((page, range)) = self.index.loaded_page(root).filter(|(p, _)| p.hash == hash) else {
+                    return Ok(None);
+                };
+                match bucket.page(&self.id, page, range).await {
+                    Ok(bytes) => Ok(Some(bytes)),
+                    Err(BucketReadError::Missing(_)) => Ok(None),
+                    Err(e) => Err(e.to_string()),
+                }
+            }
         }
     }
 
@@ -251,9 +260,44 @@ fn read_exact_at(mut file: &fs::File, buf: &mut [u8], offset: u64) -> std::io::R
     file.read_exact(buf)
 }
 
-/// Reads every hierarchy page of the scene in `dir`.
+/// Bytes `[offset, offset + bytes)` of a pack in the scene folder `dir`.
+/// Errors name the pack, and say so when it is shorter than the range.
+pub fn read_pack_range(dir: &Path, range: &PackRange) -> std::io::Result<Vec<u8>> {
+    let rel = pack_path(&range.pack.hash);
+    let named = |e: std::io::Error| std::io::Error::new(e.kind(), format!("pack {rel}: {e}"));
+    let file = fs::File::open(dir.join(&rel)).map_err(named)?;
+    let mut bytes = vec![0u8; range.bytes as usize];
+    if let Err(e) = read_exact_at(&file, &mut bytes, range.offset) {
+        return Err(match file.metadata().map(|m| m.len()) {
+            Ok(len) if len < range.end() => std::io::Error::other(format!(
+                "pack {rel} is truncated: {len} bytes, the range is bytes {}..{}",
+                range.offset,
+                range.end()
+            )),
+            _ => named(e),
+        });
+    }
+    Ok(bytes)
+}
+
+/// Reads every hierarchy page of the scene in `dir` (from its packs; older pages from files).
 pub fn read_scene_index(dir: &Path, manifest: &Manifest) -> Result<SceneIndex, String> {
-    load_scene_index(manifest, |r| fs::read(dir.join(page_path(&r.root)))).map_err(|e| e.to_string())
+    load_scene_index(manifest, |r, range| match range {
+        Some(range) => {
+            let bytes = read_pack_range(dir, &range)?;
+            if content_hash(&bytes) != r.hash {
+                // Say which pack: the page's own hash error could not.
+                return Err(std::io::Error::other(format!(
+                    "page {} in pack {} does not match its hash",
+                    r.root,
+                    pack_path(&range.pack.hash)
+                )));
+            }
+            Ok(bytes)
+        }
+        None => fs::read(dir.join(page_path(&r.root))),
+    })
+    .map_err(|e| e.to_string())
 }
 
 /// Lists the published scenes of a store, sorted by id. A missing store is empty.

@@ -96,9 +96,12 @@ fn bench_reports_voxstream_and_meshopt_on_the_koala_and_a_synthetic_scan() {
             part("manifest_bytes") + part("page_bytes") + part("block_bytes") + part("other_bytes"),
             bytes as u64
         );
-        // Blocks live in packs of 256 (the last one holds the rest).
-        let blocks = vox["blocks"].as_u64().unwrap();
-        assert_eq!(part("block_files"), blocks.div_ceil(256), "a pack per 256 blocks: {f}");
+        // Blocks and pages live in packs of PACK_MAX_ITEMS items; the last page layers may close a
+        // few more.
+        let (blocks, pages) = (vox["blocks"].as_u64().unwrap(), part("pages"));
+        let full = (blocks + pages).div_ceil(voxstream::pipeline::write::PACK_MAX_ITEMS as u64);
+        assert!((full..=full + 3).contains(&part("block_files")), "a pack per PACK_MAX_ITEMS items: {f}");
+        assert!(pages >= 1 || blocks == 1, "{f}");
         assert!(part("block_files") < vox["blocks"].as_u64().unwrap() || vox["blocks"].as_u64() == Some(1));
         assert!(part("manifest_bytes") > 100 && part("manifest_bytes") <= 64 << 10);
         assert_eq!(

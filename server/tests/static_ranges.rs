@@ -46,7 +46,7 @@ fn run(cmd: &mut Command) -> String {
 /// the last pack), each with its range.
 fn sample_blocks(site_scene: &Path) -> Vec<(BlockEntry, PackRange)> {
     let manifest = Manifest::from_json(&std::fs::read(site_scene.join("manifest")).unwrap()).unwrap();
-    let index = load_scene_index(&manifest, |r| {
+    let index = load_scene_index(&manifest, |r, _| {
         std::fs::read(site_scene.join(format!("pages/{}.{}", r.root, r.hash)))
     })
     .expect("the published pages load");

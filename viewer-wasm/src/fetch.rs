@@ -80,16 +80,21 @@ impl BlockSource {
         }
     }
 
-    /// A hierarchy page's bytes (content-addressed like blocks).
-    pub async fn page_bytes(&self, page: &PageRef) -> Result<Vec<u8>, FetchError> {
+    /// A hierarchy page's bytes (content-addressed like blocks): from its pack range in a scene
+    /// folder (`range`, from [`voxstream_format::SceneIndex::page_range`]), by its URL over HTTP.
+    pub async fn page_bytes(&self, page: &PageRef, range: Option<&PackRange>) -> Result<Vec<u8>, FetchError> {
         let what = format!("hierarchy page {}", page.root);
         match self {
             #[cfg(not(target_arch = "wasm32"))]
-            BlockSource::SceneDir(dir) => {
-                read_file(&dir.join(voxstream_format::hierarchy::page_path(&page.root)), &what)
-            }
+            BlockSource::SceneDir(dir) => match range {
+                Some(r) => {
+                    read_range(&dir.join(voxstream_format::hierarchy::pack_path(&r.pack.hash)), r, &what)
+                }
+                None => read_file(&dir.join(voxstream_format::hierarchy::page_path(&page.root)), &what),
+            },
             #[cfg(target_arch = "wasm32")]
             BlockSource::Http { scene_url, .. } => {
+                let _ = range; // the server (or a static site's page files) answers by page URL
                 http::get_bytes(&format!("{scene_url}/pages/{}.{}", page.root, page.hash), &what).await
             }
         }

@@ -176,7 +176,8 @@ impl Offscreen {
         for r in requests {
             match r {
                 Request::Page(page) => {
-                    let result = pollster::block_on(self.source.page_bytes(page));
+                    let range = self.scene.index.page_range(&page.root);
+                    let result = pollster::block_on(self.source.page_bytes(page, range.as_ref()));
                     self.scene.insert_page(page, result);
                 }
                 Request::Block(key) => {

@@ -151,7 +151,7 @@ mod tests {
         let mut q = RequestQueue::new(2);
         let blocks: HashMap<BlockKey, f32> =
             [(key(2, 0), 8.0), (key(1, 0), 4.0), (key(1, 1), 6.0), (key(0, 0), 2.0)].into();
-        let page = PageRef { root: key(1, 1), hash: "a".repeat(64), bytes: 10 };
+        let page = PageRef { root: key(1, 1), hash: "a".repeat(64), bytes: 10, location: Default::default() };
         q.plan(std::slice::from_ref(&page), &blocks, |_| false, |k| *k == key(2, 0));
         // Page first, then the largest error; the loaded root is skipped; cap 2.
         assert_eq!(q.start(), vec![Request::Page(page.clone()), Request::Block(key(1, 1))]);

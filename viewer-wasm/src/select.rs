@@ -300,7 +300,7 @@ pub(crate) mod tests {
         let (root, root_page) = (top.root, top.root_page);
         let m = voxstream_format::test_support::manifest("pyramid", res, levels, root, root_page);
         m.validate().unwrap();
-        let index = load_scene_index(&m, |r| {
+        let index = load_scene_index(&m, |r, _| {
             pages.get(&r.hash).cloned().ok_or_else(|| std::io::Error::other("missing page"))
         })
         .unwrap();
@@ -430,7 +430,7 @@ pub(crate) mod tests {
             .entries
             .iter()
             .filter(|e| e.key.level == 3)
-            .map(|e| PageRef { root: e.key, hash: "1".repeat(64), bytes: 64 })
+            .map(|e| PageRef { root: e.key, hash: "1".repeat(64), bytes: 64, location: Default::default() })
             .collect();
         index.insert_page(page).unwrap();
         let second = select_blocks(&index, &m.0.root.key, &view, &SelectParams::default());

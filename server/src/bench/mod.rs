@@ -251,6 +251,15 @@ pub fn scene_files(scene: &Path) -> std::io::Result<SceneFiles> {
             files.other_bytes += entry.metadata()?.len();
         }
     }
+    // Pages live in the packs: count them from the hierarchy, and the packs' rest as blocks.
+    if files.pages == 0 && files.manifest_bytes > 0 {
+        let manifest = voxstream_format::Manifest::from_json(&std::fs::read(scene.join("manifest.json"))?)
+            .map_err(std::io::Error::other)?;
+        let index = crate::store::read_scene_index(scene, &manifest).map_err(std::io::Error::other)?;
+        files.pages = index.pages_loaded() as u64;
+        files.page_bytes = index.page_bytes_loaded();
+        files.block_bytes = files.block_bytes.saturating_sub(files.page_bytes);
+    }
     Ok(files)
 }
 

@@ -1,17 +1,19 @@
 //! Write: packs finished blocks, encodes them, writes them and the hierarchy
 //! pages into a scene directory and publishes it atomically.
 //!
-//! Layout: `<store>/<id>/manifest.json`, `<store>/<id>/pages/<key>.vxh` and
-//! `<store>/<id>/packs/<blake3>.vxp`: the encoded bytes of blocks concatenated
-//! in the order they were finished (the pyramid's post order), a pack closing
-//! at [`PACK_MIN_BLOCKS`] blocks or [`PACK_MAX_BYTES`], so one pack spans
-//! several pages; the root block goes last, into the last pack. The one open
-//! pack is a temporary file (blake3 hashed as it grows), synced once and
-//! renamed to its content address when it closes; a page, which names its
-//! packs by hash, is written once its root block came and every pack it names
-//! is closed (until then the [`PageBuilder`] holds it). A scene is written under `<store>/.tmp-<id>-<pid>-<n>` and renamed
-//! into place only once every file is written and synced, so readers never see
-//! a half-written scene. Directories starting with `.` are never listed.
+//! Layout: `<store>/<id>/manifest.json` and `<store>/<id>/packs/<blake3>.vxp`:
+//! the encoded bytes of blocks, and the hierarchy pages, concatenated in the
+//! order they were finished (the pyramid's post order), a pack closing at
+//! [`PACK_MAX_ITEMS`] items or [`PACK_MAX_BYTES`], so one pack spans several
+//! pages; the root block and the root page go last. The one open pack is a
+//! temporary file (blake3 hashed as it grows), synced once and renamed to its
+//! content address when it closes. A page names its blocks' packs and its
+//! child pages' pack ranges, so it is sealed and appended once its root block
+//! came and every pack it names is closed (until then the [`PageBuilder`]
+//! holds it). A scene is written under `<store>/.tmp-<id>-<pid>-<n>` and
+//! renamed into place only once every file is written and synced, so readers
+//! never see a half-written scene. Directories starting with `.` are never
+//! listed.
 //!
 //! Durability is batched: block bytes are appended to packs and pages written
 //! without a sync each, and [`sync_tree`] makes the whole temporary directory
@@ -24,7 +26,7 @@ use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
-use voxstream_format::hierarchy::{pack_path, page_path};
+use voxstream_format::hierarchy::pack_path;
 use voxstream_format::{
     BLOCK_DEPTH, BLOCK_SIZE, Block, BlockEntry, BlockKey, BlockLocation, FORMAT_VERSION, GridFrame,
     LevelInfo, Manifest, PAGE_LEVELS, PackRef, PackedVoxel, PageBuilder, PageError, ResolutionChoice,
@@ -227,15 +229,17 @@ pub fn post_order_key(key: &BlockKey) -> (u64, u8) {
 /// Buffer of each open pack file.
 pub const PACK_BUFFER_BYTES: usize = 64 << 10;
 
-/// A pack closes once it holds this many blocks: the goal is at most one object per
-/// 256 blocks in a bucket, where every object costs a request and a listing entry.
-pub const PACK_MIN_BLOCKS: usize = 256;
+/// A pack closes once it holds this many items (blocks and the pages sealed while it is open).
+/// The goal is at most one object per 256 blocks in a bucket, where every object costs a request
+/// and a listing entry; a scene's last page layers each close one small pack (a parent page names
+/// its children's pack, known only once that pack is closed), so the cap is twice the goal.
+pub const PACK_MAX_ITEMS: usize = 512;
 
 /// ... or once it reaches this many bytes, whichever comes first. Past a few MB a request's
 /// fixed cost (≈ one round trip) is small next to its transfer, so bigger objects save little,
 /// while a bucket build holds whole packs in its upload queue ([`crate::bucket_build`]) and a
 /// static host's 200-instead-of-206 answer sends a whole pack: 8 MiB bounds both. Cedar Creek's
-/// blocks average about 20 KB, so 256 of them stay under it.
+/// blocks average about 20 KB, so its packs close on bytes at about 400 blocks.
 pub const PACK_MAX_BYTES: u64 = 8 << 20;
 
 /// Memory a held page entry takes at most (the entry with its hash string, in a `Vec`).
@@ -243,11 +247,11 @@ const HELD_ENTRY_BYTES: usize = 192;
 
 /// Memory the writer's one open pack (its buffer) and its held pages take at most. Pages wait
 /// for the open pack to close; every held page is rooted in it, so they hold at most its
-/// [`PACK_MIN_BLOCKS`] entries plus, for each page layer, the entries of one page filled
+/// [`PACK_MAX_ITEMS`] entries plus, for each page layer, the entries of one page filled
 /// before it ([`PageBuilder`]'s notes).
 pub fn pack_writer_bytes(levels: u8) -> usize {
     let layers = (levels as usize).div_ceil(PAGE_LEVELS as usize);
-    let held = PACK_MIN_BLOCKS + layers * voxstream_format::hierarchy::MAX_PAGE_ENTRIES as usize;
+    let held = PACK_MAX_ITEMS + layers * voxstream_format::hierarchy::MAX_PAGE_ENTRIES as usize;
     PACK_BUFFER_BYTES + held * HELD_ENTRY_BYTES
 }
 
@@ -258,7 +262,8 @@ struct OpenPack {
     file: BufWriter<fs::File>,
     hasher: blake3::Hasher,
     len: u64,
-    blocks: usize,
+    /// Blocks and pages appended.
+    items: usize,
 }
 
 impl OpenPack {
@@ -271,7 +276,7 @@ impl OpenPack {
             file: BufWriter::with_capacity(PACK_BUFFER_BYTES, file),
             hasher: blake3::Hasher::new(),
             len: 0,
-            blocks: 0,
+            items: 0,
         })
     }
 
@@ -281,12 +286,12 @@ impl OpenPack {
         self.hasher.update(bytes);
         let at = self.len;
         self.len += bytes.len() as u64;
-        self.blocks += 1;
+        self.items += 1;
         Ok(at)
     }
 
     fn is_full(&self, max_bytes: u64) -> bool {
-        self.blocks >= PACK_MIN_BLOCKS || self.len >= max_bytes
+        self.items >= PACK_MAX_ITEMS || self.len >= max_bytes
     }
 
     /// Syncs the pack once and renames it to its content address in `scene_dir`.
@@ -316,7 +321,7 @@ pub const ENCODE_BYTES_PER_VOXEL: usize = 48;
 /// Takes finished blocks one at a time, in any order with children before
 /// parents, packs and encodes them on all cores in batches of at most
 /// `pending_limit` bytes, appends each, in the order it came, to the one open
-/// pack in a temporary scene directory (closed at [`PACK_MIN_BLOCKS`] blocks
+/// pack in a temporary scene directory (closed at [`PACK_MAX_ITEMS`] items
 /// or [`PACK_MAX_BYTES`], and at the end), feeds its entry to the
 /// [`PageBuilder`] (which seals a page once its root came and its packs are
 /// closed; the writer then writes it) and drops it. The packs' bytes depend on
@@ -372,7 +377,7 @@ impl BlockWriter {
             pending: Vec::new(),
             pending_bytes: 0,
             pending_limit,
-            pages: PageBuilder::new(levels - 1, PAGE_LEVELS),
+            pages: PageBuilder::new(levels - 1, PAGE_LEVELS).with_pages_in_packs(),
             written: 0,
             levels: (0..levels)
                 .map(|l| LevelInfo { level: l, resolution: resolution >> l, blocks: 0, voxels: 0, bytes: 0 })
@@ -381,9 +386,7 @@ impl BlockWriter {
             finished_files: None,
             on_published: None,
         };
-        for d in [&writer.packs_dir, &writer.tmp.join("pages")] {
-            fs::create_dir_all(d).map_err(io("create directory", d))?;
-        }
+        fs::create_dir_all(&writer.packs_dir).map_err(io("create directory", &writer.packs_dir))?;
         Ok(writer)
     }
 
@@ -436,26 +439,30 @@ impl BlockWriter {
         level.voxels += e.voxels as u64;
         level.bytes += e.bytes as u64;
         self.written += 1;
-        let pack = match self.pack.take() {
-            Some(p) => self.pack.insert(p),
-            None => {
-                let serial = self.next_pack;
-                self.next_pack += 1;
-                self.pack.insert(OpenPack::create(&self.packs_dir, serial)?)
-            }
-        };
+        let pack = self.open_pack()?;
         e.location = BlockLocation { pack: pack.serial, offset: pack.append(bytes)? };
-        let full = pack.is_full(self.pack_max_bytes);
         let pages = self.pages.add(e).map_err(page_err)?;
-        self.write_pages(pages)?;
-        if full {
+        self.place_pages(pages)?;
+        if self.pack.as_ref().is_some_and(|p| p.is_full(self.pack_max_bytes)) {
             self.close_pack()?;
         }
         Ok(())
     }
 
+    /// The pack being filled, opened if there is none.
+    fn open_pack(&mut self) -> Result<&mut OpenPack, StoreError> {
+        match self.pack.take() {
+            Some(p) => Ok(self.pack.insert(p)),
+            None => {
+                let serial = self.next_pack;
+                self.next_pack += 1;
+                Ok(self.pack.insert(OpenPack::create(&self.packs_dir, serial)?))
+            }
+        }
+    }
+
     /// Closes the open pack (synced, renamed to its content address, handed to
-    /// `finished_files`) and writes the pages that were waiting for it.
+    /// `finished_files`) and appends the pages that were waiting for it to the next pack.
     fn close_pack(&mut self) -> Result<(), StoreError> {
         let Some(open) = self.pack.take() else { return Ok(()) };
         let serial = open.serial;
@@ -467,17 +474,19 @@ impl BlockWriter {
         }
         self.packs_closed += 1;
         let pages = self.pages.pack_closed(serial, pack).map_err(page_err)?;
-        self.write_pages(pages)
+        self.place_pages(pages)
     }
 
-    /// Writes sealed pages (no sync of their own: [`sync_tree`] at the end).
-    fn write_pages(&self, pages: Vec<voxstream_format::hierarchy::FinishedPage>) -> Result<(), StoreError> {
+    /// Appends sealed pages to the open pack (opened if needed) and tells the page builder where
+    /// they are: pages are items of packs like blocks, so a scene is one object per pack.
+    fn place_pages(
+        &mut self,
+        pages: Vec<voxstream_format::hierarchy::FinishedPage>,
+    ) -> Result<(), StoreError> {
         for (page_ref, bytes) in pages {
-            write_unsynced(&self.tmp.join(page_path(&page_ref.root)), &bytes)?;
-            if let Some(sink) = &self.finished_files {
-                let name = crate::bucket_store::bucket_page_path(&page_ref.root, &page_ref.hash);
-                (sink.0)(&name, bytes).map_err(|e| self.sink_failed(e))?;
-            }
+            let pack = self.open_pack()?;
+            let (serial, offset) = (pack.serial, pack.append(&bytes)?);
+            self.pages.page_placed(page_ref.root, serial, offset).map_err(page_err)?;
         }
         Ok(())
     }
@@ -511,7 +520,10 @@ impl BlockWriter {
         resolution_choice: ResolutionChoice,
     ) -> Result<Manifest, StoreError> {
         self.flush()?;
-        self.close_pack()?;
+        // Each close can seal the next page layer into a new pack; the root page's pack ends it.
+        while self.pack.is_some() {
+            self.close_pack()?;
+        }
         let pages = std::mem::replace(&mut self.pages, PageBuilder::new(0, PAGE_LEVELS));
         let top = pages.finish().map_err(page_err)?;
         let manifest = Manifest {
@@ -526,9 +538,10 @@ impl BlockWriter {
             root: top.root,
             root_page: top.root_page,
             root_pack: top.root_pack,
+            root_page_pack: top.root_page_pack,
         };
         write_unsynced(&self.tmp.join("manifest.json"), &manifest.to_json())?;
-        sync_tree(&self.tmp, &[self.packs_dir.clone(), self.tmp.join("pages")])?;
+        sync_tree(&self.tmp, std::slice::from_ref(&self.packs_dir))?;
         let on_published = |id: &str| {
             if let Some(hook) = &self.on_published {
                 (hook.0)(id)
@@ -710,42 +723,50 @@ mod tests {
         (m, per_pack, most_held)
     }
 
-    /// Packs hold [`PACK_MIN_BLOCKS`] blocks each (the last one the rest) and span pages, every
-    /// block reads back from its range, and the pages held for the open pack stay within the
-    /// bound [`MemoryPlan`](crate::pipeline::MemoryPlan) counts. Control: with a tiny byte cap
-    /// the packs close on bytes instead, one block each.
+    /// Packs hold [`PACK_MAX_ITEMS`] items each (blocks and the pages sealed while they were
+    /// open), span pages, and the scene has no page files: every page and block reads back from a
+    /// pack range. The pages held for the open pack stay within the bound
+    /// [`MemoryPlan`](crate::pipeline::MemoryPlan) counts. Control: with a tiny byte cap the packs
+    /// close on bytes instead, one item each.
     #[test]
-    fn packs_span_pages_and_close_at_256_blocks() {
+    fn packs_span_pages_and_close_at_the_item_cap() {
         let (resolution, coarsest) = (65536, 10);
         let mut blocks = diagonal_tree(1024, coarsest);
         blocks.sort_by_key(|b| post_order_key(&b.key));
         let dir = tempfile::tempdir().unwrap();
         let (manifest, per_pack, most_held) = write_packed(&blocks, dir.path(), resolution, PACK_MAX_BYTES);
-        assert_eq!(per_pack.len(), blocks.len().div_ceil(PACK_MIN_BLOCKS), "{per_pack:?}");
-        assert!(per_pack[..per_pack.len() - 1].iter().all(|&n| n == PACK_MIN_BLOCKS), "{per_pack:?}");
         let layers = (level_count(resolution) as usize).div_ceil(PAGE_LEVELS as usize);
-        let bound = PACK_MIN_BLOCKS + layers * voxstream_format::hierarchy::MAX_PAGE_ENTRIES as usize;
+        let bound = PACK_MAX_ITEMS + layers * voxstream_format::hierarchy::MAX_PAGE_ENTRIES as usize;
         assert!(most_held > 0 && most_held <= bound, "{most_held} entries held, bound {bound}");
         assert!(pack_writer_bytes(level_count(resolution)) >= bound * HELD_ENTRY_BYTES);
         let scene = crate::store::open_scene(dir.path(), "t").unwrap();
         assert_eq!(scene.manifest, manifest);
         assert_eq!(scene.blocks().len(), blocks.len());
-        let pages = std::fs::read_dir(dir.path().join("t/pages")).unwrap().count();
+        assert!(!dir.path().join("t/pages").exists(), "pages live in packs");
+        let pages = scene.index.pages_loaded();
         let packs = std::fs::read_dir(dir.path().join("t/packs")).unwrap().count();
-        assert_eq!(packs, per_pack.len());
+        let items = blocks.len() + pages;
+        // Full packs but for the last few: each page layer's last pages close one more pack.
+        assert!(
+            (items.div_ceil(PACK_MAX_ITEMS)..=items.div_ceil(PACK_MAX_ITEMS) + layers).contains(&packs),
+            "{packs} packs for {items} items"
+        );
         assert!(pages > 2 * packs, "{pages} pages, {packs} packs: packs span pages");
+        assert!(per_pack.iter().all(|&n| n <= PACK_MAX_ITEMS), "{per_pack:?}");
         assert_eq!(scene.index.packs().count(), packs);
         for e in scene.blocks() {
             let bytes = scene.read_block(e).unwrap();
             assert_eq!(voxstream_format::decode_block(&bytes).unwrap().key, e.key);
         }
-        // Control: a byte cap below one block's size closes a pack after every block.
+        // Control: a byte cap below one block's size closes a pack after every block (with the
+        // pages sealed by it), where the default cap needs one pack.
         let mut small = diagonal_tree(64, 6);
         small.sort_by_key(|b| post_order_key(&b.key));
         let dir = tempfile::tempdir().unwrap();
-        let (_, per_pack, _) = write_packed(&small, dir.path(), 4096, 1);
-        assert_eq!(per_pack.len(), small.len(), "{per_pack:?}");
+        write_packed(&small, dir.path(), 4096, 1);
         crate::store::open_scene(dir.path(), "t").unwrap();
+        let packs = std::fs::read_dir(dir.path().join("t/packs")).unwrap().count();
+        assert!(packs >= small.len(), "{packs} packs for {} blocks", small.len());
     }
 
     /// Every directory of a store by the manifest text it holds.
