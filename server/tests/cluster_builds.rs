@@ -305,7 +305,10 @@ async fn replicas_build_each_upload_once_resume_uploads_anywhere_and_take_over_d
 
     // --- Builder killed mid-publish -------------------------------------------------------------
     let takeover_started = Instant::now();
-    let path = tus_create(&http, &replicas[0], mesh.len(), "takeover", "1024").await;
+    // At 2048 the koala is 2,417 blocks: its first pack of 512 items closes a fifth of the way
+    // in, so the kill lands mid-publish (at 1024, 558 blocks, it closed near the end and the
+    // manifest sometimes came first).
+    let path = tus_create(&http, &replicas[0], mesh.len(), "takeover", "2048").await;
     let r = tus_patch(&http, &format!("{}{path}", replicas[0]), 0, mesh.clone().into()).await;
     assert_eq!(r.status(), 204);
     let job_id = r.headers()["voxstream-job"].to_str().unwrap().to_string();
@@ -335,7 +338,7 @@ async fn replicas_build_each_upload_once_resume_uploads_anywhere_and_take_over_d
     eprintln!("killed replica {} (pid {pid}) with {packs_seen} packs uploaded", killed + 1);
 
     // No replica lists the scene until it is whole; the survivor takes the job over and finishes.
-    let (local_manifest, local_blocks_1024) = local_blocks_uploaded("takeover", "1024");
+    let (local_manifest, local_blocks_2048) = local_blocks_uploaded("takeover", "2048");
     let deadline = Instant::now() + Duration::from_secs(240);
     loop {
         let mut listed = None;
@@ -351,10 +354,10 @@ async fn replicas_build_each_upload_once_resume_uploads_anywhere_and_take_over_d
             eprintln!(
                 "takeover: listed by {base} {:.1} s after the kill; checking its {} blocks",
                 killed_at.elapsed().as_secs_f64(),
-                local_blocks_1024.len()
+                local_blocks_2048.len()
             );
             // Listed means whole: every block, as the local build.
-            check_identical(&http, &base, &local_manifest, &local_blocks_1024).await;
+            check_identical(&http, &base, &local_manifest, &local_blocks_2048).await;
             break;
         }
         let j = job(&http, survivor, &job_id).await;
