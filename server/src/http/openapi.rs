@@ -169,19 +169,16 @@ pub fn document(config: &ServerConfig) -> Value {
                 && ((path.starts_with("/api/") && path != "/api/openapi.json") || path == "/metrics");
             // A --read-only server refuses writes (403) before it looks at a token.
             let token_required = token && ((write && !config.read_only) || (read && config.protect_read));
+            // A bucket replica without --coordinator is read-only too (config.read_only is set):
+            // with one it renames and deletes scenes like a local store, so no 403 there.
             let read_only_refusal = write && config.read_only;
-            // A bucket replica that takes uploads still neither renames nor deletes scenes.
-            let bucket_refusal = config.bucket_scenes
-                && !config.read_only
-                && path == "/api/scenes/{id}"
-                && matches!(method, "patch" | "delete");
             let rate_limited = config.uploads_per_minute > 0
                 && method == "post"
                 && matches!(path.as_str(), "/api/scenes" | "/api/uploads");
             // Only the statuses this server can answer with: the handlers' attributes list them all.
             let responses = op.get_mut("responses").and_then(Value::as_object_mut).expect("responses");
             for (status, applies) in
-                [("401", token_required), ("403", read_only_refusal || bucket_refusal), ("429", rate_limited)]
+                [("401", token_required), ("403", read_only_refusal), ("429", rate_limited)]
             {
                 if !applies {
                     responses.remove(status);
@@ -193,14 +190,14 @@ pub fn document(config: &ServerConfig) -> Value {
             } else {
                 op.remove("security");
             }
-            if read_only_refusal {
-                add_response(op, "403", "This server is read-only (--read-only)");
-            } else if bucket_refusal {
+            if read_only_refusal && config.bucket_scenes {
                 add_response(
                     op,
                     "403",
-                    "Scenes in a bucket are replaced by uploading again, not renamed or deleted here",
+                    "This replica serves a bucket read-only (no --coordinator, or --read-only)",
                 );
+            } else if read_only_refusal {
+                add_response(op, "403", "This server is read-only (--read-only)");
             }
             if rate_limited {
                 add_response(
