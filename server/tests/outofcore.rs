@@ -321,8 +321,7 @@ fn streaming_build_matches_the_in_memory_reference() {
         assert_eq!(want.len(), 1 + packs, "{id}: {:?}", want.keys());
         let blocks = report.blocks as usize;
         let scene = voxstream::store::open_scene(&dir.path().join("reference"), &id).unwrap();
-        let full =
-            (blocks + scene.index.pages_loaded()).div_ceil(voxstream::pipeline::write::PACK_MAX_ITEMS);
+        let full = (blocks + scene.index.pages_loaded()).div_ceil(voxstream::pipeline::write::PACK_MAX_ITEMS);
         assert!((full..=full + 3).contains(&packs), "{id}: {packs} packs for {blocks} blocks");
         if resolution >= 256 {
             assert!(4 * want.len() <= blocks, "{id}: {} files for {blocks} blocks", want.len());
