@@ -187,7 +187,8 @@ impl BucketStore {
     /// Every object under `<prefix>/<rel_dir>/` (a whole path segment: `a` does not list `ab/`).
     pub async fn list_under(&self, rel_dir: &str) -> Result<Vec<ObjectInfo>, String> {
         let dir = self.bucket.path(rel_dir.trim_end_matches('/'));
-        let strip = if self.bucket.prefix.is_empty() { String::new() } else { format!("{}/", self.bucket.prefix) };
+        let strip =
+            if self.bucket.prefix.is_empty() { String::new() } else { format!("{}/", self.bucket.prefix) };
         let mut listing = self.bucket.store.list(Some(&dir));
         let mut out = Vec::new();
         while let Some(item) = listing.next().await {
@@ -333,17 +334,24 @@ impl BucketStore {
                 .map_err(|e| unreadable(e.to_string()))?,
             Some(r) => {
                 let rel = format!("{id}/{}", pack_path(&r.pack.hash));
-                self.bucket.store.get_range(&self.bucket.path(&rel), r.offset..r.end()).await.map_err(
-                    |e| {
-                        unreadable(format!(
+                match self.bucket.store.get_range(&self.bucket.path(&rel), r.offset..r.end()).await {
+                    Ok(bytes) => bytes,
+                    // The scene was deleted, renamed, or replaced and collected since this replica
+                    // listed it: a 404 that says to fetch the manifest again, as for changed bytes
+                    // (until the next listing drops or reloads the scene).
+                    Err(object_store::Error::NotFound { .. }) => {
+                        return Err(BlockReadError::Changed { key: entry.key });
+                    }
+                    Err(e) => {
+                        return Err(unreadable(format!(
                             "pack {}: bytes {}..{}: {}",
                             self.describe(&rel),
                             r.offset,
                             r.end(),
                             self.failed(&rel, e)
-                        ))
-                    },
-                )?
+                        )));
+                    }
+                }
             }
         };
         if blake3::hash(&bytes).to_hex().as_str() != entry.hash {

@@ -547,7 +547,10 @@ impl Catalog {
                     let manifest = format!("{id}/manifest.json");
                     let rest: Vec<_> = objects.iter().filter(|o| o.rel != manifest).collect();
                     let copies: Vec<Result<(), String>> = futures_util::stream::iter(&rest)
-                        .map(|o| bucket.copy(&o.rel, &moved(&o.rel)))
+                        .map(|o| {
+                            let to_rel = moved(&o.rel);
+                            async move { bucket.copy(&o.rel, &to_rel).await }
+                        })
                         .buffer_unordered(8)
                         .collect()
                         .await;

@@ -112,7 +112,9 @@ impl ClusterJobs {
                 () = self.shutdown.cancelled() => return,
             }
             match self.collect_garbage(None).await {
-                Ok(Some(r)) => tracing::info!(objects = r.objects, bytes = r.bytes, skipped = ?r.skipped, "garbage collection pass"),
+                Ok(Some(r)) => {
+                    tracing::info!(objects = r.objects, bytes = r.bytes, skipped = ?r.skipped, "garbage collection pass")
+                }
                 Ok(None) => tracing::debug!("another replica is collecting garbage"),
                 Err(e) => tracing::warn!(error = %format!("{e:#}"), "garbage collection failed"),
             }

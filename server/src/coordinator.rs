@@ -73,9 +73,10 @@ pub const GC_LOCK: i64 = 0x0076_6f78_6763_6c6b; // "voxgclk"
 /// How long a scene edit waits for another edit or a collection of the same scene.
 const SCENE_LOCK_WAIT: &str = "10s";
 /// The advisory lock key of a scene id (collisions only serialise two ids needlessly).
-const SCENE_LOCK_SQL: &str = "SELECT pg_advisory_xact_lock(hashtextextended('voxstream-scene:' || $1, 0))";
+const SCENE_LOCK_SQL: &str =
+    "SELECT pg_advisory_xact_lock(hashtextextended('voxstream-scene:' || $1::text, 0))";
 const SCENE_TRY_LOCK_SQL: &str =
-    "SELECT pg_try_advisory_xact_lock(hashtextextended('voxstream-scene:' || $1, 0))";
+    "SELECT pg_try_advisory_xact_lock(hashtextextended('voxstream-scene:' || $1::text, 0))";
 
 const SCHEMA: &str = "
 CREATE TABLE IF NOT EXISTS voxstream_jobs (
@@ -497,7 +498,12 @@ impl Coordinator {
     /// transaction, after checking that no job of any of them is queued or running. With
     /// `wait == false` a lock held elsewhere is [`SceneLockError::Busy`] at once (the collector
     /// skips such scenes); otherwise it is waited for up to 10 s.
-    pub async fn with_scenes_locked<F, T>(&self, ids: &[&str], wait: bool, edit: F) -> Result<T, SceneLockError>
+    pub async fn with_scenes_locked<F, T>(
+        &self,
+        ids: &[&str],
+        wait: bool,
+        edit: F,
+    ) -> Result<T, SceneLockError>
     where
         F: std::future::Future<Output = T>,
     {
@@ -550,7 +556,8 @@ impl Coordinator {
     {
         let mut client = self.client().await?;
         let tx = client.transaction().await.map_err(db)?;
-        let got: bool = tx.query_one("SELECT pg_try_advisory_xact_lock($1)", &[&GC_LOCK]).await.map_err(db)?.get(0);
+        let got: bool =
+            tx.query_one("SELECT pg_try_advisory_xact_lock($1)", &[&GC_LOCK]).await.map_err(db)?.get(0);
         if !got {
             return Ok(None);
         }

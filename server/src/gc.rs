@@ -88,7 +88,10 @@ pub async fn collect(
         };
         let mut report = GcReport::default();
         for id in ids {
-            match coordinator.with_scenes_locked(&[&id], false, collect_scene(bucket, &id, grace)).await {
+            match coordinator
+                .with_scenes_locked(&[id.as_str()], false, collect_scene(bucket, &id, grace))
+                .await
+            {
                 Ok(Ok((objects, bytes))) => {
                     if objects > 0 {
                         tracing::info!(scene = %id, objects, bytes, "collected unreferenced objects");
@@ -138,7 +141,8 @@ async fn collect_scene(bucket: &BucketStore, id: &str, grace: Duration) -> Resul
             if !index.is_complete() {
                 return Err("its hierarchy could not be read whole".into());
             }
-            let keep: HashSet<String> = index.packs().map(|p| format!("{id}/{}", pack_path(&p.hash))).collect();
+            let keep: HashSet<String> =
+                index.packs().map(|p| format!("{id}/{}", pack_path(&p.hash))).collect();
             let packs = format!("{id}/packs/");
             objects
                 .into_iter()
@@ -164,7 +168,9 @@ async fn collect_uploads(
     let live: HashSet<String> = coordinator.upload_ids().await?.into_iter().collect();
     let mut by_upload: BTreeMap<&str, Vec<ObjectInfo>> = BTreeMap::new();
     for o in &objects {
-        let Some(upload) = o.rel.strip_prefix(".uploads/").and_then(|r| r.split('/').next()) else { continue };
+        let Some(upload) = o.rel.strip_prefix(".uploads/").and_then(|r| r.split('/').next()) else {
+            continue;
+        };
         debug_assert!(o.rel.starts_with(&upload_prefix(upload)));
         if !live.contains(upload) && now.saturating_sub(o.modified_ms) >= grace.as_millis() as i64 {
             by_upload.entry(upload).or_default().push(o.clone());

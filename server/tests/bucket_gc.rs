@@ -134,7 +134,12 @@ async fn collector_removes_replaced_and_orphan_packs_after_the_grace_period_only
     let sql = pg.sql(&password).await;
     let client = garage.client("gc");
     let store = BucketStore::new(
-        Bucket { store: client.clone(), bucket: "gc".into(), prefix: "scenes".into(), endpoint: garage.endpoint.clone() },
+        Bucket {
+            store: client.clone(),
+            bucket: "gc".into(),
+            prefix: "scenes".into(),
+            endpoint: garage.endpoint.clone(),
+        },
         64 << 20,
     );
     let metrics = GcMetrics::default();
@@ -185,7 +190,11 @@ async fn collector_removes_replaced_and_orphan_packs_after_the_grace_period_only
     // queued: nothing of it is removed. The dead upload's part goes; the live upload's stays.
     sql.execute(
         "INSERT INTO voxstream_jobs (id, scene_id, state, created_at, job) VALUES ($1, $2, 'queued', 1, $3)",
-        &[&"00000000000000f1", &"orphan", &serde_json::to_string(&job("00000000000000f1", "orphan")).unwrap()],
+        &[
+            &"00000000000000f1",
+            &"orphan",
+            &serde_json::to_string(&job("00000000000000f1", "orphan")).unwrap(),
+        ],
     )
     .await
     .unwrap();
@@ -213,7 +222,8 @@ async fn collector_removes_replaced_and_orphan_packs_after_the_grace_period_only
     // The builds end: the replaced packs and the orphan's objects go, nothing else.
     sql.execute("UPDATE voxstream_jobs SET state = 'failed'", &[]).await.unwrap();
     let r = collect(&store, &a, grace, None, &metrics).await.unwrap().unwrap();
-    let removed: BTreeSet<String> = expected.difference(&objects(client.as_ref(), "scenes").await).cloned().collect();
+    let removed: BTreeSet<String> =
+        expected.difference(&objects(client.as_ref(), "scenes").await).cloned().collect();
     let wanted: BTreeSet<String> = replaced.union(&orphan).cloned().collect();
     assert_eq!(removed, wanted);
     assert_eq!(r.objects as usize, wanted.len(), "{r:?}");
@@ -228,7 +238,12 @@ async fn collector_removes_replaced_and_orphan_packs_after_the_grace_period_only
 
     // The new scene reads every block, each checked against its hash, from a cold cache.
     let fresh = BucketStore::new(
-        Bucket { store: client.clone(), bucket: "gc".into(), prefix: "scenes".into(), endpoint: garage.endpoint.clone() },
+        Bucket {
+            store: client.clone(),
+            bucket: "gc".into(),
+            prefix: "scenes".into(),
+            endpoint: garage.endpoint.clone(),
+        },
         64 << 20,
     );
     let manifest = Manifest::from_json(&fresh.manifest("koala").await.unwrap().unwrap()).unwrap();

@@ -178,7 +178,12 @@ async fn bucket_scenes_are_deleted_renamed_and_collected_across_replicas() {
     let (r1, r2) = (replicas[0].as_str(), replicas[1].as_str());
     let s3 = bucket(&cluster);
     let store = BucketStore::new(
-        Bucket { store: s3.clone(), bucket: "voxstream".into(), prefix: "scenes".into(), endpoint: "test".into() },
+        Bucket {
+            store: s3.clone(),
+            bucket: "voxstream".into(),
+            prefix: "scenes".into(),
+            endpoint: "test".into(),
+        },
         64 << 20,
     );
     // The replicas list the bucket every 2 s (scripts/cluster.sh); a miss is remembered for 2 s.
@@ -292,10 +297,13 @@ async fn bucket_scenes_are_deleted_renamed_and_collected_across_replicas() {
     );
     let states = (job_state(&http, r1, &gamma_job).await, job_state(&http, r1, &zeta_job).await);
     assert!(
-        ["queued", "running"].contains(&states.0.as_str()) && ["queued", "running"].contains(&states.1.as_str()),
+        ["queued", "running"].contains(&states.0.as_str())
+            && ["queued", "running"].contains(&states.1.as_str()),
         "the builds ended before the edits were tried: {states:?}; the test proves nothing"
     );
-    for (what, r) in [("rename gamma", rename_gamma), ("delete gamma", delete_gamma), ("rename onto zeta", onto_zeta)] {
+    for (what, r) in
+        [("rename gamma", rename_gamma), ("delete gamma", delete_gamma), ("rename onto zeta", onto_zeta)]
+    {
         let (status, message) = error(r).await;
         assert_eq!(status, 409, "{what}: {message}");
         assert!(message.contains("build"), "{what}: {message}");

@@ -652,4 +652,30 @@ mod tests {
         assert!(upload["responses"]["403"].is_object() && upload["responses"]["401"].is_null(), "{upload}");
         assert!(upload["responses"]["429"].is_null() && upload["security"].is_null(), "{upload}");
     }
+
+    /// A bucket replica with a coordinator renames and deletes (no 403 declared); without one it is
+    /// read-only, and every write route declares the 403 with the bucket's reason.
+    #[test]
+    fn bucket_replicas_declare_403_only_where_it_happens() {
+        let mut config = ServerConfig::new(std::path::Path::new("/nonexistent"));
+        config.bucket_scenes = true;
+        let doc = document(&config);
+        for method in ["patch", "delete"] {
+            let op = &doc["paths"]["/api/scenes/{id}"][method];
+            assert!(op["responses"]["403"].is_null(), "{method}: {op}");
+            assert!(op["responses"]["409"].is_object(), "{method}: {op}");
+        }
+        assert!(doc["paths"]["/api/uploads"]["post"]["responses"]["403"].is_null());
+        config.read_only = true;
+        let doc = document(&config);
+        for (path, method) in
+            [("/api/scenes/{id}", "patch"), ("/api/scenes/{id}", "delete"), ("/api/uploads", "post")]
+        {
+            let refusal = &doc["paths"][path][method]["responses"]["403"];
+            assert!(
+                refusal["description"].as_str().unwrap().contains("bucket"),
+                "{method} {path}: {refusal}"
+            );
+        }
+    }
 }
