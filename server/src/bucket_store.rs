@@ -211,8 +211,11 @@ impl BucketStore {
     /// Deletes `objects`, [`PAGE_FETCHES`] at once; returns how many and their bytes, or the first
     /// error (after trying every object).
     pub async fn delete_all(&self, objects: &[ObjectInfo]) -> Result<(u64, u64), String> {
-        let results: Vec<_> = futures_util::stream::iter(objects)
-            .map(|o| async move { self.delete(&o.rel).await.map(|()| o.size) })
+        // Owned items: a closure over borrowed ones makes the future's Send higher-ranked, which
+        // rustc cannot prove inside a spawned task.
+        let owned: Vec<(String, u64)> = objects.iter().map(|o| (o.rel.clone(), o.size)).collect();
+        let results: Vec<_> = futures_util::stream::iter(owned)
+            .map(|(rel, size)| async move { self.delete(&rel).await.map(|()| size) })
             .buffer_unordered(PAGE_FETCHES)
             .collect()
             .await;

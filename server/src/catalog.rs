@@ -546,11 +546,9 @@ impl Catalog {
                     let moved = |rel: &str| format!("{to}/{}", &rel[id.len() + 1..]);
                     let manifest = format!("{id}/manifest.json");
                     let rest: Vec<_> = objects.iter().filter(|o| o.rel != manifest).collect();
-                    let copies: Vec<Result<(), String>> = futures_util::stream::iter(&rest)
-                        .map(|o| {
-                            let to_rel = moved(&o.rel);
-                            async move { bucket.copy(&o.rel, &to_rel).await }
-                        })
+                    let pairs: Vec<(String, String)> = rest.iter().map(|o| (o.rel.clone(), moved(&o.rel))).collect();
+                    let copies: Vec<Result<(), String>> = futures_util::stream::iter(pairs)
+                        .map(|(from, to_rel)| async move { bucket.copy(&from, &to_rel).await })
                         .buffer_unordered(8)
                         .collect()
                         .await;
