@@ -89,10 +89,10 @@ fn job(id: &str, scene: &str) -> Job {
     }
 }
 
-/// `voxstream build koala --out s3://gc/scenes --name <id> --resolution <r>` (a real build).
+/// `voxstream build koala --out s3://gcbucket/scenes --name <id> --resolution <r>` (a real build).
 fn build(garage: &Garage, id: &str, resolution: u32) {
     let out = voxstream_with(Some(garage), &[])
-        .args(["build", koala().to_str().unwrap(), "--out", "s3://gc/scenes", "--name", id])
+        .args(["build", koala().to_str().unwrap(), "--out", "s3://gcbucket/scenes", "--name", id])
         .args(["--resolution", &resolution.to_string()])
         .output()
         .unwrap();
@@ -117,7 +117,7 @@ async fn referenced_packs(bucket: &BucketStore, id: &str) -> BTreeSet<String> {
 async fn collector_removes_replaced_and_orphan_packs_after_the_grace_period_only() {
     let started = Instant::now();
     let garage = Garage::start();
-    garage.create_bucket("gc");
+    garage.create_bucket("gcbucket");
     let pg = Postgres::start();
     let password_file = pg.dir.path().join("pg.env");
     let password = std::fs::read_to_string(&password_file)
@@ -132,11 +132,11 @@ async fn collector_removes_replaced_and_orphan_packs_after_the_grace_period_only
     let a = Coordinator::connect(&pg.url, Duration::from_secs(30), deadline).await.unwrap();
     let b = Coordinator::connect(&pg.url, Duration::from_secs(30), deadline).await.unwrap();
     let sql = pg.sql(&password).await;
-    let client = garage.client("gc");
+    let client = garage.client("gcbucket");
     let store = BucketStore::new(
         Bucket {
             store: client.clone(),
-            bucket: "gc".into(),
+            bucket: "gcbucket".into(),
             prefix: "scenes".into(),
             endpoint: garage.endpoint.clone(),
         },
@@ -240,7 +240,7 @@ async fn collector_removes_replaced_and_orphan_packs_after_the_grace_period_only
     let fresh = BucketStore::new(
         Bucket {
             store: client.clone(),
-            bucket: "gc".into(),
+            bucket: "gcbucket".into(),
             prefix: "scenes".into(),
             endpoint: garage.endpoint.clone(),
         },

@@ -190,7 +190,7 @@ async fn bucket_scenes_are_deleted_renamed_and_collected_across_replicas() {
     let relist = Duration::from_secs(2);
     let follow = relist * 3;
 
-    for (id, resolution) in [("alpha", "64"), ("beta", "64"), ("gamma", "32")] {
+    for (id, resolution) in [("alpha", "64"), ("beta", "256"), ("gamma", "128")] {
         cluster.build(id, resolution);
     }
     for base in [r1, r2] {
