@@ -1,6 +1,8 @@
 //! The server's view of a store: published scenes held in memory (manifest and
 //! metadata), renamed and deleted atomically on disk, refreshed when a build
-//! publishes.
+//! publishes. A bucket's scenes are listed from the bucket and, on replicas with a
+//! coordinator, renamed and deleted there under the coordinator's scene locks
+//! ([`Catalog::rename_in_bucket`], [`Catalog::delete_in_bucket`]).
 //!
 //! Beside `manifest.json` a scene built by the server has `scene.json`
 //! ([`BuildInfo`]: when and how long it was built, display name), written by
