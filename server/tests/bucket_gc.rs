@@ -6,8 +6,9 @@
 //! - a failed build's orphan packs (packs uploaded, no manifest) are removed, and so are the parts
 //!   of an upload that has no record any more;
 //! - controls: within the grace period (of the objects, or of the replacing manifest), with a
-//!   build of the scene queued or running, or while another replica holds the collector's lock,
-//!   nothing of the scene is removed; a live upload's parts stay.
+//!   build of the scene queued or running, while another replica holds the collector's lock, or
+//!   while another replica edits the scene (holds its lock), nothing of the scene is removed; a
+//!   live upload's parts stay.
 
 mod common;
 
@@ -19,7 +20,7 @@ use std::time::{Duration, Instant};
 use object_store::ObjectStore;
 use object_store::path::Path as ObjectPath;
 use voxstream::bucket_store::BucketStore;
-use voxstream::coordinator::Coordinator;
+use voxstream::coordinator::{Coordinator, SceneLockError};
 use voxstream::gc::{GcMetrics, collect};
 use voxstream::jobs::{Job, JobState};
 use voxstream::objstore::Bucket;
@@ -183,6 +184,17 @@ async fn collector_removes_replaced_and_orphan_packs_after_the_grace_period_only
     // Control 2: another replica holds the collector's lock: this pass does not run.
     let inner = b.with_gc_lock(collect(&store, &a, Duration::ZERO, None, &metrics)).await.unwrap();
     assert!(matches!(inner, Some(Ok(None))), "a second collector ran: {inner:?}");
+    assert_eq!(objects(client.as_ref(), "scenes").await, before);
+
+    // Scene locks: while one replica edits koala (a rename or delete), another's edit or
+    // collection of it is refused at once, and nothing ran.
+    let inner =
+        a.with_scenes_locked(&["koala"], true, b.with_scenes_locked(&["koala"], false, async {})).await;
+    assert!(matches!(inner, Ok(Err(SceneLockError::Busy(ref id))) if id == "koala"), "{inner:?}");
+    let r = a
+        .with_scenes_locked(&["koala"], true, collect(&store, &b, Duration::ZERO, Some("koala"), &metrics))
+        .await;
+    assert!(matches!(r, Ok(Ok(Some(ref r))) if r.objects == 0 && r.skipped == ["koala"]), "{r:?}");
     assert_eq!(objects(client.as_ref(), "scenes").await, before);
 
     // Control 3: the old packs are older than the grace period, but the manifest that replaced
