@@ -36,7 +36,9 @@
 #
 # Environment: VOXSTREAM_BIN (default: target/release/voxstream, built when missing),
 # CLUSTER_PORT (nginx's port, default a free one), CLUSTER_LEASE_SECS (the replicas'
-# --lease-secs, default 30; tests shorten it).
+# --lease-secs, default 30; tests shorten it), CLUSTER_GC_INTERVAL_SECS and CLUSTER_GC_GRACE_SECS
+# (the replicas' --gc-interval-secs and --gc-grace-secs, default 3600 each; tests shorten the
+# grace). `restart replica` reads them again from its own environment.
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -174,6 +176,7 @@ start_replica() {
     RUST_LOG="${RUST_LOG:-warn,voxstream=info}" \
     "$VOXSTREAM" serve --store "s3://$BUCKET/$PREFIX" --addr "127.0.0.1:$(cat "$DIR/replica-$i/port")" \
     --relist-secs 2 --coordinator "$COORDINATOR" --lease-secs "${CLUSTER_LEASE_SECS:-30}" \
+    --gc-interval-secs "${CLUSTER_GC_INTERVAL_SECS:-3600}" --gc-grace-secs "${CLUSTER_GC_GRACE_SECS:-3600}" \
     >"$DIR/replica-$i/out.log" 2>"$DIR/replica-$i/err.log" </dev/null &
   echo $! >"$DIR/replica-$i/pid"
 }

@@ -73,6 +73,16 @@ pub struct BucketStore {
     pub metrics: CacheMetrics,
 }
 
+/// An object under the prefix, as a listing gives it.
+#[derive(Debug, Clone)]
+pub struct ObjectInfo {
+    /// The path relative to the prefix (`<id>/packs/<hash>.vxp`).
+    pub rel: String,
+    pub size: u64,
+    /// Last modified, unix milliseconds (the server's clock).
+    pub modified_ms: i64,
+}
+
 /// Why a bucket read failed: missing (404 from the bucket) or anything else.
 #[derive(Debug, thiserror::Error)]
 pub enum BucketReadError {
@@ -147,6 +157,93 @@ impl BucketStore {
             Err(object_store::Error::NotFound { .. }) => Ok(None),
             Err(e) => Err(self.failed(&rel, e).to_string()),
         }
+    }
+
+    /// The manifest of scene `id` and when it was written (unix ms), or `None` when it has none.
+    pub async fn manifest_with_time(&self, id: &str) -> Result<Option<(Bytes, i64)>, String> {
+        let rel = format!("{id}/manifest.json");
+        match self.bucket.store.get(&self.bucket.path(&rel)).await {
+            Ok(r) => {
+                let modified = r.meta.last_modified.timestamp_millis();
+                match r.bytes().await {
+                    Ok(b) => Ok(Some((b, modified))),
+                    Err(e) => Err(self.failed(&rel, e).to_string()),
+                }
+            }
+            Err(object_store::Error::NotFound { .. }) => Ok(None),
+            Err(e) => Err(self.failed(&rel, e).to_string()),
+        }
+    }
+
+    /// A small object (`<id>/scene.json`), or `None` when absent.
+    pub async fn optional(&self, rel: &str) -> Result<Option<Bytes>, String> {
+        match self.get(rel).await {
+            Ok(b) => Ok(Some(b)),
+            Err(BucketReadError::Missing(_)) => Ok(None),
+            Err(e) => Err(e.to_string()),
+        }
+    }
+
+    /// Every object under `<prefix>/<rel_dir>/` (a whole path segment: `a` does not list `ab/`).
+    pub async fn list_under(&self, rel_dir: &str) -> Result<Vec<ObjectInfo>, String> {
+        let dir = self.bucket.path(rel_dir.trim_end_matches('/'));
+        let strip =
+            if self.bucket.prefix.is_empty() { String::new() } else { format!("{}/", self.bucket.prefix) };
+        let mut listing = self.bucket.store.list(Some(&dir));
+        let mut out = Vec::new();
+        while let Some(item) = listing.next().await {
+            let meta = item.map_err(|e| format!("listing {}: {e}", self.describe(rel_dir)))?;
+            let full = meta.location.to_string();
+            let rel = full.strip_prefix(&strip).unwrap_or(&full).to_string();
+            out.push(ObjectInfo { rel, size: meta.size, modified_ms: meta.last_modified.timestamp_millis() });
+        }
+        Ok(out)
+    }
+
+    /// Deletes one object (absent already is fine).
+    pub async fn delete(&self, rel: &str) -> Result<(), String> {
+        match self.bucket.store.delete(&self.bucket.path(rel)).await {
+            Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
+            Err(e) => Err(format!("deleting {}: {e}", self.describe(rel))),
+        }
+    }
+
+    /// Deletes `objects`, [`PAGE_FETCHES`] at once; returns how many and their bytes, or the first
+    /// error (after trying every object).
+    pub async fn delete_all(&self, objects: &[ObjectInfo]) -> Result<(u64, u64), String> {
+        // Owned items: a closure over borrowed ones makes the future's Send higher-ranked, which
+        // rustc cannot prove inside a spawned task.
+        let owned: Vec<(String, u64)> = objects.iter().map(|o| (o.rel.clone(), o.size)).collect();
+        let results: Vec<_> = futures_util::stream::iter(owned)
+            .map(|(rel, size)| async move { self.delete(&rel).await.map(|()| size) })
+            .buffer_unordered(PAGE_FETCHES)
+            .collect()
+            .await;
+        let (mut n, mut bytes, mut first_error) = (0, 0, None);
+        for r in results {
+            match r {
+                Ok(size) => {
+                    n += 1;
+                    bytes += size;
+                }
+                Err(e) => {
+                    first_error.get_or_insert(e);
+                }
+            }
+        }
+        match first_error {
+            Some(e) => Err(e),
+            None => Ok((n, bytes)),
+        }
+    }
+
+    /// A server-side copy (S3 CopyObject): the bytes never pass through this process.
+    pub async fn copy(&self, from: &str, to: &str) -> Result<(), String> {
+        self.bucket
+            .store
+            .copy(&self.bucket.path(from), &self.bucket.path(to))
+            .await
+            .map_err(|e| format!("copying {} to {}: {e}", self.describe(from), self.describe(to)))
     }
 
     /// Reads every hierarchy page of a scene (several at once, through the cache), checking
@@ -240,17 +337,24 @@ impl BucketStore {
                 .map_err(|e| unreadable(e.to_string()))?,
             Some(r) => {
                 let rel = format!("{id}/{}", pack_path(&r.pack.hash));
-                self.bucket.store.get_range(&self.bucket.path(&rel), r.offset..r.end()).await.map_err(
-                    |e| {
-                        unreadable(format!(
+                match self.bucket.store.get_range(&self.bucket.path(&rel), r.offset..r.end()).await {
+                    Ok(bytes) => bytes,
+                    // The scene was deleted, renamed, or replaced and collected since this replica
+                    // listed it: a 404 that says to fetch the manifest again, as for changed bytes
+                    // (until the next listing drops or reloads the scene).
+                    Err(object_store::Error::NotFound { .. }) => {
+                        return Err(BlockReadError::Changed { key: entry.key });
+                    }
+                    Err(e) => {
+                        return Err(unreadable(format!(
                             "pack {}: bytes {}..{}: {}",
                             self.describe(&rel),
                             r.offset,
                             r.end(),
                             self.failed(&rel, e)
-                        ))
-                    },
-                )?
+                        )));
+                    }
+                }
             }
         };
         if blake3::hash(&bytes).to_hex().as_str() != entry.hash {

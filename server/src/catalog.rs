@@ -1,6 +1,8 @@
 //! The server's view of a store: published scenes held in memory (manifest and
 //! metadata), renamed and deleted atomically on disk, refreshed when a build
-//! publishes.
+//! publishes. A bucket's scenes are listed from the bucket and, on replicas with a
+//! coordinator, renamed and deleted there under the coordinator's scene locks
+//! ([`Catalog::rename_in_bucket`], [`Catalog::delete_in_bucket`]).
 //!
 //! Beside `manifest.json` a scene built by the server has `scene.json`
 //! ([`BuildInfo`]: when and how long it was built, display name), written by
@@ -16,7 +18,10 @@ use axum::body::Bytes;
 use serde::{Deserialize, Serialize};
 use voxstream_format::Manifest;
 
+use futures_util::StreamExt;
+
 use crate::bucket_store::BucketStore;
+use crate::coordinator::Coordinator;
 use crate::store::{self, SceneFiles, StoreError, StoredScene};
 
 pub const BUILD_INFO_FILE: &str = "scene.json";
@@ -79,8 +84,12 @@ pub struct LoadedScene {
 
 impl LoadedScene {
     fn load(stored: StoredScene) -> LoadedScene {
-        // A bucket scene has no scene.json (the server does not build into a bucket yet).
         let info = stored.local_dir().map(read_build_info).unwrap_or_default();
+        Self::load_with(stored, info)
+    }
+
+    /// A scene with its `scene.json` (a bucket scene's is `<id>/scene.json`, absent until renamed).
+    fn load_with(stored: StoredScene, info: BuildInfo) -> LoadedScene {
         let manifest_json = Bytes::from(stored.manifest.to_json());
         let meta = scene_meta(&stored, &info, manifest_json.len() as u64);
         LoadedScene { stored, manifest_json, meta }
@@ -157,6 +166,25 @@ pub enum CatalogError {
     Io { action: &'static str, path: PathBuf, source: std::io::Error },
     #[error("{0} is served read-only: {hint}", hint = READ_ONLY_BUCKET_HINT)]
     ReadOnlyBucket(String),
+    /// A build of the scene is queued or running, or another replica is editing or collecting it.
+    #[error("{0}")]
+    Busy(String),
+    /// The coordinator could not be asked.
+    #[error("{0}")]
+    Unavailable(String),
+    /// The bucket refused or failed a request.
+    #[error("{0}")]
+    Bucket(String),
+}
+
+impl From<crate::coordinator::SceneLockError> for CatalogError {
+    fn from(e: crate::coordinator::SceneLockError) -> Self {
+        use crate::coordinator::SceneLockError;
+        match e {
+            SceneLockError::Busy(_) | SceneLockError::Building(_) => CatalogError::Busy(e.to_string()),
+            SceneLockError::Failed(_) => CatalogError::Unavailable(e.to_string()),
+        }
+    }
 }
 
 /// How scenes get into a bucket, for refusals of writes on a replica.
@@ -169,7 +197,7 @@ pub enum SceneStore {
     /// A folder: `<store>/<id>/`, renamed and deleted by this server.
     Local(PathBuf),
     /// `s3://bucket/prefix`: listed from the bucket (every replica lists the same scenes), read
-    /// through a bounded cache, never written by the server.
+    /// through a bounded cache; renamed and deleted only with a coordinator (fenced there).
     Bucket(Arc<BucketStore>),
 }
 
@@ -205,8 +233,9 @@ pub struct Catalog {
     /// Ids a bucket lookup recently did not find, so a stream of requests for an unknown id does
     /// not become a stream of bucket requests.
     unknown: moka::future::Cache<String, ()>,
-    /// The manifest bytes each bucket scene was loaded from, to tell a replaced scene on re-listing.
-    manifests: Mutex<BTreeMap<String, Bytes>>,
+    /// The manifest and `scene.json` bytes each bucket scene was loaded from, to tell a replaced
+    /// (or renamed) scene on re-listing.
+    manifests: Mutex<BTreeMap<String, (Bytes, Option<Bytes>)>>,
 }
 
 impl Catalog {
@@ -294,9 +323,14 @@ impl Catalog {
     /// `Ok(false)`: the scene has no manifest.
     async fn load_from_bucket(&self, bucket: &Arc<BucketStore>, id: &str) -> Result<bool, String> {
         let Some(bytes) = bucket.manifest(id).await? else { return Ok(false) };
-        if self.manifests.lock().expect("manifest lock").get(id) == Some(&bytes) {
+        let info_bytes = bucket.optional(&format!("{id}/{BUILD_INFO_FILE}")).await?;
+        let seen = (bytes.clone(), info_bytes.clone());
+        if self.manifests.lock().expect("manifest lock").get(id) == Some(&seen) {
             return Ok(true);
         }
+        // A damaged scene.json only loses the display name, as on a local store.
+        let info: BuildInfo =
+            info_bytes.as_deref().and_then(|b| serde_json::from_slice(b).ok()).unwrap_or_default();
         let manifest = Manifest::from_json(&bytes).map_err(|e| format!("scene {id} is damaged: {e}"))?;
         let index = bucket.load_index(id, &manifest).await.map_err(|e| e.to_string())?;
         let stored = StoredScene {
@@ -305,9 +339,9 @@ impl Catalog {
             manifest,
             index: Arc::new(index),
         };
-        let loaded = Arc::new(LoadedScene::load(stored));
+        let loaded = Arc::new(LoadedScene::load_with(stored, info));
         self.scenes.write().expect("catalog lock").insert(id.to_string(), loaded);
-        self.manifests.lock().expect("manifest lock").insert(id.to_string(), bytes);
+        self.manifests.lock().expect("manifest lock").insert(id.to_string(), seen);
         tracing::info!(scene = %id, "scene loaded from the bucket");
         Ok(true)
     }
@@ -435,6 +469,125 @@ impl Catalog {
             tracing::warn!(path = %trash.display(), error = %e, "deleted scene's files remain; removed on next start");
         }
         Ok(())
+    }
+}
+
+/// Renames and deletes of bucket scenes, fenced through the coordinator (see
+/// [`Coordinator::with_scenes_locked`]): never while a build of either id is queued or running on
+/// any replica, nor while another replica edits or collects either id.
+impl Catalog {
+    fn bucket(&self) -> Result<&Arc<BucketStore>, CatalogError> {
+        match &self.scenes_at {
+            SceneStore::Bucket(b) => Ok(b),
+            SceneStore::Local(_) => Err(CatalogError::Bucket("not a bucket store".into())),
+        }
+    }
+
+    /// Drops scene `id` from this replica's catalog at once (the others drop it at their next
+    /// listing, when its manifest is gone).
+    fn forget(&self, id: &str) {
+        self.scenes.write().expect("catalog lock").remove(id);
+        self.manifests.lock().expect("manifest lock").remove(id);
+    }
+
+    /// Deletes a bucket scene: its manifest first (the one mutable pointer: from then on no replica
+    /// loads it again, and each drops it at its next listing), then every other object under
+    /// `<id>/` (packs, pages, `scene.json`). Objects a failure leaves behind are the collector's
+    /// (a scene without a manifest is all garbage once older than the grace period).
+    pub async fn delete_in_bucket(&self, coordinator: &Coordinator, id: &str) -> Result<(), CatalogError> {
+        let bucket = self.bucket()?;
+        coordinator
+            .with_scenes_locked(&[id], true, async {
+                // Listed before the manifest goes, so nothing it names is missed.
+                let objects = bucket.list_under(id).await.map_err(CatalogError::Bucket)?;
+                if bucket.manifest(id).await.map_err(CatalogError::Bucket)?.is_none() {
+                    self.forget(id);
+                    return Err(CatalogError::NotFound(id.into()));
+                }
+                bucket.delete(&format!("{id}/manifest.json")).await.map_err(CatalogError::Bucket)?;
+                self.forget(id);
+                let rest: Vec<_> = objects.into_iter().filter(|o| !o.rel.ends_with("/manifest.json")).collect();
+                match bucket.delete_all(&rest).await {
+                    Ok((n, bytes)) => tracing::info!(scene = %id, objects = n + 1, bytes, "scene deleted from the bucket"),
+                    Err(e) => tracing::warn!(scene = %id, error = %e, "scene deleted (its manifest is gone); some objects remain for the collector"),
+                }
+                Ok(())
+            })
+            .await?
+    }
+
+    /// Renames a bucket scene and/or sets its display name. A new id: every object but the
+    /// manifest is copied server-side to `<new>/`, then the manifest (last, so the new id is never
+    /// half-published), then the old manifest is deleted, then the old objects. A display name is
+    /// `<id>/scene.json`, as a local store writes it.
+    pub async fn rename_in_bucket(
+        &self,
+        coordinator: &Coordinator,
+        id: &str,
+        new_id: Option<&str>,
+        display_name: Option<&str>,
+    ) -> Result<Arc<LoadedScene>, CatalogError> {
+        let bucket = self.bucket()?;
+        let to = new_id.filter(|to| *to != id);
+        if let Some(to) = to {
+            store::validate_id(to)?;
+        }
+        let ids: Vec<&str> = std::iter::once(id).chain(to).collect();
+        coordinator
+            .with_scenes_locked(&ids, true, async {
+                let mut current = id.to_string();
+                if bucket.manifest(id).await.map_err(CatalogError::Bucket)?.is_none() {
+                    self.forget(id);
+                    return Err(CatalogError::NotFound(id.into()));
+                }
+                if let Some(to) = to {
+                    if bucket.manifest(to).await.map_err(CatalogError::Bucket)?.is_some() {
+                        return Err(CatalogError::Exists(to.into()));
+                    }
+                    let objects = bucket.list_under(id).await.map_err(CatalogError::Bucket)?;
+                    let moved = |rel: &str| format!("{to}/{}", &rel[id.len() + 1..]);
+                    let manifest = format!("{id}/manifest.json");
+                    let rest: Vec<_> = objects.iter().filter(|o| o.rel != manifest).collect();
+                    let pairs: Vec<(String, String)> = rest.iter().map(|o| (o.rel.clone(), moved(&o.rel))).collect();
+                    let copies: Vec<Result<(), String>> = futures_util::stream::iter(pairs)
+                        .map(|(from, to_rel)| async move { bucket.copy(&from, &to_rel).await })
+                        .buffer_unordered(8)
+                        .collect()
+                        .await;
+                    if let Some(Err(e)) = copies.into_iter().find(Result::is_err) {
+                        // The new id has no manifest: what was copied is the collector's.
+                        return Err(CatalogError::Bucket(e));
+                    }
+                    bucket.copy(&manifest, &moved(&manifest)).await.map_err(CatalogError::Bucket)?;
+                    bucket.delete(&manifest).await.map_err(CatalogError::Bucket)?;
+                    self.forget(id);
+                    let old: Vec<_> = rest.into_iter().cloned().collect();
+                    if let Err(e) = bucket.delete_all(&old).await {
+                        tracing::warn!(scene = %id, error = %e, "renamed; some objects of the old id remain for the collector");
+                    }
+                    tracing::info!(from = %id, to = %to, objects = objects.len(), "scene renamed in the bucket");
+                    current = to.to_string();
+                }
+                if let Some(name) = display_name {
+                    let rel = format!("{current}/{BUILD_INFO_FILE}");
+                    let mut info: BuildInfo = bucket
+                        .optional(&rel)
+                        .await
+                        .map_err(CatalogError::Bucket)?
+                        .and_then(|b| serde_json::from_slice(&b).ok())
+                        .unwrap_or_default();
+                    info.display_name = Some(name.to_string());
+                    let json = serde_json::to_vec_pretty(&info).expect("build info serialises");
+                    bucket
+                        .bucket
+                        .put(&rel, json, "application/json", "no-cache")
+                        .await
+                        .map_err(|e| CatalogError::Bucket(format!("{e:#}")))?;
+                }
+                self.reload(&current).await.map_err(CatalogError::Bucket)?;
+                self.get(&current).ok_or_else(|| CatalogError::NotFound(current.clone()))
+            })
+            .await?
     }
 }
 

@@ -20,6 +20,7 @@ use crate::bucket_build::{StagedScene, stage_in_bucket};
 use crate::bucket_store::BucketStore;
 use crate::catalog::{Catalog, now_unix};
 use crate::coordinator::{Claim, Coordinator, PublishError};
+use crate::gc::{GcReport, GcSettings};
 use crate::jobs::{Job, JobState, UPLOAD_EXPIRY_SECS};
 use crate::metrics::Metrics;
 use crate::objstore::Bucket;
@@ -36,6 +37,9 @@ const EXPIRY_EVERY: Duration = Duration::from_secs(3600);
 pub struct ClusterJobs {
     pub coordinator: Arc<Coordinator>,
     bucket: Arc<Bucket>,
+    /// The bucket as the catalog reads it (for the garbage collector).
+    store: Arc<BucketStore>,
+    gc: GcSettings,
     catalog: Arc<Catalog>,
     metrics: Arc<Metrics>,
     workers: Arc<Semaphore>,
@@ -53,18 +57,22 @@ enum Built {
 }
 
 impl ClusterJobs {
+    #[allow(clippy::too_many_arguments)]
     pub fn new(
         coordinator: Arc<Coordinator>,
-        bucket: &BucketStore,
+        bucket: &Arc<BucketStore>,
         catalog: Arc<Catalog>,
         metrics: Arc<Metrics>,
         workers: usize,
+        gc: GcSettings,
         shutdown: CancellationToken,
     ) -> Arc<ClusterJobs> {
         let scratch = catalog.store().to_path_buf();
         Arc::new(ClusterJobs {
             coordinator,
             bucket: Arc::new(bucket.bucket.clone()),
+            store: bucket.clone(),
+            gc,
             catalog,
             metrics,
             workers: Arc::new(Semaphore::new(workers.max(1))),
@@ -78,10 +86,70 @@ impl ClusterJobs {
         &self.bucket
     }
 
-    /// Starts the claim loop.
+    /// Starts the claim loop, and the garbage collector's when it is on.
     pub fn start(self: &Arc<Self>) {
         let this = self.clone();
         self.tracker.spawn(async move { this.claim_loop().await });
+        if let Some(every) = self.gc.interval {
+            let this = self.clone();
+            tokio::spawn(async move { this.gc_loop(every).await });
+        }
+    }
+
+    /// One garbage collection pass now (all scenes, or only `only`); `Ok(None)` when another
+    /// replica is collecting.
+    pub async fn collect_garbage(&self, only: Option<&str>) -> anyhow::Result<Option<GcReport>> {
+        crate::gc::collect(&self.store, &self.coordinator, self.gc.grace, only, &self.metrics.gc).await
+    }
+
+    async fn gc_loop(self: Arc<Self>, every: Duration) {
+        let mut tick = tokio::time::interval(every);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        tick.tick().await;
+        loop {
+            tokio::select! {
+                _ = tick.tick() => {}
+                () = self.shutdown.cancelled() => return,
+            }
+            match self.collect_garbage(None).await {
+                Ok(Some(r)) => {
+                    tracing::info!(objects = r.objects, bytes = r.bytes, skipped = ?r.skipped, "garbage collection pass")
+                }
+                Ok(None) => tracing::debug!("another replica is collecting garbage"),
+                Err(e) => tracing::warn!(error = %format!("{e:#}"), "garbage collection failed"),
+            }
+        }
+    }
+
+    /// After a build published `scene` (replacing a scene leaves the previous packs): collects
+    /// that scene once the new manifest is older than the grace period.
+    fn collect_after_publish(self: &Arc<Self>, scene: String) {
+        if self.gc.interval.is_none() {
+            return;
+        }
+        let this = self.clone();
+        tokio::spawn(async move {
+            tokio::select! {
+                () = tokio::time::sleep(this.gc.grace + Duration::from_millis(500)) => {}
+                () = this.shutdown.cancelled() => return,
+            }
+            // Another replica collecting now: retry a few times, then leave it to the periodic pass.
+            for _ in 0..5 {
+                match this.collect_garbage(Some(&scene)).await {
+                    Ok(Some(r)) if !r.skipped.is_empty() => {}
+                    Ok(Some(_)) => return,
+                    Ok(None) => {}
+                    Err(e) => {
+                        tracing::warn!(scene = %scene, error = %format!("{e:#}"), "garbage collection after the build failed");
+                        return;
+                    }
+                }
+                tokio::select! {
+                    () = tokio::time::sleep(Duration::from_secs(2)) => {}
+                    () = this.shutdown.cancelled() => return,
+                }
+            }
+        });
     }
 
     async fn claim_loop(self: Arc<Self>) {
@@ -175,6 +243,7 @@ impl ClusterJobs {
                             tracing::warn!(scene = %done.scene_id, error = %e, "published, but this replica cannot load it yet");
                         }
                         tracing::info!(job = %id, scene = %done.scene_id, seconds, "build done");
+                        self.collect_after_publish(done.scene_id.clone());
                         Some(JobState::Done)
                     }
                     Err(PublishError::LeaseLost) => {

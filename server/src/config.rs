@@ -33,6 +33,17 @@ pub struct ServeArgs {
     /// while building loses its job to another after this.
     #[arg(long, env = "VOXSTREAM_LEASE_SECS", default_value_t = 30)]
     pub lease_secs: u64,
+    /// With --coordinator: seconds between garbage collections of the bucket (packs no manifest
+    /// names, objects of failed builds, parts of ended uploads), one replica at a time; also run
+    /// a grace period after each build this replica publishes. 0 = never collect.
+    #[arg(long, env = "VOXSTREAM_GC_INTERVAL_SECS", default_value_t = 3600)]
+    pub gc_interval_secs: u64,
+    /// With --coordinator: the collector keeps objects younger than this (seconds), and a scene's
+    /// unreferenced packs while its manifest is younger than this: replicas serve a replaced
+    /// manifest until their next listing and browsers keep asking for its blocks, and a
+    /// `voxstream build --out s3://…` uploads its packs before its manifest.
+    #[arg(long, env = "VOXSTREAM_GC_GRACE_SECS", default_value_t = 3600)]
+    pub gc_grace_secs: u64,
     #[arg(long, env = "VOXSTREAM_ADDR", default_value = "127.0.0.1:8080")]
     pub addr: SocketAddr,
     /// Directory of the built viewer (index.html, pkg/, upload.html).
@@ -85,7 +96,7 @@ pub struct ServeArgs {
 #[derive(Debug, Clone)]
 pub struct ServerConfig {
     pub store: PathBuf,
-    /// The scenes live in a bucket (set by the server): renames and deletes are refused (403).
+    /// The scenes live in a bucket (set by the server): without a coordinator it is read-only.
     pub bucket_scenes: bool,
     pub web: Option<PathBuf>,
     pub token: Option<String>,
@@ -101,6 +112,8 @@ pub struct ServerConfig {
     pub max_header_bytes: usize,
     pub upload_idle: Duration,
     pub shutdown_timeout: Duration,
+    /// Garbage collection of a bucket (with a coordinator).
+    pub gc: crate::gc::GcSettings,
 }
 
 impl ServerConfig {
@@ -123,6 +136,7 @@ impl ServerConfig {
             max_header_bytes: 16 * 1024,
             upload_idle: Duration::from_secs(60),
             shutdown_timeout: Duration::from_secs(10),
+            gc: crate::gc::GcSettings::default(),
         }
     }
 }
@@ -151,6 +165,10 @@ impl ServeArgs {
             max_header_bytes: self.max_header_bytes,
             upload_idle: Duration::from_secs(self.upload_idle_secs.max(1)),
             shutdown_timeout: Duration::from_secs(self.shutdown_secs),
+            gc: crate::gc::GcSettings {
+                interval: (self.gc_interval_secs > 0).then(|| Duration::from_secs(self.gc_interval_secs)),
+                grace: Duration::from_secs(self.gc_grace_secs),
+            },
         }
     }
 

@@ -26,6 +26,16 @@
 //!   in the bucket, listed in `voxstream_upload_parts`. A PATCH holds the upload's row lock for its
 //!   whole body, so PATCHes on one upload are serialised across replicas, and its parts become
 //!   visible only when it commits.
+//! - Scene edits (rename, delete) and garbage collection are fenced by a transaction-scoped
+//!   advisory lock per scene id (`pg_advisory_xact_lock(hashtextextended('voxstream-scene:' || id,
+//!   0))`): the edit takes it (for both ids of a rename, in sorted order), checks that no job of
+//!   those ids is queued or running, does its bucket work and commits. Queuing a job (an upload's
+//!   completion) and a build's publication take the same lock, so no job of the scene can be
+//!   queued or published while the edit runs (the upload's last PATCH answers 409 if the lock is
+//!   held longer than its lock timeout). As with publication, a replica cut off from PostgreSQL
+//!   loses its lock with its connection; its edit may then overlap a build queued meanwhile.
+//! - One garbage collector at a time across replicas: a transaction-scoped advisory lock
+//!   ([`GC_LOCK`]) tried, not waited for; a replica that does not get it skips its pass.
 //!
 //! Connection settings: `--coordinator postgres://user@host:port/db` (no password in it: a command
 //! line shows in `ps` and logs); the password comes from `PGPASSWORD` in the environment or in the
@@ -58,6 +68,15 @@ const HEAD_BYTES: usize = 64;
 const UPLOAD_LOCK_WAIT: &str = "10s";
 /// Serialises schema creation between replicas starting together.
 const SCHEMA_LOCK: i64 = 0x0076_6f78_7374_726d; // "voxstrm"
+/// Held by the replica collecting garbage (see [`Coordinator::with_gc_lock`]).
+pub const GC_LOCK: i64 = 0x0076_6f78_6763_6c6b; // "voxgclk"
+/// How long a scene edit waits for another edit or a collection of the same scene.
+const SCENE_LOCK_WAIT: &str = "10s";
+/// The advisory lock key of a scene id (collisions only serialise two ids needlessly).
+const SCENE_LOCK_SQL: &str =
+    "SELECT pg_advisory_xact_lock(hashtextextended('voxstream-scene:' || $1::text, 0))";
+const SCENE_TRY_LOCK_SQL: &str =
+    "SELECT pg_try_advisory_xact_lock(hashtextextended('voxstream-scene:' || $1::text, 0))";
 
 const SCHEMA: &str = "
 CREATE TABLE IF NOT EXISTS voxstream_jobs (
@@ -426,6 +445,9 @@ impl Coordinator {
         if held.is_none() {
             return Err(PublishError::LeaseLost);
         }
+        // A rename or delete of the scene cannot start while a job of it exists, but a collection
+        // may hold the scene's lock for a moment: publish after it.
+        tx.execute(SCENE_LOCK_SQL, &[&done.scene_id]).await.map_err(|e| PublishError::Failed(db(e)))?;
         publish.await.map_err(PublishError::Failed)?;
         let json = serde_json::to_string(done).expect("job serialises");
         let now = crate::catalog::now_unix() as i64;
@@ -468,6 +490,87 @@ impl Coordinator {
             .await
             .map_err(db)?;
         Ok(())
+    }
+
+    // ---- scene edits and garbage collection ---------------------------------------------------
+
+    /// Runs `edit` holding the advisory locks of `ids` (sorted, so two edits never deadlock) in one
+    /// transaction, after checking that no job of any of them is queued or running. With
+    /// `wait == false` a lock held elsewhere is [`SceneLockError::Busy`] at once (the collector
+    /// skips such scenes); otherwise it is waited for up to 10 s.
+    pub async fn with_scenes_locked<F, T>(
+        &self,
+        ids: &[&str],
+        wait: bool,
+        edit: F,
+    ) -> Result<T, SceneLockError>
+    where
+        F: std::future::Future<Output = T>,
+    {
+        let failed = |e: anyhow::Error| SceneLockError::Failed(format!("{e:#}"));
+        let mut client = self.client().await.map_err(failed)?;
+        let tx = client.transaction().await.map_err(|e| failed(db(e)))?;
+        tx.batch_execute(&format!("SET LOCAL lock_timeout = '{SCENE_LOCK_WAIT}'"))
+            .await
+            .map_err(|e| failed(db(e)))?;
+        let mut sorted: Vec<&str> = ids.to_vec();
+        sorted.sort_unstable();
+        sorted.dedup();
+        for id in &sorted {
+            if wait {
+                match tx.execute(SCENE_LOCK_SQL, &[id]).await {
+                    Ok(_) => {}
+                    Err(e) if e.code() == Some(&SqlState::LOCK_NOT_AVAILABLE) => {
+                        return Err(SceneLockError::Busy(id.to_string()));
+                    }
+                    Err(e) => return Err(failed(db(e))),
+                }
+            } else {
+                let got: bool =
+                    tx.query_one(SCENE_TRY_LOCK_SQL, &[id]).await.map_err(|e| failed(db(e)))?.get(0);
+                if !got {
+                    return Err(SceneLockError::Busy(id.to_string()));
+                }
+            }
+        }
+        let ids_owned: Vec<String> = sorted.iter().map(|s| s.to_string()).collect();
+        let building = tx
+            .query_opt(
+                "SELECT scene_id FROM voxstream_jobs WHERE scene_id = ANY($1) AND state IN ('queued', 'running') LIMIT 1",
+                &[&ids_owned],
+            )
+            .await
+            .map_err(|e| failed(db(e)))?;
+        if let Some(row) = building {
+            return Err(SceneLockError::Building(row.get(0)));
+        }
+        let out = edit.await;
+        tx.commit().await.map_err(|e| failed(db(e)))?;
+        Ok(out)
+    }
+
+    /// Runs `collect` if no other replica is collecting (`Ok(None)` when one is).
+    pub async fn with_gc_lock<F, T>(&self, collect: F) -> anyhow::Result<Option<T>>
+    where
+        F: std::future::Future<Output = T>,
+    {
+        let mut client = self.client().await?;
+        let tx = client.transaction().await.map_err(db)?;
+        let got: bool =
+            tx.query_one("SELECT pg_try_advisory_xact_lock($1)", &[&GC_LOCK]).await.map_err(db)?.get(0);
+        if !got {
+            return Ok(None);
+        }
+        let out = collect.await;
+        tx.commit().await.map_err(db)?;
+        Ok(Some(out))
+    }
+
+    /// The ids of uploads that have a record (unfinished, or complete with their job not ended).
+    pub async fn upload_ids(&self) -> anyhow::Result<Vec<String>> {
+        let client = self.client().await?;
+        let rows = client.query("SELECT id FROM voxstream_uploads", &[]).await.map_err(db)?;
+        Ok(rows.iter().map(|r| r.get(0)).collect())
     }
 
     // ---- uploads ------------------------------------------------------------------------------
@@ -624,6 +727,14 @@ impl Coordinator {
         tx.execute("UPDATE voxstream_uploads SET complete = true WHERE id = $1", &[&id])
             .await
             .map_err(|e| failed(db(e)))?;
+        // Not while a rename, delete or collection of the scene runs (they hold its lock).
+        match tx.execute(SCENE_LOCK_SQL, &[&job.scene_id]).await {
+            Ok(_) => {}
+            Err(e) if e.code() == Some(&SqlState::LOCK_NOT_AVAILABLE) => {
+                return Err(AppendError::SceneBusy(job.scene_id.clone()));
+            }
+            Err(e) => return Err(failed(db(e))),
+        }
         let json = serde_json::to_string(&job).expect("job serialises");
         let inserted = tx
             .execute(
@@ -793,6 +904,19 @@ pub enum CancelError {
     NotFound,
     Ended(&'static str),
     Failed(anyhow::Error),
+}
+
+/// Why a scene edit or collection did not run.
+#[derive(Debug, thiserror::Error)]
+pub enum SceneLockError {
+    /// Another replica is renaming, deleting or collecting the scene.
+    #[error("scene {0:?} is being renamed, deleted or cleaned up by another request; try again")]
+    Busy(String),
+    /// A job of the scene is queued or running.
+    #[error("a build is publishing scene {0:?}; wait for it or cancel it")]
+    Building(String),
+    #[error("coordinator: {0}")]
+    Failed(String),
 }
 
 #[derive(Debug)]

@@ -18,6 +18,7 @@ pub mod catalog;
 pub mod cluster_jobs;
 pub mod config;
 pub mod coordinator;
+pub mod gc;
 pub mod http;
 pub mod jobs;
 pub mod metrics;

@@ -29,6 +29,8 @@ pub struct Metrics {
     /// Builds this process started (with a coordinator, the replicas' sum counts every build).
     pub builds_started: Counter,
     pub sse_streams: Gauge<i64, AtomicI64>,
+    /// Objects and bytes the bucket's garbage collector removed (this replica's passes).
+    pub gc: crate::gc::GcMetrics,
 }
 
 fn request_histogram() -> Histogram {
@@ -60,6 +62,7 @@ impl Metrics {
             jobs_queued: Gauge::default(),
             builds_started: Counter::default(),
             sse_streams: Gauge::default(),
+            gc: crate::gc::GcMetrics::default(),
             registry: Registry::default(),
         };
         registry.register(
@@ -81,6 +84,16 @@ impl Metrics {
         registry.register("jobs_queued", "Builds waiting for a worker", m.jobs_queued.clone());
         registry.register("builds_started", "Builds this process started", m.builds_started.clone());
         registry.register("sse_streams", "Open job event streams", m.sse_streams.clone());
+        registry.register(
+            "gc_objects_deleted",
+            "Unreferenced bucket objects the garbage collector removed",
+            m.gc.objects.clone(),
+        );
+        registry.register(
+            "gc_bytes_deleted",
+            "Bytes of unreferenced bucket objects the garbage collector removed",
+            m.gc.bytes.clone(),
+        );
         Metrics { registry, ..m }
     }
 

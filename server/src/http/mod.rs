@@ -104,6 +104,7 @@ impl AppState {
                 catalog.clone(),
                 metrics.clone(),
                 config.build_workers,
+                config.gc,
                 shutdown.clone(),
             )),
             _ => Jobs::Local(JobManager::new(

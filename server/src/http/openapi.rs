@@ -169,19 +169,16 @@ pub fn document(config: &ServerConfig) -> Value {
                 && ((path.starts_with("/api/") && path != "/api/openapi.json") || path == "/metrics");
             // A --read-only server refuses writes (403) before it looks at a token.
             let token_required = token && ((write && !config.read_only) || (read && config.protect_read));
+            // A bucket replica without --coordinator is read-only too (config.read_only is set):
+            // with one it renames and deletes scenes like a local store, so no 403 there.
             let read_only_refusal = write && config.read_only;
-            // A bucket replica that takes uploads still neither renames nor deletes scenes.
-            let bucket_refusal = config.bucket_scenes
-                && !config.read_only
-                && path == "/api/scenes/{id}"
-                && matches!(method, "patch" | "delete");
             let rate_limited = config.uploads_per_minute > 0
                 && method == "post"
                 && matches!(path.as_str(), "/api/scenes" | "/api/uploads");
             // Only the statuses this server can answer with: the handlers' attributes list them all.
             let responses = op.get_mut("responses").and_then(Value::as_object_mut).expect("responses");
             for (status, applies) in
-                [("401", token_required), ("403", read_only_refusal || bucket_refusal), ("429", rate_limited)]
+                [("401", token_required), ("403", read_only_refusal), ("429", rate_limited)]
             {
                 if !applies {
                     responses.remove(status);
@@ -193,14 +190,14 @@ pub fn document(config: &ServerConfig) -> Value {
             } else {
                 op.remove("security");
             }
-            if read_only_refusal {
-                add_response(op, "403", "This server is read-only (--read-only)");
-            } else if bucket_refusal {
+            if read_only_refusal && config.bucket_scenes {
                 add_response(
                     op,
                     "403",
-                    "Scenes in a bucket are replaced by uploading again, not renamed or deleted here",
+                    "This replica serves a bucket read-only (no --coordinator, or --read-only)",
                 );
+            } else if read_only_refusal {
+                add_response(op, "403", "This server is read-only (--read-only)");
             }
             if rate_limited {
                 add_response(
@@ -654,5 +651,31 @@ mod tests {
         let upload = &doc["paths"]["/api/scenes"]["post"];
         assert!(upload["responses"]["403"].is_object() && upload["responses"]["401"].is_null(), "{upload}");
         assert!(upload["responses"]["429"].is_null() && upload["security"].is_null(), "{upload}");
+    }
+
+    /// A bucket replica with a coordinator renames and deletes (no 403 declared); without one it is
+    /// read-only, and every write route declares the 403 with the bucket's reason.
+    #[test]
+    fn bucket_replicas_declare_403_only_where_it_happens() {
+        let mut config = ServerConfig::new(std::path::Path::new("/nonexistent"));
+        config.bucket_scenes = true;
+        let doc = document(&config);
+        for method in ["patch", "delete"] {
+            let op = &doc["paths"]["/api/scenes/{id}"][method];
+            assert!(op["responses"]["403"].is_null(), "{method}: {op}");
+            assert!(op["responses"]["409"].is_object(), "{method}: {op}");
+        }
+        assert!(doc["paths"]["/api/uploads"]["post"]["responses"]["403"].is_null());
+        config.read_only = true;
+        let doc = document(&config);
+        for (path, method) in
+            [("/api/scenes/{id}", "patch"), ("/api/scenes/{id}", "delete"), ("/api/uploads", "post")]
+        {
+            let refusal = &doc["paths"][path][method]["responses"]["403"];
+            assert!(
+                refusal["description"].as_str().unwrap().contains("bucket"),
+                "{method} {path}: {refusal}"
+            );
+        }
     }
 }

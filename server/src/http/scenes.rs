@@ -47,7 +47,8 @@ pub async fn get_scene(
 #[derive(Debug, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct SceneUpdate {
-    /// New id (the scene's URLs change; the directory is renamed atomically).
+    /// New id (the scene's URLs change; a local scene's directory is renamed atomically, a bucket
+    /// scene's objects are copied and its new manifest written last).
     pub id: Option<String>,
     /// New display name.
     pub name: Option<String>,
@@ -88,6 +89,17 @@ pub async fn patch_scene(
             format!("a build is publishing scene {id:?}; wait or cancel it"),
         ));
     }
+    let name = update.name.as_deref().map(str::trim);
+    if let Some(cluster) = state.cluster() {
+        // A bucket scene, fenced through the coordinator (the checks above are repeated there,
+        // under the scenes' locks).
+        let scene = state
+            .catalog
+            .rename_in_bucket(&cluster.coordinator, &id, update.id.as_deref(), name)
+            .await
+            .map_err(catalog_error)?;
+        return Ok(axum::Json(scene.meta.clone()));
+    }
     let catalog = state.catalog.clone();
     let scene = tokio::task::spawn_blocking(move || {
         catalog.rename(&id, update.id.as_deref(), update.name.as_deref().map(str::trim))
@@ -103,6 +115,8 @@ fn catalog_error(e: CatalogError) -> ApiError {
         CatalogError::NotFound(_) => ApiError::not_found(e.to_string()),
         CatalogError::Exists(_) => ApiError::new(StatusCode::CONFLICT, e.to_string()),
         CatalogError::ReadOnlyBucket(_) => ApiError::new(StatusCode::FORBIDDEN, e.to_string()),
+        CatalogError::Busy(_) => ApiError::new(StatusCode::CONFLICT, e.to_string()),
+        CatalogError::Unavailable(_) => ApiError::new(StatusCode::SERVICE_UNAVAILABLE, e.to_string()),
         CatalogError::Store(crate::store::StoreError::BadId(_)) => ApiError::bad_request(e.to_string()),
         _ => {
             tracing::error!(error = %e, "catalog change failed");
@@ -125,6 +139,10 @@ pub async fn delete_scene(
             StatusCode::CONFLICT,
             format!("a build is publishing scene {id:?}; cancel it first"),
         ));
+    }
+    if let Some(cluster) = state.cluster() {
+        state.catalog.delete_in_bucket(&cluster.coordinator, &id).await.map_err(catalog_error)?;
+        return Ok(StatusCode::NO_CONTENT);
     }
     let catalog = state.catalog.clone();
     tokio::task::spawn_blocking(move || catalog.delete(&id))

@@ -275,9 +275,10 @@ fn append_error(id: &str, e: AppendError, post: bool) -> ApiError {
         }
         AppendError::Empty => ApiError::bad_request("the upload is empty"),
         AppendError::Unusable(message) => ApiError::new(StatusCode::UNSUPPORTED_MEDIA_TYPE, message),
-        AppendError::SceneBusy(scene) => {
-            ApiError::new(StatusCode::CONFLICT, format!("a build is already publishing scene {scene:?}"))
-        }
+        AppendError::SceneBusy(scene) => ApiError::new(
+            StatusCode::CONFLICT,
+            format!("a build is already publishing scene {scene:?}, or it is being renamed or deleted"),
+        ),
         AppendError::Failed(message) => {
             tracing::error!(upload = %id, error = %message, "storing the upload failed");
             ApiError::new(StatusCode::SERVICE_UNAVAILABLE, format!("cannot store the upload: {message}"))
