@@ -30,6 +30,7 @@ pub use manifest::{
 };
 pub use voxel::{
     Block, FULL_COVERAGE, Face, PackedVoxel, coverage_from_count, demorton3, morton3, oct_decode, oct_encode,
+    oct_encode_many,
 };
 
 /// Voxels per block edge (seed 003 uses 64³ blocks).

@@ -31,7 +31,7 @@ use voxstream_format::{
     BLOCK_DEPTH, BLOCK_SIZE, Block, BlockEntry, BlockKey, BlockLocation, FORMAT_VERSION, GridFrame,
     LevelInfo, Manifest, PAGE_LEVELS, PackRef, PackedVoxel, PageBuilder, PageError, ResolutionChoice,
     SourceInfo, VoxelBounds, VoxelColumns, coverage_from_count, demorton3, encode_columns, morton3,
-    oct_encode,
+    oct_encode, oct_encode_many,
 };
 
 use crate::pipeline::progress::{ProgressSink, Stage, StageCounter};
@@ -93,7 +93,11 @@ fn block_columns(b: &LodBlock) -> VoxelColumns {
         depth: BLOCK_DEPTH,
         morton: v.iter().map(|v| v.voxel.morton).collect(),
         faces: v.iter().map(|v| v.voxel.faces).collect(),
-        normal: v.iter().map(|v| oct_encode(v.voxel.normal_sum) as u16).collect(),
+        normal: {
+            let mut normal = Vec::new();
+            oct_encode_many(v.iter().map(|v| v.voxel.normal_sum), &mut normal);
+            normal
+        },
         coverage: if level == 0 {
             Vec::new()
         } else {
