@@ -28,12 +28,22 @@ fn clip_cell_edge(level: u32) -> f32 {
     return clipmap.info.z * exp2(f32(level));
 }
 
-// Whether all eight cells a trilinear sample at `p` (grid units) reads lie in the level.
-fn clip_contains(level: u32, p: vec3<f32>) -> bool {
+// Whether all eight cells a trilinear sample at `p` (grid units) reads lie in
+// the level, `margin` cells inside its faces.
+fn clip_contains_within(level: u32, p: vec3<f32>, margin: f32) -> bool {
     let q = p / clip_cell_edge(level) - 0.5;
-    let o = vec3<f32>(clipmap.origins[level].xyz);
-    return all(q >= o) && all(q < o + clipmap.info.y - 1.0);
+    let o = vec3<f32>(clipmap.origins[level].xyz) + margin;
+    return all(q >= o) && all(q < o + clipmap.info.y - 1.0 - 2.0 * margin);
 }
+
+fn clip_contains(level: u32, p: vec3<f32>) -> bool {
+    return clip_contains_within(level, p, 0.0);
+}
+
+// Cells a surface point must lie inside a level for that level to be its own
+// (start offset, narrowest cone): the first samples of every cone, whose
+// height above the surface is a few cells at most, then stay in the level.
+const CLIP_HOME_MARGIN: f32 = 12.0;
 
 // Trilinear opacity of one level at `p` (grid units).
 fn clip_trilinear(level: u32, p: vec3<f32>) -> f32 {
@@ -87,9 +97,13 @@ fn occupancy_at(s: vec3<f32>, lod: f32) -> vec2<f32> {
 
 // Occlusion (0 = open, 1 = blocked, weighted by w(d)) seen by one cone from p.
 //
-// - Start: p + n * offset (frame.ao_cone.w, 1.5 finest cells by default): the
-//   surface's own voxels fill the cell p lies on, so a cone starting on it
-//   would see itself.
+// - Start (the start-offset rule): p + n * offset_cells * c, c the cell edge
+//   of the finest clipmap level that holds p and its neighbourhood (the
+//   volume's cell with the volume), offset_cells = 1.5 by default
+//   (frame.ao_cone.w is offset_cells * the finest cell): the surface's own
+//   voxels fill the cell p lies in, and a trilinear sample reaches half a
+//   cell further, so a cone starting closer would see its own surface. The
+//   same c is the narrowest cone width.
 // - Width: the cone's diameter 2 * tan(aperture) * d picks the clipmap level
 //   or volume mip (fractional: quadrilinear), never finer than
 //   one cell, and never wider than the sample's height above p's tangent plane:
@@ -99,11 +113,11 @@ fn occupancy_at(s: vec3<f32>, lod: f32) -> vec2<f32> {
 //   of length s through cells of edge c has alpha_step = 1 - (1 - o)^(s / c).
 // - Empty-space skipping: where the level (mip) two coarser reads 0, the whole
 //   neighbourhood is empty and the cone jumps half of that level's cell.
-fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, cell: f32, max_mip: f32) -> f32 {
+fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, base_cell: f32, cell: f32, max_mip: f32) -> f32 {
     let grid = frame.volume.x;
     let tan_half = frame.ao_cone.y;
     let step_fraction = frame.ao_cone.z;
-    let offset = frame.ao_cone.w;
+    let offset = frame.ao_cone.w * cell / base_cell;
     let radius = frame.ao_range.x;
     let falloff = frame.ao_range.y;
     let skip = frame.ao_range.z > 0.5;
@@ -123,19 +137,19 @@ fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, cell: f32, max_mip: f3
         }
         let height = max(dot(s - p, n), cell);
         let diameter = clamp(2.0 * tan_half * d, cell, max(height / 3.0, cell));
-        let mip = clamp(log2(diameter / cell), 0.0, max_mip);
+        let mip = clamp(log2(diameter / base_cell), 0.0, max_mip);
         let step_len = max(step_fraction * diameter, 0.5 * cell);
         if skip && mip + 2.0 <= max_mip {
             let coarse = occupancy_at(s, mip + 2.0);
             if coarse.x <= 0.0 {
-                t += max(step_len, 0.5 * cell * exp2(coarse.y));
+                t += max(step_len, 0.5 * base_cell * exp2(coarse.y));
                 continue;
             }
         }
         let sample = occupancy_at(s, mip);
         let o = sample.x;
         if o > 0.0 {
-            let edge = cell * exp2(sample.y);
+            let edge = base_cell * exp2(sample.y);
             let a = 1.0 - pow(max(1.0 - o, 0.0), step_len / edge);
             // The opacity ramps up over the texel edge before a surface, so a
             // step's occlusion sits about half an edge further than its sample.
@@ -160,8 +174,24 @@ fn ambient_visibility(p: vec3<f32>, n_in: vec3<f32>, turn: f32) -> f32 {
         n = vec3<f32>(0.0, 0.0, 1.0);
     }
     let grid = frame.volume.x;
-    let cell = grid / frame.volume.y;
+    let base_cell = grid / frame.volume.y;
     let max_mip = frame.volume.z - 1.0;
+    // The cell at p: the finest clipmap level holding p (its neighbourhood
+    // within the start offset and the first samples) sets the start offset
+    // and the narrowest cone width, so a point outside the finest level does
+    // not read its own surface smeared over a coarser level's cells.
+    var cell = base_cell;
+    if clipmap.info.w > 0.5 {
+        let levels = u32(clipmap.info.x);
+        var level = 0u;
+        loop {
+            if level + 1u >= levels || clip_contains_within(level, p, CLIP_HOME_MARGIN) {
+                break;
+            }
+            level += 1u;
+        }
+        cell = clip_cell_edge(level);
+    }
     let helper = select(vec3<f32>(0.0, 1.0, 0.0), vec3<f32>(1.0, 0.0, 0.0), abs(n.y) > 0.9);
     let t0 = normalize(cross(helper, n));
     let b0 = cross(n, t0);
@@ -173,7 +203,7 @@ fn ambient_visibility(p: vec3<f32>, n_in: vec3<f32>, turn: f32) -> f32 {
     for (var i = 0u; i < cones; i += 1u) {
         let a = frame.ao_dirs[i];
         let dir = normalize(t * a.x + b * a.y + n * a.z);
-        occluded += a.w * trace_cone(p, n, dir, cell, max_mip);
+        occluded += a.w * trace_cone(p, n, dir, base_cell, cell, max_mip);
     }
     return clamp(1.0 - occluded, 0.0, 1.0);
 }
