@@ -28,16 +28,24 @@ fn clip_cell_edge(level: u32) -> f32 {
     return clipmap.info.z * exp2(f32(level));
 }
 
-// Whether all eight cells a trilinear sample at `p` (grid units) reads lie in
-// the level, `margin` cells inside its faces.
-fn clip_contains_within(level: u32, p: vec3<f32>, margin: f32) -> bool {
+// Whether all eight cells a trilinear sample at `p` (grid units) reads lie in the level.
+fn clip_contains(level: u32, p: vec3<f32>) -> bool {
     let q = p / clip_cell_edge(level) - 0.5;
-    let o = vec3<f32>(clipmap.origins[level].xyz) + margin;
-    return all(q >= o) && all(q < o + clipmap.info.y - 1.0 - 2.0 * margin);
+    let o = vec3<f32>(clipmap.origins[level].xyz);
+    return all(q >= o) && all(q < o + clipmap.info.y - 1.0);
 }
 
-fn clip_contains(level: u32, p: vec3<f32>) -> bool {
-    return clip_contains_within(level, p, 0.0);
+// Whether `p` lies `margin` cells inside the level's faces, faces on or
+// beyond the grid's boundary excepted (nothing lies past them).
+fn clip_holds_within(level: u32, p: vec3<f32>, margin: f32) -> bool {
+    let edge = clip_cell_edge(level);
+    let q = p / edge - 0.5;
+    let o = vec3<f32>(clipmap.origins[level].xyz);
+    let n = clipmap.info.y;
+    let grid_cells = frame.volume.x / edge;
+    let lo = select(o + margin, vec3<f32>(-1e30), o <= vec3<f32>(0.0));
+    let hi = select(o + n - 1.0 - margin, vec3<f32>(1e30), o + n >= vec3<f32>(grid_cells));
+    return clip_contains(level, p) && all(q >= lo) && all(q < hi);
 }
 
 // Cells a surface point must lie inside a level for that level to be its own
@@ -147,6 +155,13 @@ fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, base_cell: f32, cell: 
             }
         }
         let sample = occupancy_at(s, mip);
+        // A sample outside the clipmap level its width asks for came from a
+        // coarser one; where that level's cells are wider than the width
+        // clamp allows, it would read the surface the cone starts from.
+        if sample.y > mip + 0.5 && base_cell * exp2(floor(sample.y)) > max(height / 3.0, cell) {
+            t += step_len;
+            continue;
+        }
         let o = sample.x;
         if o > 0.0 {
             let edge = base_cell * exp2(sample.y);
@@ -185,7 +200,7 @@ fn ambient_visibility(p: vec3<f32>, n_in: vec3<f32>, turn: f32) -> f32 {
         let levels = u32(clipmap.info.x);
         var level = 0u;
         loop {
-            if level + 1u >= levels || clip_contains_within(level, p, CLIP_HOME_MARGIN) {
+            if level + 1u >= levels || clip_holds_within(level, p, CLIP_HOME_MARGIN) {
                 break;
             }
             level += 1u;

@@ -781,8 +781,9 @@ mod tests {
     #[test]
     fn forward_comes_from_the_view_projection() {
         let eye = Vec3::new(10.0, 20.0, 30.0);
-        let view = Mat4::look_at_rh(eye, eye + Vec3::new(0.0, 0.0, -1.0), Vec3::Y);
-        let proj = Mat4::perspective_rh(1.0, 1.5, 0.1, 100.0);
+        use glam::camera::rh::{proj::directx, view};
+        let view = view::look_at_mat4(eye, eye + Vec3::new(0.0, 0.0, -1.0), Vec3::Y);
+        let proj = directx::perspective(1.0, 1.5, 0.1, 100.0);
         let f = view_forward(proj * view, eye);
         assert!((f - Vec3::new(0.0, 0.0, -1.0)).length() < 1e-3, "{f}");
     }

@@ -117,7 +117,7 @@ mod tests {
         };
         let v: serde_json::Value = serde_json::to_value(&s).unwrap();
         let keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
-        assert_eq!(keys.len(), 23);
+        assert_eq!(keys.len(), 25);
         for k in [
             "frameMs",
             "blocksDrawn",
