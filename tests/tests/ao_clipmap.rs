@@ -92,7 +92,7 @@ fn the_gpu_clipmap_matches_its_model_through_scrolls_arrivals_and_departures() {
             .collect()
     };
     let first = State { eye: Vec3::new(130.0, 120.0, 110.0), sources: by_level(&[0, 1, 2]) };
-    let mut clipmap = OccupancyClipmap::new(&gpu.device, GRID, layout.cells);
+    let mut clipmap = OccupancyClipmap::new(&gpu.device, layout.cells);
     run(&gpu, &mut clipmap, layout, &all, &first);
     let expected = model(layout, &first);
     let filled: usize = expected.levels.iter().map(|l| l.iter().filter(|&&v| v > 0).count()).sum();
@@ -119,7 +119,7 @@ fn the_gpu_clipmap_matches_its_model_through_scrolls_arrivals_and_departures() {
     assert_eq!(mismatches(&gpu, &clipmap, &expected), 0, "after scrolling back");
 
     // Negative control: scrolls that skip clearing the exposed cells leave stale sums.
-    let mut broken = OccupancyClipmap::new(&gpu.device, GRID, layout.cells);
+    let mut broken = OccupancyClipmap::new(&gpu.device, layout.cells);
     broken.skip_scroll_clear = true;
     run(&gpu, &mut broken, layout, &all, &first);
     run(&gpu, &mut broken, layout, &all, &second);
@@ -134,7 +134,7 @@ fn a_layout_change_rebuilds_every_level() {
     let fine = ClipmapLayout { cells: 64, finest_cell: 1, levels: 4 };
     let coarse = ClipmapLayout { cells: 64, finest_cell: 2, levels: 3 };
     let eye = Vec3::new(200.0, 210.0, 220.0);
-    let mut clipmap = OccupancyClipmap::new(&gpu.device, GRID, 64);
+    let mut clipmap = OccupancyClipmap::new(&gpu.device, 64);
     let state = |layout: ClipmapLayout| State {
         eye,
         sources: (0..layout.levels).map(|_| vec![&all[0], &all[1]]).collect(),

@@ -162,7 +162,7 @@ impl Renderer {
             mapped_at_creation: false,
         });
         let occupancy = OccupancyTexture::new(&device, occupancy_cells);
-        let clipmap = OccupancyClipmap::new(&device, grid_resolution, CLIP_CELLS);
+        let clipmap = OccupancyClipmap::new(&device, CLIP_CELLS);
         let frame_group = frame_bind_group(&device, &frame_layout, &frame_uniform, &occupancy, &clipmap);
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("voxel.wgsl + ao.wgsl"),
