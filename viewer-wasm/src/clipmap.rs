@@ -445,7 +445,21 @@ impl OccupancyClipmap {
 
     /// Bytes of the cells buffer plus the source blocks' voxel words.
     pub fn gpu_bytes(&self) -> u64 {
-        self.cells_buffer.size() + self.voxel_words.values().map(|(b, _)| b.size()).sum::<u64>()
+        self.cells_buffer.size() + self.voxel_words_bytes()
+    }
+
+    fn voxel_words_bytes(&self) -> u64 {
+        self.voxel_words.values().map(|(b, _)| b.size()).sum()
+    }
+
+    /// What the residency budget counts for the clipmap of a
+    /// `grid_resolution`³ scene: the cells of the most levels any layout of
+    /// it can have (reserved from the first frame, so the fixed bytes do not
+    /// jump when the cells are allocated) plus the voxel words held now.
+    pub fn budget_bytes(&self, grid_resolution: u32) -> u64 {
+        let most = ClipmapLayout::for_scene(grid_resolution, 1, self.cells);
+        let reserve = most.levels as u64 * most.level_len() * 4;
+        reserve.max(self.cells_buffer.size()) + self.voxel_words_bytes()
     }
 
     /// The trace's uniform: the layout and the levels' origins; `enabled`

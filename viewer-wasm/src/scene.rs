@@ -480,7 +480,11 @@ impl Scene {
         self.residency.set_fixed_bytes(self.fixed_gpu_bytes(
             renderer.occupancy_cells(),
             renderer.ao.downscale(),
-            renderer.clipmap.gpu_bytes(),
+            if renderer.ao.structure == AoStructure::Clipmap {
+                renderer.clipmap.budget_bytes(self.manifest.grid.resolution)
+            } else {
+                renderer.clipmap.gpu_bytes()
+            },
         ));
         self.update_traversal();
         let todo = self.awaiting_upload();
