@@ -26,7 +26,7 @@ fn block(level: u8, coord: [u32; 3], seed: u32) -> Block {
             state ^= state << 13;
             state ^= state >> 17;
             state ^= state << 5;
-            if state % 3 == 0 {
+            if state.is_multiple_of(3) {
                 continue;
             }
             let z = (x / 3 + y / 5 + seed) % BLOCK_SIZE;
