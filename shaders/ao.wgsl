@@ -1,6 +1,7 @@
 // Ambient occlusion by voxel cone tracing (seed 000 §5, seed 001 §4) through
-// the occupancy volume (viewer-wasm/src/ao.rs), estimating the definition of
-// issue 9:
+// the occupancy clipmap (viewer-wasm/src/clipmap.rs) or, for comparison, the
+// single occupancy volume (viewer-wasm/src/ao.rs), estimating the definition
+// of issue 9:
 //
 //   V(p, n) = 1 - (1/pi) * integral over the hemisphere of w(d) cos(theta),
 //   w(d) = 1 / (1 + lambda * d / R) for d <= R, else 0.
@@ -10,28 +11,121 @@
 // front-to-back opacity alpha accumulates; a step adds
 // (1 - alpha) * alpha_step * w(d), d the distance from p to the sample (grid
 // units, the same units as R). Part of the trace pass's module (after
-// frame.wgsl, whose `frame`, `occupancy` and `occupancy_sampler` bindings it
-// reads; ao_trace.wgsl calls `ambient_visibility`).
+// frame.wgsl, whose `frame`, `occupancy`, `occupancy_sampler`, `clipmap` and
+// `clipmap_cells` bindings it reads; ao_trace.wgsl calls `ambient_visibility`).
+
+// Opacity 0..1 of grid cell `w` of clipmap level `level` (w inside its region).
+fn clip_cell(level: u32, w: vec3<i32>) -> f32 {
+    let n = i32(clipmap.info.y);
+    let m = vec3<u32>((w % n + n) % n);
+    let un = u32(n);
+    let index = level * un * un * un + (m.z * un + m.y) * un + m.x;
+    return min(f32(clipmap_cells[index]) / 4096.0, 1.0);
+}
+
+// Edge of a level's cell in grid units.
+fn clip_cell_edge(level: u32) -> f32 {
+    return clipmap.info.z * exp2(f32(level));
+}
+
+// Whether all eight cells a trilinear sample at `p` (grid units) reads lie in the level.
+fn clip_contains(level: u32, p: vec3<f32>) -> bool {
+    let q = p / clip_cell_edge(level) - 0.5;
+    let o = vec3<f32>(clipmap.origins[level].xyz);
+    return all(q >= o) && all(q < o + clipmap.info.y - 1.0);
+}
+
+// Whether `p` lies `margin` cells inside the level's faces, faces on or
+// beyond the grid's boundary excepted (nothing lies past them).
+fn clip_holds_within(level: u32, p: vec3<f32>, margin: f32) -> bool {
+    let edge = clip_cell_edge(level);
+    let q = p / edge - 0.5;
+    let o = vec3<f32>(clipmap.origins[level].xyz);
+    let n = clipmap.info.y;
+    let grid_cells = frame.volume.x / edge;
+    let lo = select(o + margin, vec3<f32>(-1e30), o <= vec3<f32>(0.0));
+    let hi = select(o + n - 1.0 - margin, vec3<f32>(1e30), o + n >= vec3<f32>(grid_cells));
+    return clip_contains(level, p) && all(q >= lo) && all(q < hi);
+}
+
+// Cells a surface point must lie inside a level for that level to be its own
+// (start offset, narrowest cone): the first samples of every cone, whose
+// height above the surface is a few cells at most, then stay in the level.
+const CLIP_HOME_MARGIN: f32 = 12.0;
+
+// Trilinear opacity of one level at `p` (grid units).
+fn clip_trilinear(level: u32, p: vec3<f32>) -> f32 {
+    let q = p / clip_cell_edge(level) - 0.5;
+    let base = floor(q);
+    let f = q - base;
+    let b = vec3<i32>(base);
+    let x00 = mix(clip_cell(level, b), clip_cell(level, b + vec3<i32>(1, 0, 0)), f.x);
+    let x10 = mix(clip_cell(level, b + vec3<i32>(0, 1, 0)), clip_cell(level, b + vec3<i32>(1, 1, 0)), f.x);
+    let x01 = mix(clip_cell(level, b + vec3<i32>(0, 0, 1)), clip_cell(level, b + vec3<i32>(1, 0, 1)), f.x);
+    let x11 = mix(clip_cell(level, b + vec3<i32>(0, 1, 1)), clip_cell(level, b + vec3<i32>(1, 1, 1)), f.x);
+    return mix(mix(x00, x10, f.y), mix(x01, x11, f.y), f.z);
+}
+
+// Quadrilinear clipmap sample: trilinear in the levels floor(lod) and the next,
+// blended by lod's fraction. Where p lies outside the level the cone's width
+// asks for (far from the camera), the first coarser level holding p stands in.
+// Returns (opacity, the level actually read).
+fn clip_sample(p: vec3<f32>, lod: f32) -> vec2<f32> {
+    let levels = u32(clipmap.info.x);
+    var level = u32(clamp(floor(lod), 0.0, f32(levels - 1u)));
+    var frac = clamp(lod - f32(level), 0.0, 1.0);
+    loop {
+        if level + 1u >= levels || clip_contains(level, p) {
+            break;
+        }
+        level += 1u;
+        frac = 0.0;
+    }
+    if !clip_contains(level, p) {
+        return vec2<f32>(0.0, f32(level));
+    }
+    var v = clip_trilinear(level, p);
+    if frac > 0.0 && level + 1u < levels && clip_contains(level + 1u, p) {
+        v = mix(v, clip_trilinear(level + 1u, p), frac);
+    } else {
+        frac = 0.0;
+    }
+    return vec2<f32>(v, f32(level) + frac);
+}
+
+// Opacity at grid position `s` for a cone of width 2^lod finest cells, from
+// the clipmap or the volume (frame.volume.y/z describe whichever is traced):
+// (opacity, the lod actually read).
+fn occupancy_at(s: vec3<f32>, lod: f32) -> vec2<f32> {
+    if clipmap.info.w > 0.5 {
+        return clip_sample(s, lod);
+    }
+    return vec2<f32>(textureSampleLevel(occupancy, occupancy_sampler, s / frame.volume.x, lod).r, lod);
+}
 
 // Occlusion (0 = open, 1 = blocked, weighted by w(d)) seen by one cone from p.
 //
-// - Start: p + n * offset (frame.ao_cone.w, 1.5 finest cells by default): the
-//   surface's own voxels fill the cell p lies on, so a cone starting on it
-//   would see itself.
-// - Width: the cone's diameter 2 * tan(aperture) * d picks the mip (fractional:
-//   the sampler's linear mip filter makes it quadrilinear), never finer than
+// - Start (the start-offset rule): p + n * offset_cells * c, c the cell edge
+//   of the finest clipmap level that holds p and its neighbourhood (the
+//   volume's cell with the volume), offset_cells = 1.5 by default
+//   (frame.ao_cone.w is offset_cells * the finest cell): the surface's own
+//   voxels fill the cell p lies in, and a trilinear sample reaches half a
+//   cell further, so a cone starting closer would see its own surface. The
+//   same c is the narrowest cone width.
+// - Width: the cone's diameter 2 * tan(aperture) * d picks the clipmap level
+//   or volume mip (fractional: quadrilinear), never finer than
 //   one cell, and never wider than the sample's height above p's tangent plane:
 //   a trilinear sample reaches about one cell around it, so a wider one would
 //   read the surface the cone starts from.
 // - Opacity: a cell's value is its opacity to a ray crossing it (ao.rs); a step
 //   of length s through cells of edge c has alpha_step = 1 - (1 - o)^(s / c).
-// - Empty-space skipping: where the mip two levels coarser reads 0, the whole
-//   neighbourhood is empty and the cone jumps half of that mip's cell.
-fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, cell: f32, max_mip: f32) -> f32 {
+// - Empty-space skipping: where the level (mip) two coarser reads 0, the whole
+//   neighbourhood is empty and the cone jumps half of that level's cell.
+fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, base_cell: f32, cell: f32, max_mip: f32) -> f32 {
     let grid = frame.volume.x;
     let tan_half = frame.ao_cone.y;
     let step_fraction = frame.ao_cone.z;
-    let offset = frame.ao_cone.w;
+    let offset = frame.ao_cone.w * cell / base_cell;
     let radius = frame.ao_range.x;
     let falloff = frame.ao_range.y;
     let skip = frame.ao_range.z > 0.5;
@@ -51,18 +145,26 @@ fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, cell: f32, max_mip: f3
         }
         let height = max(dot(s - p, n), cell);
         let diameter = clamp(2.0 * tan_half * d, cell, max(height / 3.0, cell));
-        let mip = clamp(log2(diameter / cell), 0.0, max_mip);
+        let mip = clamp(log2(diameter / base_cell), 0.0, max_mip);
         let step_len = max(step_fraction * diameter, 0.5 * cell);
         if skip && mip + 2.0 <= max_mip {
-            let coarse = textureSampleLevel(occupancy, occupancy_sampler, uvw, mip + 2.0).r;
-            if coarse <= 0.0 {
-                t += max(step_len, 0.5 * cell * exp2(mip + 2.0));
+            let coarse = occupancy_at(s, mip + 2.0);
+            if coarse.x <= 0.0 {
+                t += max(step_len, 0.5 * base_cell * exp2(coarse.y));
                 continue;
             }
         }
-        let o = textureSampleLevel(occupancy, occupancy_sampler, uvw, mip).r;
+        let sample = occupancy_at(s, mip);
+        // A sample outside the clipmap level its width asks for came from a
+        // coarser one; where that level's cells are wider than the width
+        // clamp allows, it would read the surface the cone starts from.
+        if sample.y > mip + 0.5 && base_cell * exp2(floor(sample.y)) > max(height / 3.0, cell) {
+            t += step_len;
+            continue;
+        }
+        let o = sample.x;
         if o > 0.0 {
-            let edge = cell * exp2(mip);
+            let edge = base_cell * exp2(sample.y);
             let a = 1.0 - pow(max(1.0 - o, 0.0), step_len / edge);
             // The opacity ramps up over the texel edge before a surface, so a
             // step's occlusion sits about half an edge further than its sample.
@@ -87,8 +189,24 @@ fn ambient_visibility(p: vec3<f32>, n_in: vec3<f32>, turn: f32) -> f32 {
         n = vec3<f32>(0.0, 0.0, 1.0);
     }
     let grid = frame.volume.x;
-    let cell = grid / frame.volume.y;
+    let base_cell = grid / frame.volume.y;
     let max_mip = frame.volume.z - 1.0;
+    // The cell at p: the finest clipmap level holding p (its neighbourhood
+    // within the start offset and the first samples) sets the start offset
+    // and the narrowest cone width, so a point outside the finest level does
+    // not read its own surface smeared over a coarser level's cells.
+    var cell = base_cell;
+    if clipmap.info.w > 0.5 {
+        let levels = u32(clipmap.info.x);
+        var level = 0u;
+        loop {
+            if level + 1u >= levels || clip_holds_within(level, p, CLIP_HOME_MARGIN) {
+                break;
+            }
+            level += 1u;
+        }
+        cell = clip_cell_edge(level);
+    }
     let helper = select(vec3<f32>(0.0, 1.0, 0.0), vec3<f32>(1.0, 0.0, 0.0), abs(n.y) > 0.9);
     let t0 = normalize(cross(helper, n));
     let b0 = cross(n, t0);
@@ -100,7 +218,7 @@ fn ambient_visibility(p: vec3<f32>, n_in: vec3<f32>, turn: f32) -> f32 {
     for (var i = 0u; i < cones; i += 1u) {
         let a = frame.ao_dirs[i];
         let dir = normalize(t * a.x + b * a.y + n * a.z);
-        occluded += a.w * trace_cone(p, n, dir, cell, max_mip);
+        occluded += a.w * trace_cone(p, n, dir, base_cell, cell, max_mip);
     }
     return clamp(1.0 - occluded, 0.0, 1.0);
 }

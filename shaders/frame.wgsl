@@ -1,4 +1,4 @@
-// The per-frame uniform and the occupancy volume (group 0), shared by every
+// The per-frame uniform and the AO's occupancy structures (group 0), shared by every
 // pass of a frame: the voxel draw (voxel.wgsl) and the AO passes (ao_trace,
 // ao_upsample, ao_temporal, ao_composite). The viewer prepends this file to
 // each of their modules (WGSL has no includes); viewer-wasm/src/render.rs
@@ -40,3 +40,17 @@ struct Frame {
 @group(0) @binding(0) var<uniform> frame: Frame;
 @group(0) @binding(1) var occupancy: texture_3d<f32>;
 @group(0) @binding(2) var occupancy_sampler: sampler;
+
+// The occupancy clipmap (viewer-wasm/src/clipmap.rs): `levels` cubes of N^3
+// cells, level k's cell edge finest * 2^k grid units, its region the cells
+// origins[k] .. origins[k] + N, cell w at slot w mod N (toroidal), its
+// opacity in clipmap_cells as fixed point (4096 = 1).
+struct Clipmap {
+    // x: levels, y: cells per edge N, z: finest cell edge (grid units),
+    // w: 1 = the AO traces the clipmap, 0 = the volume.
+    info: vec4<f32>,
+    origins: array<vec4<i32>, 8>,
+}
+
+@group(0) @binding(3) var<uniform> clipmap: Clipmap;
+@group(0) @binding(4) var<storage, read> clipmap_cells: array<u32>;

@@ -169,6 +169,17 @@ struct AoArgs {
     /// --ao-frames) and none from pixel to pixel (interleaved sampling).
     #[arg(long)]
     no_jitter: bool,
+    /// The occupancy structure the cones trace: the clipmap (nested levels
+    /// around the camera, built on the GPU) or the single volume of at most
+    /// 128³ cells (comparison).
+    #[arg(long, value_enum, default_value_t = StructureArg::Clipmap)]
+    ao_structure: StructureArg,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum StructureArg {
+    Clipmap,
+    Volume,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -221,6 +232,10 @@ impl AoArgs {
             },
             jitter: !self.no_jitter,
             interleave: !self.no_jitter,
+            structure: match self.ao_structure {
+                StructureArg::Clipmap => voxstream_viewer::ao::AoStructure::Clipmap,
+                StructureArg::Volume => voxstream_viewer::ao::AoStructure::Volume,
+            },
             ..voxstream_viewer::ao::AoSettings::default()
         })
     }

@@ -10,10 +10,13 @@
 //!
 //! Goals (issue 9): RMSE ≤ 0.05, |mean bias| ≤ 0.02, equal-error rays ≥ 32.
 //! The first two are asserted. Equal-error rays ≥ 32 means RMSE ≤ √(σ²/32),
-//! about 0.022 here; the default setting reaches about 10 (RMSE 0.041, most of
-//! it over-occlusion within a few occupancy cells of concave edges, which
-//! accumulating frames does not remove), so the test holds it to a regression
-//! bound of 8 and the miss is reported, not hidden.
+//! about 0.022 here; the default setting (the occupancy clipmap) reaches about
+//! 10 (RMSE 0.040; the volume 0.041): two thirds of its squared error is one
+//! column of edge-on pixels at the front end of the left wall, whose points
+//! lie a fraction of a voxel behind the true (slanted) wall, where the
+//! reference sees the wall from behind and the cones do not (see
+//! docs/ao-benchmark.md), so the test holds it to a regression bound of 8 and
+//! the miss is reported, not hidden.
 //! Negative controls: the same check fails for cones that ignore the normal
 //! and for R ten times too small (the reference keeping the true R).
 
@@ -39,8 +42,8 @@ fn cornell() -> Option<PathBuf> {
 
 /// Equal-error rays the default setting is held to (the goal is 32; see above).
 const MIN_EQUAL_ERROR_RAYS: f64 = 8.0;
-/// The goal, RMSE ≤ 0.05: the default measures 0.0407 here (one full-resolution
-/// frame measured 0.0502). The R/10 control (0.091) and the ignore-the-normal
+/// The goal, RMSE ≤ 0.05: the default measures 0.0404 here (the volume 0.0407;
+/// one full-resolution frame measured 0.0592 with the clipmap, 0.0502 with the volume). The R/10 control (0.091) and the ignore-the-normal
 /// control (0.53) stay far outside it.
 const MAX_RMSE: f64 = GOAL_RMSE;
 const GOAL_RMSE: f64 = 0.05;

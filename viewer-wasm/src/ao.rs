@@ -9,10 +9,13 @@
 //! the cones' weighted occlusion); along a cone, front-to-back opacity α is
 //! accumulated and each step adds (1 − α)·α_step·w(d_step).
 //!
-//! The drawn blocks are splatted into a cubic grid of at most 128³ cells over
-//! the whole scene grid, with a mip chain of averaged occupancy built on the
-//! CPU, and uploaded as an r8unorm 3D texture the fragment shader samples at
-//! the mip matching each cone's width.
+//! The cones are traced through the occupancy clipmap ([`crate::clipmap`]:
+//! nested levels around the camera, built on the GPU) or, with
+//! [`AoStructure::Volume`] (for comparison), through the older structure
+//! defined here: the drawn blocks splatted into a cubic grid of at most 128³
+//! cells over the whole scene grid, with a mip chain of averaged occupancy
+//! built on the CPU, and uploaded as an r8unorm 3D texture the shader samples
+//! at the mip matching each cone's width.
 //!
 //! Each voxel brings its prefiltered coverage (the stored fraction of occupied
 //! level-0 voxels below it), so a coarse block puts the same occluding mass
@@ -68,6 +71,30 @@ pub struct AoSettings {
     /// Test only: keep the history where the reprojected surface disagrees (a
     /// deliberately wrong accumulation).
     pub keep_disoccluded_history: bool,
+    /// What the cones are traced through.
+    #[serde(default)]
+    pub structure: AoStructure,
+}
+
+/// The occupancy structure the cones are traced through.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AoStructure {
+    /// One volume of at most 128³ cells over the whole scene, built on the CPU (comparison).
+    Volume,
+    /// Nested levels around the camera, the finest at the finest drawn voxel,
+    /// built and scrolled on the GPU ([`crate::clipmap`]).
+    #[default]
+    Clipmap,
+}
+
+impl AoStructure {
+    pub fn name(self) -> &'static str {
+        match self {
+            AoStructure::Volume => "volume",
+            AoStructure::Clipmap => "clipmap",
+        }
+    }
 }
 
 /// Upsampling of a reduced-resolution trace.
@@ -105,6 +132,7 @@ impl Default for AoSettings {
             interleave: true,
             temporal_frames: 4,
             keep_disoccluded_history: false,
+            structure: AoStructure::Clipmap,
         }
     }
 }
@@ -207,9 +235,10 @@ impl AoSettings {
             .unwrap_or_else(|| default_max_distance(grid_resolution))
     }
 
-    /// Start offset along the normal in grid units.
-    pub fn offset_grid(&self, grid_resolution: u32) -> f32 {
-        let cell = (grid_resolution as f32 / cells_for_grid(grid_resolution) as f32).max(1.0);
+    /// Start offset along the normal in grid units for a finest cell of
+    /// `finest_cell` grid units (the clipmap's finest level, or the volume's cell).
+    pub fn offset_grid(&self, finest_cell: f32) -> f32 {
+        let cell = if finest_cell.is_finite() { finest_cell.clamp(1.0, 1e9) } else { 1.0 };
         finite_or(self.offset_cells, 1.5).clamp(0.0, 8.0) * cell
     }
 
@@ -236,11 +265,12 @@ impl AoSettings {
     /// in range whatever the settings hold: NaN or degenerate settings never
     /// reach the shader.
     pub fn uniform(&self, grid_resolution: u32) -> AoUniform {
-        self.uniform_jittered(grid_resolution, ConeJitter::NONE)
+        self.uniform_jittered(grid_resolution, volume_cell(grid_resolution), ConeJitter::NONE)
     }
 
-    /// [`AoSettings::uniform`] with the cone set turned by `jitter`.
-    pub fn uniform_jittered(&self, grid_resolution: u32, jitter: ConeJitter) -> AoUniform {
+    /// [`AoSettings::uniform`] for a finest cell of `finest_cell` grid units,
+    /// with the cone set turned by `jitter`.
+    pub fn uniform_jittered(&self, grid_resolution: u32, finest_cell: f32, jitter: ConeJitter) -> AoUniform {
         let cones = self.cone_count();
         let mut dirs = [[0.0; 4]; MAX_CONES];
         for (d, axis) in dirs.iter_mut().zip(cone_directions_jittered(cones, jitter)) {
@@ -251,7 +281,7 @@ impl AoSettings {
                 cones as f32,
                 self.aperture().to_radians().tan(),
                 finite_or(self.step, 0.5).clamp(0.05, 4.0),
-                self.offset_grid(grid_resolution),
+                self.offset_grid(finest_cell),
             ],
             range: [
                 self.max_distance_grid(grid_resolution).min(4.0 * grid_resolution.max(1) as f32),
@@ -317,6 +347,11 @@ pub fn decode_sources(mut bytes: &[u8]) -> Result<Vec<Block>, String> {
         bytes = &bytes[SOURCE_HEADER + len..];
     }
     Ok(blocks)
+}
+
+/// The volume's cell edge in grid units.
+pub fn volume_cell(grid_resolution: u32) -> f32 {
+    (grid_resolution as f32 / cells_for_grid(grid_resolution) as f32).max(1.0)
 }
 
 /// Cells per edge for a grid: a power of two no larger than [`MAX_CELLS`].

@@ -14,6 +14,7 @@
 pub mod ao;
 pub mod ao_passes;
 pub mod camera;
+pub mod clipmap;
 pub mod crossfade;
 pub mod decode;
 pub mod expand;

@@ -7,7 +7,6 @@ use std::time::Instant;
 
 use voxstream_format::{Block, BlockKey, Manifest, ManifestError};
 
-use crate::ao::cells_for_grid;
 use crate::camera::OrbitCamera;
 use crate::fetch::{BlockSource, FetchError};
 use crate::render::Renderer;
@@ -133,12 +132,7 @@ impl Offscreen {
         let gpu = Gpu::new()?;
         let adapter = gpu.adapter_name();
         let (width, height) = (options.width.max(1), options.height.max(1));
-        let renderer = Renderer::new(
-            gpu.device,
-            gpu.queue,
-            crate::COLOR_FORMAT,
-            cells_for_grid(manifest.grid.resolution),
-        );
+        let renderer = Renderer::new(gpu.device, gpu.queue, crate::COLOR_FORMAT, manifest.grid.resolution);
         let mut scene = Scene::new(manifest, (width, height));
         if let Some(camera) = options.camera {
             scene.camera = camera;
@@ -408,11 +402,15 @@ fn wait_idle(device: &wgpu::Device) -> Result<(), OffscreenError> {
 }
 
 fn map_and_read(renderer: &Renderer, staging: &wgpu::Buffer) -> Result<Vec<u8>, OffscreenError> {
+    map_and_read_on(&renderer.device, staging)
+}
+
+fn map_and_read_on(device: &wgpu::Device, staging: &wgpu::Buffer) -> Result<Vec<u8>, OffscreenError> {
     let (tx, rx) = std::sync::mpsc::channel();
     staging.map_async(wgpu::MapMode::Read, .., move |r| {
         let _ = tx.send(r);
     });
-    wait_idle(&renderer.device)?;
+    wait_idle(device)?;
     rx.recv()
         .map_err(|e| OffscreenError::Readback(e.to_string()))?
         .map_err(|e| OffscreenError::Readback(e.to_string()))?;
@@ -424,16 +422,39 @@ fn map_and_read(renderer: &Renderer, staging: &wgpu::Buffer) -> Result<Vec<u8>, 
 
 /// Copies a whole buffer (COPY_SRC) back to the CPU.
 pub fn read_buffer(renderer: &Renderer, buffer: &wgpu::Buffer) -> Result<Vec<u8>, OffscreenError> {
-    let staging = renderer.device.create_buffer(&wgpu::BufferDescriptor {
+    read_buffer_on(&renderer.device, &renderer.queue, buffer)
+}
+
+/// [`read_buffer`] on any device and queue.
+pub fn read_buffer_on(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    buffer: &wgpu::Buffer,
+) -> Result<Vec<u8>, OffscreenError> {
+    let staging = device.create_buffer(&wgpu::BufferDescriptor {
         label: Some("readback"),
         size: buffer.size(),
         usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
         mapped_at_creation: false,
     });
-    let mut encoder = renderer.device.create_command_encoder(&Default::default());
+    let mut encoder = device.create_command_encoder(&Default::default());
     encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, buffer.size());
-    renderer.queue.submit([encoder.finish()]);
-    map_and_read(renderer, &staging)
+    queue.submit([encoder.finish()]);
+    map_and_read_on(device, &staging)
+}
+
+/// The clipmap's cells as the GPU holds them: per level, cells³ u32 in storage (toroidal) order.
+pub fn read_clipmap_cells(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    clipmap: &crate::clipmap::OccupancyClipmap,
+) -> Result<Vec<Vec<u32>>, OffscreenError> {
+    let Some(layout) = clipmap.layout() else { return Ok(Vec::new()) };
+    let bytes = read_buffer_on(device, queue, &clipmap.cells_buffer)?;
+    let words: Vec<u32> =
+        bytes.chunks_exact(4).map(|b| u32::from_le_bytes(b.try_into().expect("4"))).collect();
+    let n = layout.level_len() as usize;
+    Ok((0..layout.levels as usize).map(|k| words[k * n..(k + 1) * n].to_vec()).collect())
 }
 
 /// Copies an Rgba8 texture back, dropping the row padding wgpu requires.

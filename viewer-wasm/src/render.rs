@@ -6,9 +6,12 @@
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec3};
 
-use crate::ao::{AoSettings, AoUniform, OccupancyTexture, OccupancyVolume};
+use crate::ao::{
+    AoSettings, AoStructure, AoUniform, OccupancyTexture, OccupancyVolume, cells_for_grid, volume_cell,
+};
 use crate::ao_passes::AoPasses;
 pub use crate::ao_passes::{GBUFFER_COLOUR_FORMAT, GBUFFER_NORMAL_FORMAT, GBUFFER_POSITION_FORMAT};
+use crate::clipmap::{CLIP_CELLS, ClipmapLayout, OccupancyClipmap};
 use crate::crossfade::{FADE_SLOT_BYTES, Fade, MAX_FADES};
 use crate::expand::{Expander, GpuBlock, block_bind_group_layout};
 use crate::shaders;
@@ -22,7 +25,8 @@ pub struct FrameUniform {
     pub view_proj: [f32; 16],
     pub eye: [f32; 4],
     pub key_light: [f32; 4],
-    /// Grid edge (grid units), occupancy cells per edge, occupancy mips, AO strength.
+    /// Grid edge (grid units), grid edge / finest occupancy cell, occupancy
+    /// mips or clipmap levels, AO strength.
     pub volume: [f32; 4],
     /// `ao_cone`, `ao_range`, `ao_dirs` (this frame's jittered cone set).
     pub ao: AoUniform,
@@ -66,8 +70,11 @@ pub struct Renderer {
     /// The voxel draw into the G-buffer (`fs_gbuffer`).
     pipeline: wgpu::RenderPipeline,
     frame_uniform: wgpu::Buffer,
+    frame_layout: wgpu::BindGroupLayout,
     frame_group: wgpu::BindGroup,
     occupancy: OccupancyTexture,
+    /// The AO's multi-resolution structure (the default); `occupancy` is the volume.
+    pub clipmap: OccupancyClipmap,
     depth: Option<DepthTarget>,
     /// The cone tracer's settings, read at every frame.
     pub ao: AoSettings,
@@ -83,14 +90,16 @@ pub struct Renderer {
 pub const FADE_BUFFER_BYTES: u64 = MAX_FADES as u64 * FADE_SLOT_BYTES;
 
 impl Renderer {
-    /// Builds the pipelines for colour targets of `color_format` and an
-    /// occupancy volume of `occupancy_cells`³ (see [`crate::ao::cells_for_grid`]).
+    /// Builds the pipelines for colour targets of `color_format` and the AO's
+    /// structures for a `grid_resolution`³ scene: an occupancy volume of
+    /// [`cells_for_grid`]³ and a clipmap of [`CLIP_CELLS`]³ levels.
     pub fn new(
         device: wgpu::Device,
         queue: wgpu::Queue,
         color_format: wgpu::TextureFormat,
-        occupancy_cells: u32,
+        grid_resolution: u32,
     ) -> Self {
+        let occupancy_cells = cells_for_grid(grid_resolution);
         let expander = Expander::new(&device);
         let block_layout = block_bind_group_layout(&device);
         let frame_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
@@ -122,6 +131,28 @@ impl Renderer {
                     ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
                     count: None,
                 },
+                wgpu::BindGroupLayoutEntry {
+                    binding: 3,
+                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    ty: wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Uniform,
+                        has_dynamic_offset: false,
+                        min_binding_size: wgpu::BufferSize::new(
+                            size_of::<crate::clipmap::ClipmapUniform>() as u64
+                        ),
+                    },
+                    count: None,
+                },
+                wgpu::BindGroupLayoutEntry {
+                    binding: 4,
+                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    ty: wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Storage { read_only: true },
+                        has_dynamic_offset: false,
+                        min_binding_size: wgpu::BufferSize::new(4),
+                    },
+                    count: None,
+                },
             ],
         });
         let frame_uniform = device.create_buffer(&wgpu::BufferDescriptor {
@@ -131,21 +162,8 @@ impl Renderer {
             mapped_at_creation: false,
         });
         let occupancy = OccupancyTexture::new(&device, occupancy_cells);
-        let frame_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("frame"),
-            layout: &frame_layout,
-            entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: frame_uniform.as_entire_binding() },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: wgpu::BindingResource::TextureView(&occupancy.view),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: wgpu::BindingResource::Sampler(&occupancy.sampler),
-                },
-            ],
-        });
+        let clipmap = OccupancyClipmap::new(&device, CLIP_CELLS);
+        let frame_group = frame_bind_group(&device, &frame_layout, &frame_uniform, &occupancy, &clipmap);
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("voxel.wgsl + ao.wgsl"),
             source: wgpu::ShaderSource::Wgsl(shaders::voxel_module_source().into()),
@@ -207,8 +225,10 @@ impl Renderer {
             block_layout,
             pipeline,
             frame_uniform,
+            frame_layout,
             frame_group,
             occupancy,
+            clipmap,
             depth: None,
             ao: AoSettings::default(),
             ao_passes,
@@ -222,6 +242,29 @@ impl Renderer {
     pub fn ao_accumulating(&self) -> bool {
         self.ao_passes.accumulating()
     }
+}
+
+fn frame_bind_group(
+    device: &wgpu::Device,
+    layout: &wgpu::BindGroupLayout,
+    uniform: &wgpu::Buffer,
+    occupancy: &OccupancyTexture,
+    clipmap: &OccupancyClipmap,
+) -> wgpu::BindGroup {
+    device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("frame"),
+        layout,
+        entries: &[
+            wgpu::BindGroupEntry { binding: 0, resource: uniform.as_entire_binding() },
+            wgpu::BindGroupEntry {
+                binding: 1,
+                resource: wgpu::BindingResource::TextureView(&occupancy.view),
+            },
+            wgpu::BindGroupEntry { binding: 2, resource: wgpu::BindingResource::Sampler(&occupancy.sampler) },
+            wgpu::BindGroupEntry { binding: 3, resource: clipmap.uniform_buffer.as_entire_binding() },
+            wgpu::BindGroupEntry { binding: 4, resource: clipmap.cells_buffer.as_entire_binding() },
+        ],
+    })
 }
 
 fn attachment(view: &wgpu::TextureView, clear: wgpu::Color) -> Option<wgpu::RenderPassColorAttachment<'_>> {
@@ -289,6 +332,44 @@ impl Renderer {
         self.occupancy.upload(&self.queue, volume);
     }
 
+    /// Brings the clipmap up to date (see [`OccupancyClipmap::update`]): only
+    /// what changed since the last call is cleared and splatted, by compute
+    /// passes submitted here.
+    pub fn update_clipmap<'a>(
+        &mut self,
+        grid_resolution: u32,
+        layout: ClipmapLayout,
+        view: (glam::Vec3, glam::Vec3),
+        sources: &[Vec<voxstream_format::BlockKey>],
+        block: impl Fn(&voxstream_format::BlockKey) -> Option<&'a voxstream_format::Block>,
+    ) {
+        let (eye, forward) = view;
+        let replaced = self.clipmap.update(
+            &self.device,
+            &self.queue,
+            grid_resolution,
+            layout,
+            eye,
+            forward,
+            sources,
+            block,
+        );
+        if replaced {
+            self.frame_group = frame_bind_group(
+                &self.device,
+                &self.frame_layout,
+                &self.frame_uniform,
+                &self.occupancy,
+                &self.clipmap,
+            );
+        }
+    }
+
+    /// Whether the AO traces the clipmap this frame (its setting, once the clipmap has been built).
+    pub fn traces_clipmap(&self) -> bool {
+        self.ao.structure == AoStructure::Clipmap && self.clipmap.layout().is_some()
+    }
+
     fn depth_view(&mut self, width: u32, height: u32) -> &wgpu::TextureView {
         if self.depth.as_ref().is_none_or(|d| d.size != (width, height)) {
             let texture = self.device.create_texture(&wgpu::TextureDescriptor {
@@ -329,17 +410,23 @@ impl Renderer {
         self.ao_passes.targets(&self.device, (width, height), if ao_on { self.ao.downscale() } else { 1 });
         let state = self.ao_passes.begin_frame(settings.as_ref());
         let jitter = self.ao.jitter_for_frame(state.index);
+        let clipmap = self.traces_clipmap();
+        // The structure traced: its finest cell (grid units) and level (mip) count.
+        let (finest_cell, lods) = match self.clipmap.layout().filter(|_| clipmap) {
+            Some(l) => (l.finest_cell as f32, l.levels as f32),
+            None => (volume_cell(params.grid_resolution as u32), self.occupancy.mip_count() as f32),
+        };
+        self.queue.write_buffer(
+            &self.clipmap.uniform_buffer,
+            0,
+            bytemuck::bytes_of(&self.clipmap.uniform(clipmap)),
+        );
         let uniform = FrameUniform {
             view_proj: params.view_proj.to_cols_array(),
             eye: params.eye.extend(1.0).to_array(),
             key_light: key_light.extend(0.0).to_array(),
-            volume: [
-                params.grid_resolution,
-                self.occupancy.cells as f32,
-                self.occupancy.mip_count() as f32,
-                params.ao_strength,
-            ],
-            ao: self.ao.uniform_jittered(params.grid_resolution as u32, jitter),
+            volume: [params.grid_resolution, params.grid_resolution / finest_cell, lods, params.ao_strength],
+            ao: self.ao.uniform_jittered(params.grid_resolution as u32, finest_cell, jitter),
             prev_view_proj: state.prev_view_proj.to_cols_array(),
             ao_sparse: state.sparse,
             ao_temporal: state.temporal,

@@ -15,8 +15,9 @@ use std::collections::{HashMap, HashSet};
 use glam::{Mat4, Vec3};
 use voxstream_format::{Block, BlockKey, HierarchyPage, Manifest, PageRef, SceneIndex};
 
-use crate::ao::{OccupancyVolume, encode_sources};
+use crate::ao::{AoStructure, OccupancyVolume, encode_sources};
 use crate::camera::OrbitCamera;
+use crate::clipmap::{CLIP_CELLS, ClipmapLayout, view_forward};
 use crate::crossfade::{Crossfade, Fade};
 use crate::decode::decode_fetched;
 use crate::expand::{GpuBlock, UPLOAD_BYTES_PER_FRAME, UploadBatch, upload_buffer};
@@ -214,14 +215,15 @@ impl Scene {
 
     /// GPU bytes of the frame's own targets: colour and depth at the viewport
     /// size, the G-buffer and AO targets, the occupancy volume with its mips,
-    /// uniforms, the upload buffer.
-    fn fixed_gpu_bytes(&self, occupancy_cells: u32, ao_downscale: u32) -> u64 {
+    /// the clipmap (cells and source voxels), uniforms, the upload buffer.
+    fn fixed_gpu_bytes(&self, occupancy_cells: u32, ao_downscale: u32, clipmap_bytes: u64) -> u64 {
         let pixels = self.viewport.0 as u64 * self.viewport.1 as u64;
         let frame_targets = crate::ao_passes::target_bytes(self.viewport.0, self.viewport.1, ao_downscale);
         let occupancy: u64 =
             (0..=occupancy_cells.max(1).ilog2()).map(|m| ((occupancy_cells >> m) as u64).pow(3)).sum();
         pixels * 4 * 2
             + occupancy
+            + clipmap_bytes
             + frame_targets
             + 512
             + UPLOAD_BYTES_PER_FRAME
@@ -475,8 +477,15 @@ impl Scene {
     /// many blocks went up.
     pub fn upload(&mut self, renderer: &Renderer) -> usize {
         // Fixed targets first: they shrink the block budget the traversal plans within.
-        self.residency
-            .set_fixed_bytes(self.fixed_gpu_bytes(renderer.occupancy_cells(), renderer.ao.downscale()));
+        self.residency.set_fixed_bytes(self.fixed_gpu_bytes(
+            renderer.occupancy_cells(),
+            renderer.ao.downscale(),
+            if renderer.ao.structure == AoStructure::Clipmap {
+                renderer.clipmap.budget_bytes(self.manifest.grid.resolution)
+            } else {
+                renderer.clipmap.gpu_bytes()
+            },
+        ));
         self.update_traversal();
         let todo = self.awaiting_upload();
         if todo.is_empty() {
@@ -774,6 +783,12 @@ impl Scene {
     /// volume and the AO does not change with the LOD.
     fn occupancy_sources(&self, drawn: &[BlockKey], cells: u32) -> Vec<BlockKey> {
         let cell_level = (self.manifest.grid.resolution / cells.max(1)).max(1).ilog2() as u8;
+        self.sources_at_level(drawn, cell_level)
+    }
+
+    /// The drawn blocks, each finer than `cell_level` replaced by its decoded
+    /// ancestor at that level (a cut of the hierarchy: no two overlap).
+    fn sources_at_level(&self, drawn: &[BlockKey], cell_level: u8) -> Vec<BlockKey> {
         let mut sources: Vec<BlockKey> = drawn
             .iter()
             .map(|key| {
@@ -791,8 +806,12 @@ impl Scene {
 
     /// Rebuilds and uploads the occupancy volume when its sources changed; at
     /// most every [`OCCUPANCY_REBUILD_MS`] while blocks are still streaming in.
-    fn update_occupancy(&mut self, renderer: &Renderer, drawn: &[BlockKey], settled: bool, now_ms: f64) {
+    fn update_occupancy(&mut self, renderer: &mut Renderer, drawn: &[BlockKey], settled: bool, now_ms: f64) {
         if self.ao_strength <= 0.0 {
+            return;
+        }
+        if renderer.ao.structure == AoStructure::Clipmap {
+            self.update_clipmap(renderer, drawn);
             return;
         }
         let sources = self.occupancy_sources(drawn, renderer.occupancy_cells());
@@ -821,6 +840,27 @@ impl Scene {
         }
         self.occupancy_for = Some(sources);
         self.occupancy_built_ms = now_ms;
+    }
+}
+
+impl Scene {
+    /// Brings the clipmap to this frame's camera and drawn blocks, every
+    /// frame (incremental: only scrolled-in slabs and blocks that arrived or
+    /// left are splatted, on the GPU). Level k splats the drawn blocks cut at
+    /// its cell's LOD level; the finest cell is the finest drawn voxel.
+    fn update_clipmap(&mut self, renderer: &mut Renderer, drawn: &[BlockKey]) {
+        let Some(finest) = drawn.iter().map(|k| k.level).min() else { return };
+        let resolution = self.manifest.grid.resolution;
+        let layout = ClipmapLayout::for_scene(resolution, 1u32 << finest.min(30), CLIP_CELLS);
+        let sources: Vec<Vec<BlockKey>> =
+            (0..layout.levels).map(|k| self.sources_at_level(drawn, layout.cell(k).ilog2() as u8)).collect();
+        let eye = self.eye();
+        let forward = view_forward(self.view_proj(), eye);
+        let before = renderer.clipmap.counters;
+        renderer.update_clipmap(resolution, layout, (eye, forward), &sources, |k| self.block(k));
+        let after = renderer.clipmap.counters;
+        self.stats.ao_clipmap_updates += (after.updates - before.updates) as u32;
+        self.stats.ao_clipmap_splats += after.splats - before.splats;
     }
 }
 

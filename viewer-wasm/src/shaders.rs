@@ -11,6 +11,8 @@ pub const AO_TRACE_WGSL: &str = include_str!("../../shaders/ao_trace.wgsl");
 pub const AO_UPSAMPLE_WGSL: &str = include_str!("../../shaders/ao_upsample.wgsl");
 pub const AO_TEMPORAL_WGSL: &str = include_str!("../../shaders/ao_temporal.wgsl");
 pub const AO_COMPOSITE_WGSL: &str = include_str!("../../shaders/ao_composite.wgsl");
+pub const CLIPMAP_CLEAR_WGSL: &str = include_str!("../../shaders/clipmap_clear.wgsl");
+pub const CLIPMAP_SPLAT_WGSL: &str = include_str!("../../shaders/clipmap_splat.wgsl");
 
 /// Every file in `shaders/`, by name (a test checks that this list is complete).
 pub const SHADER_FILES: &[(&str, &str)] = &[
@@ -24,6 +26,8 @@ pub const SHADER_FILES: &[(&str, &str)] = &[
     ("ao_temporal.wgsl", AO_TEMPORAL_WGSL),
     ("ao_composite.wgsl", AO_COMPOSITE_WGSL),
     ("depth_reduce.wgsl", DEPTH_REDUCE_WGSL),
+    ("clipmap_clear.wgsl", CLIPMAP_CLEAR_WGSL),
+    ("clipmap_splat.wgsl", CLIPMAP_SPLAT_WGSL),
 ];
 
 /// The AO's full-screen passes, one shader (and one module) a pass, in frame order.
@@ -99,6 +103,10 @@ mod tests {
         assert_eq!(entry_points(&expand), vec![("expand_faces".to_string(), naga::ShaderStage::Compute)]);
         let reduce = validate("depth_reduce.wgsl", DEPTH_REDUCE_WGSL);
         assert_eq!(entry_points(&reduce), vec![("reduce_depth".to_string(), naga::ShaderStage::Compute)]);
+        let clear = validate("clipmap_clear.wgsl", CLIPMAP_CLEAR_WGSL);
+        assert_eq!(entry_points(&clear), vec![("clear_cells".to_string(), naga::ShaderStage::Compute)]);
+        let splat = validate("clipmap_splat.wgsl", CLIPMAP_SPLAT_WGSL);
+        assert_eq!(entry_points(&splat), vec![("splat_block".to_string(), naga::ShaderStage::Compute)]);
         let voxel = validate("frame.wgsl + voxel.wgsl", &voxel_module_source());
         assert_eq!(
             entry_points(&voxel),

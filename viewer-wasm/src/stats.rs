@@ -47,6 +47,10 @@ pub struct Stats {
     /// AO occupancy volumes uploaded so far, and how many of them a worker built.
     pub ao_volumes: u32,
     pub ao_volumes_from_worker: u32,
+    /// AO clipmap updates that changed something (each a GPU compute
+    /// submission), and the block splats (in or out) they ran.
+    pub ao_clipmap_updates: u32,
+    pub ao_clipmap_splats: u64,
     /// From the page's start to the first frame with a block on screen, and
     /// to the first complete frame (the ready marker), in ms (browser only).
     pub first_image_ms: f64,
@@ -113,7 +117,7 @@ mod tests {
         };
         let v: serde_json::Value = serde_json::to_value(&s).unwrap();
         let keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
-        assert_eq!(keys.len(), 23);
+        assert_eq!(keys.len(), 25);
         for k in [
             "frameMs",
             "blocksDrawn",
@@ -131,6 +135,8 @@ mod tests {
             "blocksFailed",
             "aoVolumes",
             "aoVolumesFromWorker",
+            "aoClipmapUpdates",
+            "aoClipmapSplats",
         ] {
             assert!(keys.contains(&k), "missing {k}");
         }

@@ -13,7 +13,6 @@ use wasm_bindgen::JsCast;
 use wasm_bindgen::prelude::*;
 use web_sys::{HtmlCanvasElement, PointerEvent, WheelEvent};
 
-use crate::ao::cells_for_grid;
 use crate::fetch::{BlockSource, FetchError, http};
 use crate::render::Renderer;
 use crate::request::Request;
@@ -234,7 +233,7 @@ async fn run() -> Result<(), String> {
     };
     let manifest_bytes = source.manifest_bytes().await.map_err(|e| e.to_string())?;
     let manifest = Manifest::from_json(&manifest_bytes).map_err(|e| format!("scene {id}: {e}"))?;
-    let renderer = Renderer::new(device, queue, format, cells_for_grid(manifest.grid.resolution));
+    let renderer = Renderer::new(device, queue, format, manifest.grid.resolution);
     let mut scene = Scene::new(manifest, (width, height));
     // ?ao=0 turns ambient occlusion off, ?px=3 coarsens the LOD (max projected geometric error).
     if let Some(ao) = url_number("ao", 0.0..=1.0) {
@@ -618,7 +617,7 @@ impl App {
         self.camera_moved();
     }
 
-    /// `window.voxstream.set({px, budget, ao, occlusion, fly})`: the panel's settings.
+    /// `window.voxstream.set({px, budget, ao, aoStructure, occlusion, fly})`: the panel's settings.
     fn apply_settings(&mut self, settings: &serde_json::Value) {
         if let Some(px) = settings["px"].as_f64().filter(|v| (0.25..=64.0).contains(v)) {
             self.scene.select_params.max_error_pixels = px as f32;
@@ -628,6 +627,11 @@ impl App {
         }
         if let Some(ao) = settings["ao"].as_f64().filter(|v| (0.0..=1.0).contains(v)) {
             self.scene.ao_strength = ao as f32;
+        }
+        match settings["aoStructure"].as_str() {
+            Some("clipmap") => self.renderer.ao.structure = crate::ao::AoStructure::Clipmap,
+            Some("volume") => self.renderer.ao.structure = crate::ao::AoStructure::Volume,
+            _ => {}
         }
         if let Some(on) = settings["occlusion"].as_bool() {
             self.scene.occlusion_culling = on;

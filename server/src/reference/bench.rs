@@ -54,6 +54,10 @@ pub struct AoBenchArgs {
 pub enum Sweep {
     Cones,
     SparseTemporal,
+    /// The occupancy structures side by side: the volume and the clipmap at
+    /// the default setting (1/2 resolution, bilateral, jittered, interleaved,
+    /// N frames) and at the cone sweep's full-resolution single frame.
+    Structure,
 }
 
 /// One setting of the sweep.
@@ -109,6 +113,34 @@ fn sparse_temporal_sweep(frames: &[u32]) -> Vec<Point> {
         AoSettings { trace_downscale: 2, upsample: Upsample::Bilinear, ..d },
         1,
     ));
+    points
+}
+
+fn structure_sweep(frames: &[u32]) -> Vec<Point> {
+    use voxstream_viewer::ao::AoStructure;
+    let n = frames.first().copied().unwrap_or(4).clamp(1, voxstream_viewer::ao::MAX_TEMPORAL_FRAMES);
+    let mut points = Vec::new();
+    for structure in [AoStructure::Volume, AoStructure::Clipmap] {
+        let name = structure.name();
+        points.push(Point {
+            label: format!("{name}, default ({n} frames)"),
+            settings: AoSettings { structure, ..AoSettings::default() },
+            scale: 1,
+            frames: n,
+        });
+        points.push(Point {
+            label: format!("{name}, 6 cones, full res, 1 frame"),
+            settings: AoSettings {
+                structure,
+                trace_downscale: 1,
+                interleave: false,
+                temporal_frames: 1,
+                ..AoSettings::default()
+            },
+            scale: 1,
+            frames: 1,
+        });
+    }
     points
 }
 
@@ -257,6 +289,7 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
     let points = match args.sweep {
         Sweep::Cones => sweep(),
         Sweep::SparseTemporal => sparse_temporal_sweep(&args.frames),
+        Sweep::Structure => structure_sweep(&args.frames),
     };
     let mut rows = Vec::new();
     for view in &views {

@@ -15,7 +15,7 @@ use anyhow::{Context, bail, ensure};
 use glam::{DMat4, DVec3, DVec4, Mat4};
 use serde::{Deserialize, Serialize};
 use voxstream_format::Manifest;
-use voxstream_viewer::ao::{AoSettings, cells_for_grid, cone_directions};
+use voxstream_viewer::ao::{AoSettings, AoStructure, cells_for_grid, cone_directions};
 use voxstream_viewer::offscreen::{Offscreen, RenderOptions};
 use voxstream_viewer::scene::FixedView;
 
@@ -158,7 +158,14 @@ pub struct AoRecord {
     pub ignore_normal: bool,
     /// Always true: the sampler filters linearly between mips (quadrilinear).
     pub quadrilinear: bool,
-    /// Finest occupancy cells per grid edge and the cell edge in source units.
+    /// "clipmap" or "volume": what the cones were traced through.
+    #[serde(default)]
+    pub structure: String,
+    /// The clipmap's parameters when it was traced.
+    #[serde(default)]
+    pub clipmap: Option<ClipmapRecord>,
+    /// Finest occupancy cells per grid edge (grid / finest cell) and the
+    /// finest cell's edge in source units (the clipmap's finest level, or the volume's cell).
     pub occupancy_cells: u32,
     pub occupancy_cell_size: f64,
     /// Cone axes in the local frame (x, y tangent, z normal), equal weights
@@ -175,6 +182,28 @@ pub struct AoRecord {
     /// Frames of the still view drawn from a fresh history and averaged
     /// (temporal accumulation with weight 1/frames); 1: a single frame.
     pub frames: u32,
+}
+
+/// The occupancy clipmap's parameters in a render (viewer-wasm/src/clipmap.rs).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ClipmapRecord {
+    /// Cells per level edge.
+    pub cells: u32,
+    pub levels: u32,
+    /// Cell edge per level, finest first, in source units (each twice the last).
+    pub cell_sizes: Vec<f64>,
+    /// Finest cell in grid units (the finest drawn voxel, a power of two).
+    pub finest_cell_grid: u32,
+    /// Each level's region: its first and one-past-last corner in source units.
+    pub regions: Vec<[[f64; 3]; 2]>,
+    /// Bytes of cells on the GPU (all levels) and of the source blocks' voxel words.
+    pub gpu_bytes: u64,
+    /// Fixed-point opacity 1 in a cell.
+    pub density_one: u32,
+    /// Blocks splatted into the levels (in or out) and compute submissions,
+    /// over the whole render (a still camera: the first frame's build).
+    pub splats: u64,
+    pub updates: u64,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -310,9 +339,40 @@ pub fn render_view(req: &RenderRequest) -> anyhow::Result<RenderOutput> {
         position[i] = std::array::from_fn(|a| grid.origin[a] + p[a] as f64 * grid.voxel_size);
         normal[i] = nv.normalize_or(glam::Vec3::Z).to_array();
     }
-    let uniform = ao.uniform(grid.resolution);
-    let cells = cells_for_grid(grid.resolution);
-    let cell_size = (grid.resolution as f64 / cells as f64).max(1.0) * grid.voxel_size;
+    let clipmap_layout = offscreen.renderer.clipmap.layout().filter(|_| ao.structure == AoStructure::Clipmap);
+    let (cells, finest_cell) = match clipmap_layout {
+        Some(l) => ((grid.resolution / l.finest_cell).max(1), l.finest_cell as f32),
+        None => (cells_for_grid(grid.resolution), voxstream_viewer::ao::volume_cell(grid.resolution)),
+    };
+    let uniform = ao.uniform_jittered(grid.resolution, finest_cell, voxstream_viewer::ao::ConeJitter::NONE);
+    let cell_size = finest_cell as f64 * grid.voxel_size;
+    let clipmap = clipmap_layout.map(|l| {
+        let c = &offscreen.renderer.clipmap;
+        let regions = c
+            .levels()
+            .iter()
+            .enumerate()
+            .map(|(k, level)| {
+                let edge = l.cell(k as u32) as f64;
+                let o = level.origin.unwrap_or([0; 3]);
+                let at = |shift: i32| {
+                    std::array::from_fn(|a| grid.origin[a] + (o[a] + shift) as f64 * edge * grid.voxel_size)
+                };
+                [at(0), at(l.cells as i32)]
+            })
+            .collect();
+        ClipmapRecord {
+            cells: l.cells,
+            levels: l.levels,
+            cell_sizes: (0..l.levels).map(|k| l.cell(k) as f64 * grid.voxel_size).collect(),
+            finest_cell_grid: l.finest_cell,
+            regions,
+            gpu_bytes: c.gpu_bytes(),
+            density_one: voxstream_viewer::clipmap::DENSITY_ONE,
+            splats: c.counters.splats,
+            updates: c.counters.updates,
+        }
+    });
     let mut levels: Vec<u8> = g.frame.drawn_blocks.iter().map(|k| k.level).collect();
     levels.sort();
     levels.dedup();
@@ -335,6 +395,8 @@ pub fn render_view(req: &RenderRequest) -> anyhow::Result<RenderOutput> {
             empty_skip: ao.empty_skip,
             ignore_normal: ao.ignore_normal,
             quadrilinear: true,
+            structure: if clipmap.is_some() { "clipmap" } else { "volume" }.into(),
+            clipmap,
             occupancy_cells: cells,
             occupancy_cell_size: cell_size,
             cone_directions: cone_directions(ao.cone_count()),
@@ -531,6 +593,8 @@ mod tests {
                     empty_skip: true,
                     ignore_normal: false,
                     quadrilinear: true,
+                    structure: "clipmap".into(),
+                    clipmap: None,
                     occupancy_cells: 64,
                     occupancy_cell_size: 0.1,
                     cone_directions: vec![],

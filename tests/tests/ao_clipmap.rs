@@ -1,0 +1,151 @@
+//! The AO's occupancy clipmap built on the GPU (viewer-wasm/src/clipmap.rs,
+//! shaders/clipmap_clear.wgsl and clipmap_splat.wgsl, on lavapipe) against
+//! its CPU model, cell for cell:
+//!
+//! - a first build equals the model of its sources and regions;
+//! - after the camera moves (levels scroll: only the newly exposed slabs are
+//!   cleared and re-splatted) and blocks arrive and leave (splatted in and
+//!   out), the clipmap equals the model built from scratch for the new state,
+//!   and an unchanged state costs no work;
+//! - negative control: the same sequence with the scroll's clear skipped
+//!   leaves stale cells and does not match.
+
+use glam::Vec3;
+use voxstream_format::{BLOCK_SIZE, Block, BlockKey, PackedVoxel, oct_encode};
+use voxstream_viewer::clipmap::{ClipmapLayout, ClipmapModel, OccupancyClipmap};
+use voxstream_viewer::offscreen::{Gpu, read_clipmap_cells};
+
+const GRID: u32 = 512;
+
+/// A block with a pseudo-random surface: a tilted sheet with varying coverage.
+fn block(level: u8, coord: [u32; 3], seed: u32) -> Block {
+    let mut voxels = Vec::new();
+    let mut state = seed.wrapping_mul(2_654_435_761).wrapping_add(1);
+    for y in 0..BLOCK_SIZE {
+        for x in 0..BLOCK_SIZE {
+            state ^= state << 13;
+            state ^= state >> 17;
+            state ^= state << 5;
+            if state.is_multiple_of(3) {
+                continue;
+            }
+            let z = (x / 3 + y / 5 + seed) % BLOCK_SIZE;
+            let coverage = if level == 0 { 255 } else { (state >> 8) as u8 | 1 };
+            voxels.push(PackedVoxel::new([x, y, z], 1, oct_encode([0.0, 0.0, 1.0])).with_coverage(coverage));
+        }
+    }
+    voxels.sort_by_key(|v| v.morton());
+    Block { key: BlockKey::new(level, coord[0], coord[1], coord[2]), voxels }
+}
+
+struct State<'a> {
+    eye: Vec3,
+    sources: Vec<Vec<&'a Block>>,
+}
+
+fn keys(sources: &[Vec<&Block>]) -> Vec<Vec<BlockKey>> {
+    sources.iter().map(|l| l.iter().map(|b| b.key).collect()).collect()
+}
+
+fn run(gpu: &Gpu, clipmap: &mut OccupancyClipmap, layout: ClipmapLayout, all: &[Block], state: &State) {
+    let find = |k: &BlockKey| all.iter().find(|b| b.key == *k);
+    clipmap.update(&gpu.device, &gpu.queue, GRID, layout, state.eye, Vec3::X, &keys(&state.sources), find);
+}
+
+fn model(layout: ClipmapLayout, state: &State) -> ClipmapModel {
+    let origins: Vec<[i32; 3]> =
+        (0..layout.levels).map(|k| layout.origin(k, state.eye, Vec3::X, GRID)).collect();
+    ClipmapModel::build(layout, &origins, &state.sources)
+}
+
+/// Cells that differ between the GPU and the model, over every level.
+fn mismatches(gpu: &Gpu, clipmap: &OccupancyClipmap, expected: &ClipmapModel) -> usize {
+    let cells = read_clipmap_cells(&gpu.device, &gpu.queue, clipmap).expect("read back the clipmap");
+    assert_eq!(cells.len(), expected.levels.len());
+    cells.iter().zip(&expected.levels).map(|(a, b)| a.iter().zip(b).filter(|(x, y)| x != y).count()).sum()
+}
+
+#[test]
+fn the_gpu_clipmap_matches_its_model_through_scrolls_arrivals_and_departures() {
+    let gpu = Gpu::new().expect("a Vulkan adapter (lavapipe)");
+    // Level-0 blocks around the eye, a level-1 block and a level-2 one further out.
+    let all = vec![
+        block(0, [1, 1, 1], 1),
+        block(0, [2, 1, 1], 2),
+        block(0, [1, 2, 1], 3),
+        block(0, [2, 2, 2], 4),
+        block(1, [0, 0, 1], 5),
+        block(2, [1, 0, 0], 6),
+    ];
+    let layout = ClipmapLayout { cells: 64, finest_cell: 1, levels: 4 };
+    // Level k's sources: level-0 blocks in the fine levels, the coarse ones everywhere.
+    let by_level = |fine: &[usize]| -> Vec<Vec<&Block>> {
+        (0..layout.levels)
+            .map(|k| {
+                let mut v: Vec<&Block> = fine.iter().map(|&i| &all[i]).collect();
+                if k >= 1 {
+                    v.push(&all[4]);
+                }
+                v.push(&all[5]);
+                v
+            })
+            .collect()
+    };
+    let first = State { eye: Vec3::new(130.0, 120.0, 110.0), sources: by_level(&[0, 1, 2]) };
+    let mut clipmap = OccupancyClipmap::new(&gpu.device, layout.cells);
+    run(&gpu, &mut clipmap, layout, &all, &first);
+    let expected = model(layout, &first);
+    let filled: usize = expected.levels.iter().map(|l| l.iter().filter(|&&v| v > 0).count()).sum();
+    assert!(filled > 5000, "the test scene must fill cells: {filled}");
+    assert_eq!(mismatches(&gpu, &clipmap, &expected), 0, "first build");
+    let rebuild_splats = clipmap.counters.splats;
+
+    // The eye moves by a few cells on every axis (levels 0 and 1 scroll), block 1
+    // leaves and block 3 arrives.
+    let second = State { eye: Vec3::new(141.5, 113.0, 117.0), sources: by_level(&[0, 2, 3]) };
+    let origins_before: Vec<_> = clipmap.levels().iter().map(|l| l.origin).collect();
+    run(&gpu, &mut clipmap, layout, &all, &second);
+    let origins_after: Vec<_> = clipmap.levels().iter().map(|l| l.origin).collect();
+    assert_ne!(origins_before[0], origins_after[0], "level 0 must scroll");
+    assert_eq!(mismatches(&gpu, &clipmap, &model(layout, &second)), 0, "after a scroll and a source change");
+    assert!(clipmap.counters.splats > rebuild_splats, "the update splatted nothing");
+    // Incremental: the same state again does no work at all.
+    let counters = clipmap.counters;
+    run(&gpu, &mut clipmap, layout, &all, &second);
+    assert_eq!(clipmap.counters, counters, "an unchanged state was splatted again");
+
+    // Back to where it started: exactly the first state again.
+    run(&gpu, &mut clipmap, layout, &all, &first);
+    assert_eq!(mismatches(&gpu, &clipmap, &expected), 0, "after scrolling back");
+
+    // Negative control: scrolls that skip clearing the exposed cells leave stale sums.
+    let mut broken = OccupancyClipmap::new(&gpu.device, layout.cells);
+    broken.skip_scroll_clear = true;
+    run(&gpu, &mut broken, layout, &all, &first);
+    run(&gpu, &mut broken, layout, &all, &second);
+    let wrong = mismatches(&gpu, &broken, &model(layout, &second));
+    assert!(wrong > 100, "a scroll without its clear still matched ({wrong} cells differ)");
+}
+
+#[test]
+fn a_layout_change_rebuilds_every_level() {
+    let gpu = Gpu::new().expect("a Vulkan adapter (lavapipe)");
+    let all = vec![block(0, [3, 3, 3], 7), block(1, [1, 1, 1], 8)];
+    let fine = ClipmapLayout { cells: 64, finest_cell: 1, levels: 4 };
+    let coarse = ClipmapLayout { cells: 64, finest_cell: 2, levels: 3 };
+    let eye = Vec3::new(200.0, 210.0, 220.0);
+    let mut clipmap = OccupancyClipmap::new(&gpu.device, 64);
+    let state = |layout: ClipmapLayout| State {
+        eye,
+        sources: (0..layout.levels).map(|_| vec![&all[0], &all[1]]).collect(),
+    };
+    run(&gpu, &mut clipmap, fine, &all, &state(fine));
+    assert_eq!(mismatches(&gpu, &clipmap, &model(fine, &state(fine))), 0);
+    run(&gpu, &mut clipmap, coarse, &all, &state(coarse));
+    assert_eq!(clipmap.counters.rebuilds, 2);
+    assert_eq!(mismatches(&gpu, &clipmap, &model(coarse, &state(coarse))), 0, "after the layout change");
+    // Control: the fine model is not what the coarse clipmap holds.
+    let fine_as_coarse =
+        ClipmapModel { layout: coarse, levels: model(fine, &state(fine)).levels[..3].to_vec() };
+    assert!(mismatches(&gpu, &clipmap, &fine_as_coarse) > 100);
+}
