@@ -13,8 +13,7 @@
 mod common;
 
 use std::collections::BTreeSet;
-use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use object_store::ObjectStore;
@@ -22,73 +21,13 @@ use object_store::path::Path as ObjectPath;
 use voxstream::bucket_store::BucketStore;
 use voxstream::coordinator::{Coordinator, SceneLockError};
 use voxstream::gc::{GcMetrics, collect};
-use voxstream::jobs::{Job, JobState};
 use voxstream::objstore::Bucket;
 use voxstream_format::Manifest;
 use voxstream_format::hierarchy::pack_path;
 
+use common::cluster::object_names;
 use common::garage::{Garage, koala, voxstream_with};
-
-struct Postgres {
-    dir: tempfile::TempDir,
-    url: String,
-}
-
-fn script() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/cluster.sh")
-}
-
-impl Postgres {
-    fn start() -> Postgres {
-        let dir = tempfile::tempdir().unwrap();
-        let out =
-            Command::new("bash").arg(script()).args(["postgres", "start"]).arg(dir.path()).output().unwrap();
-        assert!(out.status.success(), "starting PostgreSQL: {}", String::from_utf8_lossy(&out.stderr));
-        let url = String::from_utf8(out.stdout).unwrap().trim().to_string();
-        Postgres { dir, url }
-    }
-
-    async fn sql(&self, password: &str) -> tokio_postgres::Client {
-        let (client, connection) = tokio_postgres::connect(
-            &self.url.replacen("voxstream@", &format!("voxstream:{password}@"), 1),
-            tokio_postgres::NoTls,
-        )
-        .await
-        .unwrap();
-        tokio::spawn(connection);
-        client
-    }
-}
-
-impl Drop for Postgres {
-    fn drop(&mut self) {
-        let _ = Command::new("bash").arg(script()).args(["postgres", "stop"]).arg(self.dir.path()).output();
-    }
-}
-
-fn job(id: &str, scene: &str) -> Job {
-    Job {
-        id: id.into(),
-        scene_id: scene.into(),
-        state: JobState::Queued,
-        stage: None,
-        fraction: 0.0,
-        eta_seconds: None,
-        triangles_per_second: 0.0,
-        error: None,
-        input_file: format!("{scene}.obj"),
-        input_bytes: 1,
-        resolution: Some(64),
-        max_resolution: 16384,
-        topology: "conservative".into(),
-        created_at: 1,
-        started_at: None,
-        finished_at: None,
-        attempts: 0,
-        builder: None,
-        input_blake3: None,
-    }
-}
+use common::postgres::{Postgres, queued_job};
 
 /// `voxstream build koala --out s3://gcbucket/scenes --name <id> --resolution <r>` (a real build).
 fn build(garage: &Garage, id: &str, resolution: u32) {
@@ -101,9 +40,18 @@ fn build(garage: &Garage, id: &str, resolution: u32) {
 }
 
 async fn objects(store: &dyn ObjectStore, prefix: &str) -> BTreeSet<String> {
-    use futures_util::TryStreamExt;
-    let prefix = ObjectPath::from(prefix);
-    store.list(Some(&prefix)).map_ok(|m| m.location.to_string()).try_collect().await.unwrap()
+    object_names(store, prefix).await.into_iter().collect()
+}
+
+/// The test's view of scenes in `gcbucket/scenes`, with a cache of its own.
+fn bucket_store(garage: &Garage, client: &Arc<dyn ObjectStore>) -> BucketStore {
+    let bucket = Bucket {
+        store: client.clone(),
+        bucket: "gcbucket".into(),
+        prefix: "scenes".into(),
+        endpoint: garage.endpoint.clone(),
+    };
+    BucketStore::new(bucket, 64 << 20)
 }
 
 /// The packs scene `id`'s current manifest names (every page of its hierarchy read).
@@ -120,29 +68,14 @@ async fn collector_removes_replaced_and_orphan_packs_after_the_grace_period_only
     let garage = Garage::start();
     garage.create_bucket("gcbucket");
     let pg = Postgres::start();
-    let password_file = pg.dir.path().join("pg.env");
-    let password = std::fs::read_to_string(&password_file)
-        .unwrap()
-        .trim()
-        .strip_prefix("PGPASSWORD=")
-        .unwrap()
-        .to_string();
     // SAFETY: this binary's only test, set before any thread reads the environment.
-    unsafe { std::env::set_var("VOXSTREAM_PG_ENV_FILE", &password_file) };
+    unsafe { std::env::set_var("VOXSTREAM_PG_ENV_FILE", pg.password_file()) };
     let deadline = Duration::from_secs(5);
     let a = Coordinator::connect(&pg.url, Duration::from_secs(30), deadline).await.unwrap();
     let b = Coordinator::connect(&pg.url, Duration::from_secs(30), deadline).await.unwrap();
-    let sql = pg.sql(&password).await;
+    let sql = pg.client().await;
     let client = garage.client("gcbucket");
-    let store = BucketStore::new(
-        Bucket {
-            store: client.clone(),
-            bucket: "gcbucket".into(),
-            prefix: "scenes".into(),
-            endpoint: garage.endpoint.clone(),
-        },
-        64 << 20,
-    );
+    let store = bucket_store(&garage, &client);
     let metrics = GcMetrics::default();
 
     // koala v1; a failed build's packs (built, then its manifest removed: a build killed before
@@ -205,7 +138,7 @@ async fn collector_removes_replaced_and_orphan_packs_after_the_grace_period_only
         &[
             &"00000000000000f1",
             &"orphan",
-            &serde_json::to_string(&job("00000000000000f1", "orphan")).unwrap(),
+            &serde_json::to_string(&queued_job("00000000000000f1", "orphan")).unwrap(),
         ],
     )
     .await
@@ -223,7 +156,11 @@ async fn collector_removes_replaced_and_orphan_packs_after_the_grace_period_only
     sql.execute(
         "INSERT INTO voxstream_jobs (id, scene_id, state, created_at, job, owner, lease_until)
          VALUES ($1, $2, 'running', 1, $3, 'elsewhere', now() + interval '1 hour')",
-        &[&"00000000000000f2", &"koala", &serde_json::to_string(&job("00000000000000f2", "koala")).unwrap()],
+        &[
+            &"00000000000000f2",
+            &"koala",
+            &serde_json::to_string(&queued_job("00000000000000f2", "koala")).unwrap(),
+        ],
     )
     .await
     .unwrap();
@@ -249,15 +186,7 @@ async fn collector_removes_replaced_and_orphan_packs_after_the_grace_period_only
     assert!(objects(client.as_ref(), "scenes/.uploads").await.contains(live_part));
 
     // The new scene reads every block, each checked against its hash, from a cold cache.
-    let fresh = BucketStore::new(
-        Bucket {
-            store: client.clone(),
-            bucket: "gcbucket".into(),
-            prefix: "scenes".into(),
-            endpoint: garage.endpoint.clone(),
-        },
-        64 << 20,
-    );
+    let fresh = bucket_store(&garage, &client);
     let manifest = Manifest::from_json(&fresh.manifest("koala").await.unwrap().unwrap()).unwrap();
     let index = fresh.load_index("koala", &manifest).await.unwrap();
     let mut read = 0;

@@ -11,16 +11,17 @@ mod common;
 
 use std::path::Path;
 use std::process::Command;
-use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use base64::Engine;
 use futures_util::StreamExt;
 use object_store::ObjectStore;
-use object_store::aws::AmazonS3Builder;
 use serde_json::Value;
 
-use common::cluster::{Cluster, check_identical, koala, local_blocks_uploaded, sigkill, wait_listed};
+use common::cluster::{
+    Cluster, check_identical, koala, local_blocks_uploaded, object_names, sigkill, wait_listed,
+};
+use common::postgres::password_in;
 use common::tus;
 
 /// The replicas' lease: a dead builder's job moves after this.
@@ -95,28 +96,6 @@ async fn builds_started(http: &reqwest::Client, base: &str) -> u64 {
         .unwrap()
 }
 
-/// The cluster's bucket, as the test reads it (credentials from its s3.env).
-fn bucket(cluster: &Cluster) -> Arc<dyn ObjectStore> {
-    let text = std::fs::read_to_string(cluster.get("S3_ENV")).unwrap();
-    let mut builder = AmazonS3Builder::new().with_bucket_name("voxstream").with_allow_http(true);
-    for (k, v) in text.lines().filter_map(|l| l.split_once('=')) {
-        builder = match k {
-            "AWS_ENDPOINT_URL" => builder.with_endpoint(v),
-            "AWS_REGION" => builder.with_region(v),
-            "AWS_ACCESS_KEY_ID" => builder.with_access_key_id(v),
-            "AWS_SECRET_ACCESS_KEY" => builder.with_secret_access_key(v),
-            _ => builder,
-        };
-    }
-    Arc::new(builder.build().unwrap())
-}
-
-async fn objects_under(store: &dyn ObjectStore, prefix: &str) -> Vec<String> {
-    use futures_util::TryStreamExt;
-    let prefix = object_store::path::Path::from(prefix);
-    store.list(Some(&prefix)).map_ok(|m| m.location.to_string()).try_collect().await.unwrap()
-}
-
 /// `voxstream serve` on the cluster's bucket with `coordinator` and the password file `pg_env`:
 /// must exit non-zero within 5 s; returns its stderr.
 fn serve_fails(cluster: &Cluster, coordinator: &str, pg_env: &Path) -> String {
@@ -159,8 +138,7 @@ async fn replicas_build_each_upload_once_resume_uploads_anywhere_and_take_over_d
 
     // --- Bad coordinator settings fail at start, naming the endpoint and the cause -------------
     let coordinator = cluster.get("COORDINATOR").to_string();
-    let password = std::fs::read_to_string(cluster.get("PG_ENV")).unwrap();
-    let password = password.trim().strip_prefix("PGPASSWORD=").unwrap().to_string();
+    let password = password_in(&std::fs::read_to_string(cluster.get("PG_ENV")).unwrap());
     let wrong = cluster.dir.path().join("wrong-pg.env");
     std::fs::write(&wrong, "PGPASSWORD=not-the-password\n").unwrap();
     let refused = serve_fails(&cluster, &coordinator, &wrong);
@@ -298,8 +276,8 @@ async fn replicas_build_each_upload_once_resume_uploads_anywhere_and_take_over_d
         check_identical(&http, base, &manifest, &blocks).await;
     }
     // The upload's parts are gone with its job.
-    let store = bucket(&cluster);
-    let leftovers = objects_under(store.as_ref(), &format!("scenes/.uploads/{moved_job}")).await;
+    let store = cluster.bucket();
+    let leftovers = object_names(store.as_ref(), &format!("scenes/.uploads/{moved_job}")).await;
     assert!(leftovers.is_empty(), "upload parts left behind: {leftovers:?}");
     eprintln!("moved upload and exactly-once: {:.1} s", started.elapsed().as_secs_f64());
 
@@ -319,7 +297,7 @@ async fn replicas_build_each_upload_once_resume_uploads_anywhere_and_take_over_d
     let (builder, packs_seen) = loop {
         let j = job(&http, &nginx, &job_id).await;
         if j["state"] == "running" {
-            let n = objects_under(store.as_ref(), packs).await.len();
+            let n = object_names(store.as_ref(), packs).await.len();
             if n > 0 {
                 break (j, n);
             }

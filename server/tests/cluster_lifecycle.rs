@@ -15,42 +15,21 @@
 mod common;
 
 use std::collections::BTreeSet;
-use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use base64::Engine;
 use object_store::ObjectStore;
-use object_store::aws::AmazonS3Builder;
 use serde_json::{Value, json};
 use voxstream::bucket_store::BucketStore;
 use voxstream::objstore::Bucket;
 use voxstream_format::Manifest;
 use voxstream_format::hierarchy::pack_path;
 
-use common::cluster::{Cluster, koala, wait_listed};
-
-/// The cluster's bucket, as the test reads it (credentials from its s3.env).
-fn bucket(cluster: &Cluster) -> Arc<dyn ObjectStore> {
-    let text = std::fs::read_to_string(cluster.get("S3_ENV")).unwrap();
-    let mut builder = AmazonS3Builder::new().with_bucket_name("voxstream").with_allow_http(true);
-    for (k, v) in text.lines().filter_map(|l| l.split_once('=')) {
-        builder = match k {
-            "AWS_ENDPOINT_URL" => builder.with_endpoint(v),
-            "AWS_REGION" => builder.with_region(v),
-            "AWS_ACCESS_KEY_ID" => builder.with_access_key_id(v),
-            "AWS_SECRET_ACCESS_KEY" => builder.with_secret_access_key(v),
-            _ => builder,
-        };
-    }
-    Arc::new(builder.build().unwrap())
-}
+use common::cluster::{Cluster, koala, object_names, wait_listed};
 
 /// Object names under `scenes/<id>/`, relative to it.
 async fn objects(store: &dyn ObjectStore, id: &str) -> BTreeSet<String> {
-    use futures_util::TryStreamExt;
-    let prefix = object_store::path::Path::from(format!("scenes/{id}"));
-    let names: Vec<String> =
-        store.list(Some(&prefix)).map_ok(|m| m.location.to_string()).try_collect().await.unwrap();
+    let names = object_names(store, &format!("scenes/{id}")).await;
     names.into_iter().map(|n| n[format!("scenes/{id}/").len()..].to_string()).collect()
 }
 
@@ -176,7 +155,7 @@ async fn bucket_scenes_are_deleted_renamed_and_collected_across_replicas() {
     let http = reqwest::Client::builder().timeout(Duration::from_secs(60)).build().unwrap();
     let replicas = cluster.list("REPLICA_URLS");
     let (r1, r2) = (replicas[0].as_str(), replicas[1].as_str());
-    let s3 = bucket(&cluster);
+    let s3 = cluster.bucket();
     let store = BucketStore::new(
         Bucket {
             store: s3.clone(),

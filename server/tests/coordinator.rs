@@ -3,8 +3,8 @@
 //! claims; a lease left to expire is taken over; and the replica that lost its lease can neither
 //! renew it nor publish (fencing), while the new owner can.
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+mod common;
+
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
@@ -12,66 +12,12 @@ use std::time::Duration;
 use voxstream::coordinator::{Claim, Coordinator, PublishError};
 use voxstream::jobs::{Job, JobState};
 
-struct Postgres {
-    dir: tempfile::TempDir,
-    url: String,
-}
-
-fn script() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/cluster.sh")
-}
-
-impl Postgres {
-    fn start() -> Postgres {
-        let dir = tempfile::tempdir().unwrap();
-        let out =
-            Command::new("bash").arg(script()).args(["postgres", "start"]).arg(dir.path()).output().unwrap();
-        assert!(out.status.success(), "starting PostgreSQL: {}", String::from_utf8_lossy(&out.stderr));
-        let url = String::from_utf8(out.stdout).unwrap().trim().to_string();
-        Postgres { dir, url }
-    }
-}
-
-impl Drop for Postgres {
-    fn drop(&mut self) {
-        let _ = Command::new("bash").arg(script()).args(["postgres", "stop"]).arg(self.dir.path()).output();
-    }
-}
-
-fn job(id: &str, scene: &str) -> Job {
-    Job {
-        id: id.into(),
-        scene_id: scene.into(),
-        state: JobState::Queued,
-        stage: None,
-        fraction: 0.0,
-        eta_seconds: None,
-        triangles_per_second: 0.0,
-        error: None,
-        input_file: format!("{scene}.obj"),
-        input_bytes: 1,
-        resolution: Some(64),
-        max_resolution: 16384,
-        topology: "conservative".into(),
-        created_at: 1,
-        started_at: None,
-        finished_at: None,
-        attempts: 0,
-        builder: None,
-        input_blake3: None,
-    }
-}
+use common::postgres::{Postgres, queued_job};
 
 /// Queues `job` as an upload's completion does.
-async fn queue(url: &str, password: &str, job: &Job) {
-    let (client, connection) = tokio_postgres::connect(
-        &url.replacen("voxstream@", &format!("voxstream:{password}@"), 1),
-        tokio_postgres::NoTls,
-    )
-    .await
-    .unwrap();
-    tokio::spawn(connection);
-    client
+async fn queue(pg: &Postgres, job: &Job) {
+    pg.client()
+        .await
         .execute(
             "INSERT INTO voxstream_jobs (id, scene_id, state, created_at, job) VALUES ($1, $2, 'queued', $3, $4)",
             &[&job.id, &job.scene_id, &(job.created_at as i64), &serde_json::to_string(job).unwrap()],
@@ -97,15 +43,8 @@ async fn publish(coordinator: &Coordinator, claim: &Claim) -> (Result<(), Publis
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn leases_are_exclusive_expire_and_fence_publication() {
     let pg = Postgres::start();
-    let password_file = pg.dir.path().join("pg.env");
-    let password = std::fs::read_to_string(&password_file)
-        .unwrap()
-        .trim()
-        .strip_prefix("PGPASSWORD=")
-        .unwrap()
-        .to_string();
     // SAFETY: this binary's only test, set before any thread reads the environment.
-    unsafe { std::env::set_var("VOXSTREAM_PG_ENV_FILE", &password_file) };
+    unsafe { std::env::set_var("VOXSTREAM_PG_ENV_FILE", pg.password_file()) };
     let lease = Duration::from_millis(1500);
     let deadline = Duration::from_secs(5);
     let a = Arc::new(Coordinator::connect(&pg.url, lease, deadline).await.unwrap());
@@ -113,7 +52,7 @@ async fn leases_are_exclusive_expire_and_fence_publication() {
     assert_ne!(a.owner, b.owner);
 
     // Sixteen claims at once from both replicas: one wins.
-    queue(&pg.url, &password, &job("00000000000000a1", "first")).await;
+    queue(&pg, &queued_job("00000000000000a1", "first")).await;
     let mut claims = Vec::new();
     for i in 0..16 {
         let c = if i % 2 == 0 { a.clone() } else { b.clone() };
@@ -142,7 +81,7 @@ async fn leases_are_exclusive_expire_and_fence_publication() {
 
     // A lease left to expire (its builder stalled or died) is taken over, and the old holder is
     // fenced off: it can neither renew nor publish, and its manifest PUT never runs.
-    queue(&pg.url, &password, &job("00000000000000b2", "second")).await;
+    queue(&pg, &queued_job("00000000000000b2", "second")).await;
     let stale = a.claim().await.unwrap().expect("a claims the second job");
     assert!(b.claim().await.unwrap().is_none(), "claimed twice while the lease runs");
     tokio::time::sleep(lease + Duration::from_millis(300)).await;
@@ -162,7 +101,7 @@ async fn leases_are_exclusive_expire_and_fence_publication() {
 
     // Control: an expired lease nobody took over still fences its holder (expiry, not only a new
     // owner, stops publication).
-    queue(&pg.url, &password, &job("00000000000000c3", "third")).await;
+    queue(&pg, &queued_job("00000000000000c3", "third")).await;
     let late = a.claim().await.unwrap().unwrap();
     tokio::time::sleep(lease + Duration::from_millis(300)).await;
     let (refused, ran) = publish(&a, &late).await;

@@ -7,9 +7,12 @@
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use futures_util::StreamExt;
+use futures_util::{StreamExt, TryStreamExt};
+use object_store::ObjectStore;
+use object_store::aws::AmazonS3Builder;
 use voxstream_format::Manifest;
 
 pub struct Cluster {
@@ -56,6 +59,22 @@ impl Cluster {
         Cluster { dir, env }
     }
 
+    /// The cluster's bucket, as a test reads it (credentials from its s3.env).
+    pub fn bucket(&self) -> Arc<dyn ObjectStore> {
+        let text = std::fs::read_to_string(self.get("S3_ENV")).unwrap();
+        let mut builder = AmazonS3Builder::new().with_bucket_name("voxstream").with_allow_http(true);
+        for (k, v) in text.lines().filter_map(|l| l.split_once('=')) {
+            builder = match k {
+                "AWS_ENDPOINT_URL" => builder.with_endpoint(v),
+                "AWS_REGION" => builder.with_region(v),
+                "AWS_ACCESS_KEY_ID" => builder.with_access_key_id(v),
+                "AWS_SECRET_ACCESS_KEY" => builder.with_secret_access_key(v),
+                _ => builder,
+            };
+        }
+        Arc::new(builder.build().unwrap())
+    }
+
     pub fn get(&self, key: &str) -> &str {
         &self.env[key]
     }
@@ -92,6 +111,12 @@ impl Drop for Cluster {
     fn drop(&mut self) {
         let _ = Command::new("bash").arg(script()).arg("stop").arg(self.dir.path()).output();
     }
+}
+
+/// Names of the objects under `prefix`, in listing order.
+pub async fn object_names(store: &dyn ObjectStore, prefix: &str) -> Vec<String> {
+    let prefix = object_store::path::Path::from(prefix);
+    store.list(Some(&prefix)).map_ok(|m| m.location.to_string()).try_collect().await.unwrap()
 }
 
 pub fn sigkill(pid: &str) {

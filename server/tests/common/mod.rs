@@ -2,5 +2,6 @@
 
 pub mod cluster;
 pub mod garage;
+pub mod postgres;
 pub mod serve;
 pub mod tus;
