@@ -103,9 +103,7 @@ impl ClusterJobs {
     }
 
     async fn gc_loop(self: Arc<Self>, every: Duration) {
-        let mut tick = tokio::time::interval(every);
-        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-        tick.tick().await;
+        let mut tick = crate::ticker::every(every).await;
         loop {
             tokio::select! {
                 _ = tick.tick() => {}
@@ -447,9 +445,7 @@ async fn heartbeat(
     shutdown: CancellationToken,
 ) {
     let every = (coordinator.lease / 3).clamp(Duration::from_millis(100), Duration::from_secs(1));
-    let mut tick = tokio::time::interval(every);
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    tick.tick().await;
+    let mut tick = crate::ticker::every(every).await;
     loop {
         tokio::select! {
             _ = tick.tick() => {}

@@ -30,4 +30,5 @@ pub mod render;
 pub mod store;
 pub mod synth;
 pub mod thumbnail;
+pub mod ticker;
 pub mod uploads;

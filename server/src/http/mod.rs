@@ -472,9 +472,7 @@ pub fn serve_command(args: ServeArgs) -> anyhow::Result<()> {
 /// Re-reads a bucket's listing every `every`, so scenes published by other processes appear (and
 /// replaced ones change) on every replica.
 async fn relist_periodically(catalog: Arc<Catalog>, every: Duration, shutdown: CancellationToken) {
-    let mut tick = tokio::time::interval(every);
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    tick.tick().await;
+    let mut tick = crate::ticker::every(every).await;
     loop {
         tokio::select! {
             _ = tick.tick() => {}
