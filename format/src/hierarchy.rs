@@ -446,6 +446,23 @@ impl HierarchyPage {
         Ok(page)
     }
 
+    /// That `what`'s `bytes` at `location` lie inside one of this page's packs.
+    fn check_pack_range(&self, what: &str, location: &BlockLocation, bytes: u32) -> Result<(), PageError> {
+        let bad = |s: String| Err(PageError::Inconsistent(s));
+        let Some(p) = self.packs.get(location.pack as usize) else {
+            return bad(format!("{what} names pack {} of {}", location.pack, self.packs.len()));
+        };
+        if !range_in_pack(location.offset, bytes, p.bytes) {
+            return bad(format!(
+                "{what} lies at bytes {}..{} of a {}-byte pack",
+                location.offset,
+                location.offset as u128 + bytes as u128,
+                p.bytes
+            ));
+        }
+        Ok(())
+    }
+
     /// The invariants a reader relies on; [`PageBuilder`] only writes pages that pass.
     pub fn validate(&self) -> Result<(), PageError> {
         let bad = |s: String| Err(PageError::Inconsistent(s));
@@ -502,43 +519,11 @@ impl HierarchyPage {
                 return bad(format!("block {} hash is not 64 hex digits", e.key));
             }
             if !e.location.is_file() {
-                let Some(p) = self.packs.get(e.location.pack as usize) else {
-                    return bad(format!(
-                        "block {} names pack {} of {}",
-                        e.key,
-                        e.location.pack,
-                        self.packs.len()
-                    ));
-                };
-                if !range_in_pack(e.location.offset, e.bytes, p.bytes) {
-                    return bad(format!(
-                        "block {} lies at bytes {}..{} of a {}-byte pack",
-                        e.key,
-                        e.location.offset,
-                        e.location.offset as u128 + e.bytes as u128,
-                        p.bytes
-                    ));
-                }
+                self.check_pack_range(&format!("block {}", e.key), &e.location, e.bytes)?;
             }
         }
         for c in self.child_pages.iter().filter(|c| !c.location.is_file()) {
-            let Some(p) = self.packs.get(c.location.pack as usize) else {
-                return bad(format!(
-                    "child page {} names pack {} of {}",
-                    c.root,
-                    c.location.pack,
-                    self.packs.len()
-                ));
-            };
-            if !range_in_pack(c.location.offset, c.bytes, p.bytes) {
-                return bad(format!(
-                    "child page {} lies at bytes {}..{} of a {}-byte pack",
-                    c.root,
-                    c.location.offset,
-                    c.location.offset as u128 + c.bytes as u128,
-                    p.bytes
-                ));
-            }
+            self.check_pack_range(&format!("child page {}", c.root), &c.location, c.bytes)?;
         }
         let mut used = vec![false; self.packs.len()];
         let blocks = self.entries.iter().map(|e| e.location);
