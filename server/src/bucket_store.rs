@@ -23,6 +23,9 @@ use crate::store::{BlockReadError, StoreError, validate_id};
 /// Pages fetched at once while a scene's hierarchy is loaded.
 const PAGE_FETCHES: usize = 8;
 
+/// Listing-and-deleting passes of [`BucketStore::purge_scene`] (waits 100, 200, 400 ms between).
+const PURGE_PASSES: u32 = 4;
+
 /// The bucket-side name of a hierarchy page: content-addressed, unlike the local `pages/<key>.vxh`
 /// (a local scene is replaced by one directory rename; a bucket scene object by object).
 pub fn bucket_page_path(root: &BlockKey, hash: &str) -> String {
@@ -235,6 +238,40 @@ impl BucketStore {
             Some(e) => Err(e),
             None => Ok((n, bytes)),
         }
+    }
+
+    /// Deletes every object under `<id>/` once the scene's manifest is gone: `listed` first, then
+    /// whatever a fresh listing still shows, for up to [`PURGE_PASSES`] passes. A listing taken right
+    /// after a build's last writes can miss an object (seen with Garage on a loaded machine), and a
+    /// delete can fail transiently; either would leave garbage that only the collector removes an
+    /// hour later. Returns how many objects and bytes went, or the last error with what remains.
+    pub async fn purge_scene(&self, id: &str, listed: &[ObjectInfo]) -> Result<(u64, u64), String> {
+        let (mut n, mut bytes, mut last_error) = (0, 0, None);
+        let mut pending = listed.to_vec();
+        for pass in 0..PURGE_PASSES {
+            if pass > 0 {
+                tokio::time::sleep(std::time::Duration::from_millis(50 << pass)).await;
+            }
+            if !pending.is_empty() {
+                match self.delete_all(&pending).await {
+                    Ok((k, b)) => {
+                        n += k;
+                        bytes += b;
+                    }
+                    Err(e) => last_error = Some(e),
+                }
+            }
+            pending = self.list_under(id).await?;
+            if pending.is_empty() {
+                return Ok((n, bytes));
+            }
+            tracing::info!(scene = %id, pass, left = pending.len(), "objects remain after deleting; listing again");
+        }
+        let left = pending.len();
+        Err(match last_error {
+            Some(e) => format!("{e}; {left} objects remain under {id}/"),
+            None => format!("{left} objects remain under {id}/ after {PURGE_PASSES} passes"),
+        })
     }
 
     /// A server-side copy (S3 CopyObject): the bytes never pass through this process.

@@ -507,7 +507,7 @@ impl Catalog {
                 bucket.delete(&format!("{id}/manifest.json")).await.map_err(CatalogError::Bucket)?;
                 self.forget(id);
                 let rest: Vec<_> = objects.into_iter().filter(|o| !o.rel.ends_with("/manifest.json")).collect();
-                match bucket.delete_all(&rest).await {
+                match bucket.purge_scene(id, &rest).await {
                     Ok((n, bytes)) => tracing::info!(scene = %id, objects = n + 1, bytes, "scene deleted from the bucket"),
                     Err(e) => tracing::warn!(scene = %id, error = %e, "scene deleted (its manifest is gone); some objects remain for the collector"),
                 }
@@ -562,7 +562,7 @@ impl Catalog {
                     bucket.delete(&manifest).await.map_err(CatalogError::Bucket)?;
                     self.forget(id);
                     let old: Vec<_> = rest.into_iter().cloned().collect();
-                    if let Err(e) = bucket.delete_all(&old).await {
+                    if let Err(e) = bucket.purge_scene(id, &old).await {
                         tracing::warn!(scene = %id, error = %e, "renamed; some objects of the old id remain for the collector");
                     }
                     tracing::info!(from = %id, to = %to, objects = objects.len(), "scene renamed in the bucket");
