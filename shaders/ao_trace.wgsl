@@ -15,6 +15,10 @@ fn fs_trace(@builtin(position) clip: vec4<f32>) -> @location(0) vec4<f32> {
     if !s.surface {
         return vec4<f32>(1.0, 0.0, 0.0, 1.0);
     }
+    // The AO field mode: the voxel's precomputed V where it has one.
+    if frame.ao_mode.x > 0.5 && s.field >= 0.0 && frame.volume.w > 0.0 {
+        return vec4<f32>(s.field, 0.0, 0.0, 1.0);
+    }
     // Interleaved sampling: each texel turns the frame's cone set further by
     // its own interleaved-gradient-noise fraction, so neighbouring texels (which
     // the upsample and the eye average) see different cone sets.

@@ -35,6 +35,9 @@ struct Frame {
     // w: 1 = interleaved sampling (each traced texel turns the cone set by its
     // own angle).
     ao_temporal: vec4<f32>,
+    // x: 1 = the AO field mode: a pixel whose voxel carries the precomputed
+    // field (G-buffer position.w = 2 + V) shows that V instead of cones.
+    ao_mode: vec4<f32>,
 }
 
 @group(0) @binding(0) var<uniform> frame: Frame;

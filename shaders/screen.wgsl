@@ -22,6 +22,8 @@ struct Surface {
     position: vec3<f32>,
     normal: vec3<f32>,
     surface: bool,
+    // The voxel's precomputed AO field V (0..1), or -1 where it has none.
+    field: f32,
 }
 
 fn load_surface(positions: texture_2d<f32>, normals: texture_2d<f32>, pixel: vec2<i32>) -> Surface {
@@ -29,7 +31,10 @@ fn load_surface(positions: texture_2d<f32>, normals: texture_2d<f32>, pixel: vec
     let n = textureLoad(normals, pixel, 0);
     s.surface = n.w > 0.5 && dot(n.xyz, n.xyz) > 0.25;
     s.normal = select(vec3<f32>(0.0, 0.0, 1.0), normalize(n.xyz), s.surface);
-    s.position = textureLoad(positions, pixel, 0).xyz;
+    let p = textureLoad(positions, pixel, 0);
+    s.position = p.xyz;
+    // The voxel's precomputed AO field V (voxel.wgsl writes w = 2 + V), -1 = none.
+    s.field = select(-1.0, clamp(p.w - 2.0, 0.0, 1.0), s.surface && p.w >= 1.5);
     return s;
 }
 

@@ -39,6 +39,8 @@ struct VertexOut {
     @location(2) @interpolate(flat) face_normal: vec3<f32>,
     // rgb: base colour, as displayed (the canvas has no sRGB conversion).
     @location(3) @interpolate(flat) base_colour: vec3<f32>,
+    // The voxel's AO field byte (1 + round(254 V); 0 = none), bits 16..24 of its normal word.
+    @location(4) @interpolate(flat) field: u32,
 }
 
 // Inverse of voxstream_format::oct_encode (two snorm8 bytes, x low).
@@ -109,6 +111,7 @@ fn vs_main(@builtin(vertex_index) vertex_index: u32) -> VertexOut {
     out.clip = frame.view_proj * vec4<f32>(grid_pos, 1.0);
     out.grid_pos = grid_pos;
     out.normal = oct_decode(record.normal);
+    out.field = (record.normal >> 16u) & 255u;
     out.face_normal = normal;
     let rgba = unpack4x8unorm(record.color);
     out.base_colour = select(BASE_COLOUR, rgba.rgb, rgba.a > 0.5);
@@ -151,7 +154,8 @@ fn shade(in: VertexOut) -> Shaded {
 // Colour last: with a 16-byte-aligned f32 target first, the three fit
 // WebGPU's 32 bytes of colour attachments per sample (16 + 8 + 8).
 struct GBufferOut {
-    // xyz: the grid position the AO is computed for, w: 1.
+    // xyz: the grid position the AO is computed for, w: 1, or 2 + V where the
+    // voxel carries the precomputed AO field's V.
     @location(0) position: vec4<f32>,
     // xyz: the AO hemisphere's unit normal, w: 1 (0 = background).
     @location(1) normal: vec4<f32>,
@@ -163,7 +167,11 @@ fn gbuffer(in: VertexOut) -> GBufferOut {
     let s = shade(in);
     var out: GBufferOut;
     out.colour = s.colour;
-    out.position = vec4<f32>(in.grid_pos, 1.0);
+    var field_w = 1.0;
+    if in.field > 0u {
+        field_w = 2.0 + f32(in.field - 1u) / 254.0;
+    }
+    out.position = vec4<f32>(in.grid_pos, field_w);
     out.normal = vec4<f32>(s.normal, 1.0);
     return out;
 }

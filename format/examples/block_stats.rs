@@ -94,6 +94,7 @@ fn measure_block_size(levels: &[Vec<Voxel>], depth: u32) -> SizeStats {
                 } else {
                     Vec::new()
                 },
+                field: Vec::new(),
             };
             let (packed, raw_len) = encode_columns(&c);
             encoded.push((packed, raw_len, c.len(), level > 0, has_color));

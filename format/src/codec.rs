@@ -5,7 +5,7 @@
 //! ```text
 //! 0  magic  "VXB2"
 //! 4  level  u8
-//! 5  flags  u8: bit 0 = colour column present; other bits zero
+//! 5  flags  u8: bit 0 = colour column present; bit 1 = AO field column present; other bits zero
 //! 6  reserved, 2 zero bytes
 //! 8  x, y, z  u32 each
 //! 20 voxel count u32 (≤ 64³)
@@ -29,6 +29,11 @@
 //! 4. **coverage** (levels above 0 only; level 0 is always full): one byte per voxel, 1..=255.
 //! 5. **colour** (when flagged): sRGB8, all r then all g then all b bytes,
 //!    each a wrapping difference from the previous voxel's.
+//! 6. **AO field** (when flagged, issue 9 item 2): one byte per voxel, the
+//!    precomputed visibility `1 + round(254·V)` for the voxel's normal (0: none
+//!    for this voxel), stored as the wrapping difference from the previous
+//!    voxel's. Blocks without it (every scene built before it) decode as
+//!    before, with no field.
 
 use crate::{BLOCK_VOXELS, Block, BlockKey, FULL_COVERAGE, MAX_LEVEL, PackedVoxel};
 
@@ -36,6 +41,8 @@ pub const BLOCK_MAGIC: [u8; 4] = *b"VXB2";
 pub const HEADER_LEN: usize = 28;
 /// Header flag: the block has a colour column.
 pub const FLAG_COLOR: u8 = 1;
+/// Header flag: the block has an AO field column.
+pub const FLAG_FIELD: u8 = 2;
 /// Octree depth of a 64³ block: 6 levels of 2³.
 pub const BLOCK_DEPTH: u32 = 6;
 
@@ -72,6 +79,8 @@ pub struct VoxelColumns {
     pub coverage: Vec<u8>,
     /// Empty = no colour; else one sRGB8 triple per voxel.
     pub color: Vec<[u8; 3]>,
+    /// Empty = no AO field; else one byte per voxel (`1 + round(254·V)`, 0 = none).
+    pub field: Vec<u8>,
 }
 
 /// Compressed size of each column on its own, for measurements.
@@ -82,6 +91,7 @@ pub struct ColumnSizes {
     pub normals: usize,
     pub coverage: usize,
     pub colors: usize,
+    pub field: usize,
 }
 
 impl std::ops::AddAssign for ColumnSizes {
@@ -91,6 +101,7 @@ impl std::ops::AddAssign for ColumnSizes {
         self.normals += o.normals;
         self.coverage += o.coverage;
         self.colors += o.colors;
+        self.field += o.field;
     }
 }
 
@@ -177,6 +188,7 @@ impl VoxelColumns {
     pub fn from_block(block: &Block) -> Self {
         let v = &block.voxels;
         let has_color = v.iter().any(|v| v.color().is_some());
+        let has_field = v.iter().any(|v| v.field().is_some());
         Self {
             depth: BLOCK_DEPTH,
             morton: v.iter().map(PackedVoxel::morton).collect(),
@@ -192,6 +204,7 @@ impl VoxelColumns {
             } else {
                 Vec::new()
             },
+            field: if has_field { v.iter().map(|v| v.field().unwrap_or(0)).collect() } else { Vec::new() },
         }
     }
 
@@ -203,8 +216,8 @@ impl VoxelColumns {
         self.morton.is_empty()
     }
 
-    /// The five payload sections, uncompressed.
-    fn sections(&self) -> [Vec<u8>; 5] {
+    /// The six payload sections, uncompressed.
+    fn sections(&self) -> [Vec<u8>; 6] {
         let n = self.len();
         let occupancy = octree_masks(self.depth, &self.morton);
         let mut faces = Vec::with_capacity(n);
@@ -213,7 +226,9 @@ impl VoxelColumns {
         self.write_normals(&mut normals);
         let mut colors = Vec::with_capacity(3 * self.color.len());
         self.write_colors(&mut colors);
-        [occupancy, faces, normals, self.coverage.clone(), colors]
+        let mut field = Vec::with_capacity(self.field.len());
+        delta_plane(self.field.iter().copied(), &mut field);
+        [occupancy, faces, normals, self.coverage.clone(), colors, field]
     }
 
     /// The faces column: each mask XOR the mask predicted from occupancy.
@@ -249,12 +264,15 @@ impl VoxelColumns {
     /// `faces_predicted` as in [`Self::write_faces`].
     fn write_payload(&self, faces_predicted: bool, out: &mut Vec<u8>) {
         let n = self.len();
-        out.reserve(n * (4 + self.coverage.len().min(1) + 3 * self.color.len().min(1)));
+        out.reserve(
+            n * (4 + self.coverage.len().min(1) + 3 * self.color.len().min(1) + self.field.len().min(1)),
+        );
         write_octree_masks(self.depth, &self.morton, out);
         self.write_faces(faces_predicted, out);
         self.write_normals(out);
         out.extend_from_slice(&self.coverage);
         self.write_colors(out);
+        delta_plane(self.field.iter().copied(), out);
     }
 
     /// The uncompressed payload.
@@ -268,16 +286,28 @@ impl VoxelColumns {
     /// the one lz4 block the codec writes).
     pub fn column_sizes(&self) -> ColumnSizes {
         let s = self.sections().map(|c| if c.is_empty() { 0 } else { lz4_flex::block::compress(&c).len() });
-        ColumnSizes { occupancy: s[0], faces: s[1], normals: s[2], coverage: s[3], colors: s[4] }
+        ColumnSizes { occupancy: s[0], faces: s[1], normals: s[2], coverage: s[3], colors: s[4], field: s[5] }
     }
 
-    /// Inverse of [`VoxelColumns::payload`], validating everything. `count`
-    /// must already be bounded by the caller (it sizes the output).
+    /// Inverse of [`VoxelColumns::payload`] for columns without an AO field.
     pub fn from_payload(
         depth: u32,
         count: usize,
         has_coverage: bool,
         has_color: bool,
+        raw: &[u8],
+    ) -> Result<Self, CodecError> {
+        Self::from_payload_with_field(depth, count, has_coverage, has_color, false, raw)
+    }
+
+    /// Inverse of [`VoxelColumns::payload`], validating everything. `count`
+    /// must already be bounded by the caller (it sizes the output).
+    pub fn from_payload_with_field(
+        depth: u32,
+        count: usize,
+        has_coverage: bool,
+        has_color: bool,
+        has_field: bool,
         raw: &[u8],
     ) -> Result<Self, CodecError> {
         let corrupt = |s: &str| CodecError::Corrupt(s.to_string());
@@ -312,7 +342,7 @@ impl VoxelColumns {
                 nodes.len()
             )));
         }
-        let per_voxel = 3 + has_coverage as usize + 3 * has_color as usize;
+        let per_voxel = 3 + has_coverage as usize + 3 * has_color as usize + has_field as usize;
         if raw.len() - at != count * per_voxel {
             return Err(CodecError::Corrupt(format!(
                 "payload holds {} bytes after the octree, {count} voxels need {}",
@@ -362,15 +392,17 @@ impl VoxelColumns {
         } else {
             Vec::new()
         };
-        Ok(Self { depth, morton, faces, normal, coverage, color })
+        let field = if has_field { undelta(take(count)) } else { Vec::new() };
+        Ok(Self { depth, morton, faces, normal, coverage, color, field })
     }
 }
 
 /// Most payload bytes a block of `count` voxels can have: a full octree above
 /// the voxels (bounded by both the tree and 6 nodes per voxel) plus the columns.
-fn max_payload(count: usize, has_coverage: bool, has_color: bool) -> usize {
+fn max_payload(count: usize, has_coverage: bool, has_color: bool, has_field: bool) -> usize {
     let tree: usize = (0..BLOCK_DEPTH).map(|d| 1usize << (3 * d)).sum();
-    tree.min(BLOCK_DEPTH as usize * count) + count * (3 + has_coverage as usize + 3 * has_color as usize)
+    tree.min(BLOCK_DEPTH as usize * count)
+        + count * (3 + has_coverage as usize + 3 * has_color as usize + has_field as usize)
 }
 
 /// Encodes a block. The voxels must be in strictly increasing Morton order
@@ -401,11 +433,13 @@ pub fn encode_columns(key: BlockKey, columns: &VoxelColumns, faces_predicted: bo
         columns.faces.len() == n
             && columns.normal.len() == n
             && (columns.color.is_empty() || columns.color.len() == n)
+            && (columns.field.is_empty() || columns.field.len() == n)
     );
     let mut raw = Vec::new();
     columns.write_payload(faces_predicted, &mut raw);
     let packed = lz4_flex::block::compress(&raw);
-    let flags = if columns.color.is_empty() { 0 } else { FLAG_COLOR };
+    let flags = if columns.color.is_empty() { 0 } else { FLAG_COLOR }
+        | if columns.field.is_empty() { 0 } else { FLAG_FIELD };
 
     let mut out = Vec::with_capacity(HEADER_LEN + packed.len());
     out.extend_from_slice(&BLOCK_MAGIC);
@@ -437,7 +471,7 @@ pub fn decode_block(bytes: &[u8]) -> Result<Block, CodecError> {
         return Err(CodecError::BadHeader("level too deep"));
     }
     let flags = bytes[5];
-    if flags & !FLAG_COLOR != 0 {
+    if flags & !(FLAG_COLOR | FLAG_FIELD) != 0 {
         return Err(CodecError::BadHeader("unknown flag bits set"));
     }
     if bytes[6..8] != [0, 0] {
@@ -449,9 +483,9 @@ pub fn decode_block(bytes: &[u8]) -> Result<Block, CodecError> {
         return Err(CodecError::TooManyVoxels(count));
     }
     let n = count as usize;
-    let (has_coverage, has_color) = (level > 0, flags & FLAG_COLOR != 0);
+    let (has_coverage, has_color, has_field) = (level > 0, flags & FLAG_COLOR != 0, flags & FLAG_FIELD != 0);
     let raw_len = u32_at(bytes, 24) as usize;
-    if raw_len > max_payload(n, has_coverage, has_color) {
+    if raw_len > max_payload(n, has_coverage, has_color, has_field) {
         return Err(CodecError::BadHeader("payload length is too large for the voxel count"));
     }
     let mut raw = vec![0u8; raw_len];
@@ -460,7 +494,7 @@ pub fn decode_block(bytes: &[u8]) -> Result<Block, CodecError> {
     if written != raw.len() {
         return Err(CodecError::Corrupt(format!("payload holds {written} bytes, header says {raw_len}")));
     }
-    let c = VoxelColumns::from_payload(BLOCK_DEPTH, n, has_coverage, has_color, &raw)?;
+    let c = VoxelColumns::from_payload_with_field(BLOCK_DEPTH, n, has_coverage, has_color, has_field, &raw)?;
     let mut voxels = Vec::with_capacity(n);
     for i in 0..n {
         let [x, y, z] = crate::demorton3(c.morton[i]);
@@ -470,6 +504,9 @@ pub fn decode_block(bytes: &[u8]) -> Result<Block, CodecError> {
         }
         if has_color {
             v = v.with_color(c.color[i]);
+        }
+        if has_field {
+            v = v.with_field(c.field[i]);
         }
         voxels.push(v);
     }
@@ -574,6 +611,38 @@ mod tests {
         assert_eq!(b.voxels.len(), crate::BLOCK_VOXELS);
         let bytes = encode_block(&b);
         assert_eq!(decode_block(&bytes).unwrap(), b);
+    }
+
+    #[test]
+    fn ao_field_column_round_trips_and_is_flagged() {
+        let plain = block_at(
+            BlockKey::new(1, 0, 1, 0),
+            (0..300).map(|i| ([i % 64, i / 64, 5], 1 + (i % 63) as u8, [1.0, 0.0, i as f32])).collect(),
+        );
+        let mut b = plain.clone();
+        for (i, v) in b.voxels.iter_mut().enumerate() {
+            // 0 (no value for this voxel) must survive too.
+            *v = v.with_field((i % 256) as u8);
+        }
+        let bytes = encode_block(&b);
+        assert_eq!(bytes[5], FLAG_FIELD);
+        let back = decode_block(&bytes).unwrap();
+        assert_eq!(back, b);
+        assert_eq!(back.voxels[7].field(), Some(7));
+        assert_eq!(back.voxels[0].field(), None);
+        // The field costs one byte a voxel before lz4 and changes nothing else.
+        let without = encode_block(&plain);
+        assert_eq!(without[5], 0);
+        assert_eq!(u32_at(&bytes, 24) - u32_at(&without, 24), 300);
+        assert!(decode_block(&without).unwrap().voxels.iter().all(|v| v.field().is_none()));
+        // Control: the same bytes with the flag cleared no longer decode (the payload is a byte a voxel too long).
+        let mut unflagged = bytes.clone();
+        unflagged[5] = 0;
+        assert!(decode_block(&unflagged).is_err());
+        // Unknown flag bits are still refused.
+        let mut unknown = bytes;
+        unknown[5] |= 4;
+        assert_eq!(decode_block(&unknown), Err(CodecError::BadHeader("unknown flag bits set")));
     }
 
     #[test]

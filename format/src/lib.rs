@@ -16,7 +16,7 @@ pub mod test_support;
 mod voxel;
 
 pub use codec::{
-    BLOCK_DEPTH, BLOCK_MAGIC, CodecError, ColumnSizes, FLAG_COLOR, HEADER_LEN, VoxelColumns, decode_block,
+    BLOCK_DEPTH, BLOCK_MAGIC, CodecError, ColumnSizes, FLAG_COLOR, FLAG_FIELD, HEADER_LEN, VoxelColumns, decode_block,
     encode_block, encode_columns,
 };
 pub use hierarchy::{
@@ -25,7 +25,7 @@ pub use hierarchy::{
 };
 pub use key::{BlockKey, KeyError};
 pub use manifest::{
-    BlockEntry, FORMAT_VERSION, GridFrame, LevelInfo, Manifest, ManifestError, ResolutionChoice,
+    AoFieldInfo, BlockEntry, FORMAT_VERSION, GridFrame, LevelInfo, Manifest, ManifestError, ResolutionChoice,
     SceneSummary, SourceInfo, VoxelBounds,
 };
 pub use voxel::{

@@ -123,6 +123,22 @@ pub struct Manifest {
     /// root page is its own file or there is no root page.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub root_page_pack: Option<PackRef>,
+    /// The precomputed AO field the blocks carry (issue 9 item 2; their AO
+    /// field column), with the R and λ it was computed for; `None` when the
+    /// blocks have none (a scene built without it, or before it existed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ao_field: Option<AoFieldInfo>,
+}
+
+/// How a scene's AO field was computed (`Manifest::ao_field`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AoFieldInfo {
+    /// Cells per edge of the whole-grid occupancy the field was traced through.
+    pub cells: u32,
+    /// R in grid units (level-0 voxels).
+    pub max_distance: f32,
+    /// λ in w(d) = 1 / (1 + λ·d/R).
+    pub falloff: f32,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -163,6 +179,11 @@ impl Manifest {
         let bad = |s: String| Err(ManifestError::Inconsistent(s));
         if self.format_version != FORMAT_VERSION {
             return Err(ManifestError::Version(self.format_version));
+        }
+        if let Some(f) = &self.ao_field {
+            if !(f.cells > 0 && f.max_distance.is_finite() && f.max_distance > 0.0 && f.falloff.is_finite() && f.falloff >= 0.0) {
+                return bad(format!("ao_field is invalid: {f:?}"));
+            }
         }
         if self.block_size != BLOCK_SIZE {
             return bad(format!("block size {} is not {BLOCK_SIZE}", self.block_size));
@@ -308,6 +329,7 @@ mod tests {
             }),
             root_pack: None,
             root_page_pack: None,
+            ao_field: None,
         }
     }
 

@@ -33,5 +33,6 @@ pub fn manifest(
         root_page,
         root_pack: None,
         root_page_pack: None,
+        ao_field: None,
     }
 }

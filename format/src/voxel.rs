@@ -38,7 +38,9 @@ impl Face {
 ///   (x, y, z < 64, block-local; coverage 1..=255 is the fraction of the
 ///   level-0 voxels under this voxel that are occupied, 255 = all, see
 ///   [`coverage_from_count`]; always 255 on level 0);
-/// - `normal` = octahedral unit normal, two snorm8 halves (x low), bits 16..32 zero;
+/// - `normal` = octahedral unit normal, two snorm8 halves (x low); bits 16..24
+///   the precomputed AO field's visibility for this voxel (`1 + round(254·V)`,
+///   0 = the block has no field, see [`PackedVoxel::field`]), bits 24..32 zero;
 /// - `color` = sRGB8 `r | g << 8 | b << 16 | 255 << 24` when the block has
 ///   colour, 0 when it has none.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Pod, Zeroable, Default)]
@@ -94,6 +96,19 @@ impl PackedVoxel {
     pub fn color(&self) -> Option<[u8; 3]> {
         let [r, g, b, a] = self.color.to_le_bytes();
         (a != 0).then_some([r, g, b])
+    }
+
+    /// The precomputed AO field's byte (`1 + round(254·V)`), `None` when the
+    /// block has none.
+    pub fn field(&self) -> Option<u8> {
+        let f = (self.normal >> 16) as u8;
+        (f != 0).then_some(f)
+    }
+
+    /// Sets the AO field byte (0 = none).
+    pub fn with_field(mut self, field: u8) -> Self {
+        self.normal = (self.normal & 0xffff) | (field as u32) << 16;
+        self
     }
 
     pub fn morton(&self) -> u32 {

@@ -47,6 +47,10 @@ enum Command {
         /// folder for an s3:// --out); removed afterwards.
         #[arg(long)]
         tmp: Option<PathBuf>,
+        /// Leave out the precomputed AO field (issue 9 item 2): blocks carry no
+        /// field column and the viewer's `field` AO mode falls back to cones.
+        #[arg(long)]
+        no_ao_field: bool,
     },
     /// Write a synthetic scan (a displaced, finely tessellated sphere) as binary PLY.
     Synth {
@@ -174,6 +178,17 @@ struct AoArgs {
     /// 128³ cells (comparison).
     #[arg(long, value_enum, default_value_t = StructureArg::Clipmap)]
     ao_structure: StructureArg,
+    /// How V is computed: cone tracing, or the precomputed AO field the scene's
+    /// blocks carry (built by `voxstream build`; R and λ are then the field's,
+    /// from the manifest, and pixels without a field are cone-traced).
+    #[arg(long, value_enum, default_value_t = ModeArg::Cone)]
+    ao_mode: ModeArg,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum ModeArg {
+    Cone,
+    Field,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -236,6 +251,10 @@ impl AoArgs {
                 StructureArg::Clipmap => voxstream_viewer::ao::AoStructure::Clipmap,
                 StructureArg::Volume => voxstream_viewer::ao::AoStructure::Volume,
             },
+            mode: match self.ao_mode {
+                ModeArg::Cone => voxstream_viewer::ao::AoMode::Cone,
+                ModeArg::Field => voxstream_viewer::ao::AoMode::Field,
+            },
             ..voxstream_viewer::ao::AoSettings::default()
         })
     }
@@ -282,7 +301,7 @@ fn no_bucket_store(path: &std::path::Path, flag: &str) -> anyhow::Result<()> {
 
 fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
-        Command::Build { mesh, out, resolution, voxel_size, name, topology, memory_budget, tmp } => {
+        Command::Build { mesh, out, resolution, voxel_size, name, topology, memory_budget, tmp, no_ao_field } => {
             let out = voxstream::objstore::parse_location(&out.to_string_lossy())
                 .map_err(|e| anyhow::anyhow!("--out {e}"))?;
             let resolution = voxel_size.map_or(resolution, Resolution::VoxelSize);
@@ -310,6 +329,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 cancel: None,
                 memory_budget,
                 temp_dir: tmp,
+                ao_field: (!no_ao_field).then(Default::default),
                 ..Default::default()
             };
             let (result, published_at) = match out {

@@ -821,7 +821,8 @@ async fn served_blocks_are_the_reference_encoding_and_a_damaged_pack_is_a_clear_
     let store = dir.path().join("store");
     let mesh = dir.path().join("box.obj");
     write_test_mesh(&mesh);
-    let opts = BuildOptions { resolution: Resolution::Explicit(256), ..Default::default() };
+    // No AO field: the in-memory reference below has none (outofcore.rs checks the field's determinism).
+    let opts = BuildOptions { resolution: Resolution::Explicit(256), ao_field: None, ..Default::default() };
     build_scene(&mesh, &store, &opts).unwrap();
     // The reference: the mesh voxelized in memory, every level built at once, each block encoded alone.
     let (triangles, _) = read_mesh(&mesh).unwrap();

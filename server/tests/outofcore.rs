@@ -112,6 +112,8 @@ fn stores_are_byte_identical_across_runs_budgets_and_threads() {
     assert!(reference.len() >= 2 && reference.contains_key("manifest.json"), "{:?}", reference.keys());
     assert!(reference.keys().any(|n| n.starts_with("packs/")));
     assert!(!reference.keys().any(|n| n.starts_with("pages/")), "pages live in packs");
+    // The AO field is on (the default), so its column is part of what is compared.
+    assert!(String::from_utf8_lossy(&reference["manifest.json"]).contains("\"ao_field\""));
     // The smallest budget: the stream and the bins spill to disk, the bin
     // buffers flush often, one brick in flight, small batches.
     let least = MemoryPlan::minimum_budget(128);
@@ -302,6 +304,9 @@ fn streaming_build_matches_the_in_memory_reference() {
             topology,
             name: Some(id.clone()),
             memory_budget: MemoryPlan::minimum_budget(resolution),
+            // The in-memory reference has no AO field; the field's determinism is
+            // `stores_are_byte_identical_across_runs_budgets_and_threads` (field on).
+            ao_field: None,
             ..Default::default()
         };
         let report = build_scene(&input, &dir.path().join("streamed"), &opts).unwrap();

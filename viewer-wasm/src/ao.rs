@@ -74,6 +74,32 @@ pub struct AoSettings {
     /// What the cones are traced through.
     #[serde(default)]
     pub structure: AoStructure,
+    /// Cone tracing, or the precomputed AO field the blocks carry.
+    #[serde(default)]
+    pub mode: AoMode,
+}
+
+/// How V is computed (issue 9 items 1 and 2).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AoMode {
+    /// Cones traced every frame through the occupancy structure.
+    #[default]
+    Cone,
+    /// The server's precomputed AO field (server `pipeline/aofield.rs`): each
+    /// voxel's V, computed at build time for its normal from a 128³ occupancy
+    /// of the whole scene, carried into the G-buffer; a pixel whose voxel has
+    /// none (a scene built without it) is cone-traced.
+    Field,
+}
+
+impl AoMode {
+    pub fn name(self) -> &'static str {
+        match self {
+            AoMode::Cone => "cone",
+            AoMode::Field => "field",
+        }
+    }
 }
 
 /// The occupancy structure the cones are traced through.
@@ -133,6 +159,7 @@ impl Default for AoSettings {
             temporal_frames: 4,
             keep_disoccluded_history: false,
             structure: AoStructure::Clipmap,
+            mode: AoMode::Cone,
         }
     }
 }

@@ -69,6 +69,8 @@ pub struct GBufferFrame {
     /// With temporal accumulation, the frames each pixel's history holds (0 on
     /// the background, 1 where the history was dropped).
     pub history_frames: Option<Vec<f32>>,
+    /// Surface pixels whose voxel carries the precomputed AO field (G-buffer position.w ≥ 1.5).
+    pub field_pixels: usize,
 }
 
 /// A native device and queue.
@@ -326,8 +328,9 @@ impl Offscreen {
             }
             None => (vec![1.0; positions.len()], None),
         };
+        let field_pixels = positions.iter().filter(|p| p[3] >= 1.5).count();
         let position_ao = positions.iter().zip(&visibility).map(|(p, v)| [p[0], p[1], p[2], *v]).collect();
-        Ok(GBufferFrame { position_ao, normal, history_frames, frame })
+        Ok(GBufferFrame { position_ao, normal, history_frames, frame, field_pixels })
     }
 
     /// Median milliseconds of `runs` frames of the loaded view at `ao_strength`

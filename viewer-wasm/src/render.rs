@@ -36,6 +36,8 @@ pub struct FrameUniform {
     pub ao_sparse: [f32; 4],
     /// Frames averaged (N), history valid, reject disoccluded history, interleaved sampling.
     pub ao_temporal: [f32; 4],
+    /// x: 1 = the AO field mode (G-buffer V where the voxel has a field), yzw: 0.
+    pub ao_mode: [f32; 4],
 }
 
 /// What one frame is drawn with.
@@ -430,6 +432,7 @@ impl Renderer {
             prev_view_proj: state.prev_view_proj.to_cols_array(),
             ao_sparse: state.sparse,
             ao_temporal: state.temporal,
+            ao_mode: [if self.ao.mode == crate::ao::AoMode::Field { 1.0 } else { 0.0 }, 0.0, 0.0, 0.0],
         };
         self.queue.write_buffer(&self.frame_uniform, 0, bytemuck::bytes_of(&uniform));
         let depth = self.depth_view(width, height).clone();

@@ -617,7 +617,7 @@ impl App {
         self.camera_moved();
     }
 
-    /// `window.voxstream.set({px, budget, ao, aoStructure, occlusion, fly})`: the panel's settings.
+    /// `window.voxstream.set({px, budget, ao, aoStructure, aoMode, occlusion, fly})`: the panel's settings.
     fn apply_settings(&mut self, settings: &serde_json::Value) {
         if let Some(px) = settings["px"].as_f64().filter(|v| (0.25..=64.0).contains(v)) {
             self.scene.select_params.max_error_pixels = px as f32;
@@ -631,6 +631,11 @@ impl App {
         match settings["aoStructure"].as_str() {
             Some("clipmap") => self.renderer.ao.structure = crate::ao::AoStructure::Clipmap,
             Some("volume") => self.renderer.ao.structure = crate::ao::AoStructure::Volume,
+            _ => {}
+        }
+        match settings["aoMode"].as_str() {
+            Some("cone") => self.renderer.ao.mode = crate::ao::AoMode::Cone,
+            Some("field") => self.renderer.ao.mode = crate::ao::AoMode::Field,
             _ => {}
         }
         if let Some(on) = settings["occlusion"].as_bool() {

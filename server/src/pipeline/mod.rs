@@ -4,6 +4,7 @@
 //! block) → [`pyramid`] (faces, coarser levels) → [`write`] (pack, encode,
 //! publish). [`build_scene`] runs them as one call, reporting [`progress`].
 
+pub mod aofield;
 pub mod bin;
 pub mod progress;
 pub mod pyramid;
@@ -65,6 +66,9 @@ pub struct BuildOptions {
     /// the scene it replaced is removed, so a server can switch readers to the new manifest
     /// while the old one's blocks still exist.
     pub on_published: Option<OnPublished>,
+    /// The precomputed AO field (issue 9 item 2): computed and stored in every
+    /// block when `Some` (the default).
+    pub ao_field: Option<aofield::AoFieldOptions>,
 }
 
 /// See [`BuildOptions::on_published`].
@@ -139,6 +143,7 @@ impl Default for BuildOptions {
             ply_vertex_memory: None,
             finished_files: None,
             on_published: None,
+            ao_field: Some(aofield::AoFieldOptions::default()),
         }
     }
 }
@@ -241,7 +246,7 @@ impl MemoryPlan {
     /// What the pyramid stage holds at worst besides the bins.
     pub fn reserve(resolution: u32) -> u64 {
         let levels = level_count(resolution);
-        Self::front(levels) + Self::writer(levels) + WORKER_BYTES as u64
+        Self::front(levels) + Self::writer(levels) + WORKER_BYTES as u64 + aofield::peak_bytes(resolution)
     }
 
     /// The smallest budget a build at `resolution` can run in, whatever the input.
@@ -300,7 +305,11 @@ impl MemoryPlan {
     /// bins hold `index_bytes` of index; an error when not even one worker fits.
     pub fn pass3_pool(&self, index_bytes: u64) -> Result<u64, BuildError> {
         let levels = level_count(self.resolution);
-        let fixed = Self::front(levels) + Self::writer(levels) + self.bin_resident() as u64 + index_bytes;
+        let fixed = Self::front(levels)
+            + Self::writer(levels)
+            + self.bin_resident() as u64
+            + index_bytes
+            + aofield::peak_bytes(self.resolution);
         let needed = fixed + WORKER_BYTES as u64;
         if self.budget < needed {
             return Err(BuildError::BudgetTooSmall {
@@ -345,6 +354,7 @@ fn level0_block(
     frame: &voxstream_format::GridFrame,
     topology: Topology,
     levels: u8,
+    field: Option<&aofield::AoField>,
 ) -> Result<Option<Level0>, BuildError> {
     let Some(mut block) = bin::voxelize_bin(bins, key, index, frame, topology)? else {
         return Ok(None);
@@ -354,8 +364,8 @@ fn level0_block(
     let marked = block.voxels.len();
     block.voxels.retain(|v| v.voxel.faces != 0);
     // With no buried voxel dropped, every mask is the codec's own prediction.
-    let encode = if block.voxels.len() == marked { write::encode_marked_entry } else { write::encode_entry };
-    let encoded = (!block.voxels.is_empty()).then(|| encode(&block));
+    let encode = if block.voxels.len() == marked { write::encode_marked_entry } else { write::encode_entry_field };
+    let encoded = (!block.voxels.is_empty()).then(|| encode(&block, field));
     Ok(Some(Level0 { key, share, encoded }))
 }
 
@@ -390,6 +400,7 @@ struct WriteQueue<'a> {
     committed: &'a AtomicUsize,
     limit: usize,
     freed: mpsc::Sender<()>,
+    field: Option<Arc<aofield::AoField>>,
 }
 
 impl WriteQueue<'_> {
@@ -414,15 +425,17 @@ impl WriteQueue<'_> {
         if !self.reserve(held) {
             self.write_ready(true)?;
             if !self.reserve(held) {
-                let encoded = write::encode_entry(&b);
+                let encoded = write::encode_entry_field(&b, self.field.as_deref());
                 drop(b);
                 return self.push_ready(Some(encoded), 0);
             }
         }
         let (tx, rx) = mpsc::channel();
+        let field = self.field.clone();
         rayon::spawn(move || {
-            let _ =
-                tx.send(std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| write::encode_entry(&b))));
+            let _ = tx.send(std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                write::encode_entry_field(&b, field.as_deref())
+            })));
         });
         self.queue.push_back(Queued::Encoding(rx, held));
         self.write_ready(false)
@@ -479,9 +492,10 @@ fn fold(
     limit: usize,
     resolution: u32,
     writer: &mut BlockWriter,
+    field: Option<Arc<aofield::AoField>>,
 ) -> Result<(), BuildError> {
     let mut pyramid = Pyramid::new(resolution);
-    let mut out = WriteQueue { writer, queue: Default::default(), committed, limit, freed };
+    let mut out = WriteQueue { writer, queue: Default::default(), committed, limit, freed, field };
     loop {
         let msg = match from_producer.try_recv() {
             Ok(msg) => msg,
@@ -527,6 +541,7 @@ fn voxelize_pyramid(
     plan: &MemoryPlan,
     progress: &ProgressSink,
     writer: &mut BlockWriter,
+    field: Option<Arc<aofield::AoField>>,
 ) -> Result<(), BuildError> {
     let committed = AtomicUsize::new(0);
     let (to_fold, from_producer) = mpsc::channel();
@@ -538,9 +553,19 @@ fn voxelize_pyramid(
     let limit = (pool - workers * (WORKER_BYTES - IN_FLIGHT_BYTES))
         .min(workers * IN_FLIGHT_BYTES + FOLD_BACKLOG_BYTES);
     std::thread::scope(|s| {
-        let folding = s.spawn(|| fold(from_producer, freed, &committed, limit, frame.resolution, writer));
-        let produced =
-            produce(bins, frame, opts, (workers, limit), progress, &committed, &to_fold, &on_freed);
+        let fold_field = field.clone();
+        let folding =
+            s.spawn(|| fold(from_producer, freed, &committed, limit, frame.resolution, writer, fold_field));
+        let produced = produce(
+            bins,
+            frame,
+            opts,
+            (workers, limit),
+            progress,
+            (&committed, field.as_deref()),
+            &to_fold,
+            &on_freed,
+        );
         drop(to_fold);
         let folded = folding.join().unwrap_or_else(|p| std::panic::resume_unwind(p));
         produced.and(folded)
@@ -560,7 +585,7 @@ fn produce(
     opts: &BuildOptions,
     (workers, limit): (usize, usize),
     progress: &ProgressSink,
-    committed: &AtomicUsize,
+    (committed, field): (&AtomicUsize, Option<&aofield::AoField>),
     to_fold: &mpsc::Sender<ToFold>,
     on_freed: &mpsc::Receiver<()>,
 ) -> Result<(), BuildError> {
@@ -614,7 +639,7 @@ fn produce(
                 started.fetch_add(1, Ordering::Relaxed);
                 let result = opts
                     .check_cancelled()
-                    .and_then(|()| level0_block(bins, slot.key, slot.index, frame, opts.topology, levels));
+                    .and_then(|()| level0_block(bins, slot.key, slot.index, frame, opts.topology, levels, field));
                 let real = match &result {
                     Ok(Some(l0)) => l0.bytes(),
                     _ => 0,
@@ -751,6 +776,22 @@ pub fn build_scene_reporting(
         opts,
         &progress,
     )?;
+    // The AO field, from the stream's triangles, before the stream is dropped.
+    let field = match &opts.ao_field {
+        Some(o) => {
+            let check = || opts.check_cancelled();
+            let occ = aofield::Occupancy::from_stream(&stream_store, layout, &frame, o.cells, &check)?;
+            let field = aofield::AoField::compute(&occ, frame.resolution, o);
+            tracing::debug!(
+                seconds = start.elapsed().as_secs_f64(),
+                marked = occ.marked(),
+                bytes = field.bytes(),
+                "build: ao field done"
+            );
+            Some(Arc::new(field))
+        }
+        None => None,
+    };
     tracing::debug!(
         seconds = start.elapsed().as_secs_f64(),
         stream_chunks = stream_store.len(),
@@ -770,7 +811,8 @@ pub fn build_scene_reporting(
     let mut writer = BlockWriter::create(store_dir, &id, frame.resolution, 0)?;
     writer.finished_files = opts.finished_files.clone();
     writer.on_published = opts.on_published.clone();
-    voxelize_pyramid(&bins, &frame, opts, &plan, &progress, &mut writer)?;
+    writer.ao_field = field.as_ref().map(|f| f.info().clone());
+    voxelize_pyramid(&bins, &frame, opts, &plan, &progress, &mut writer, field)?;
     let skipped = bins.skipped + read_skipped;
     let triangles = bins.triangles + skipped;
     drop(bins);

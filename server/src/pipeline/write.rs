@@ -34,6 +34,7 @@ use voxstream_format::{
     oct_encode, oct_encode_many,
 };
 
+use crate::pipeline::aofield::AoField;
 use crate::pipeline::progress::{ProgressSink, Stage, StageCounter};
 use crate::pipeline::pyramid::{LodBlock, block_morton, level_count, local_position};
 use crate::store::{StoreError, io, validate_id};
@@ -85,10 +86,12 @@ pub fn packed_block(b: &LodBlock) -> Block {
 /// The codec's columns of [`packed_block`], straight from the voxels: what
 /// `VoxelColumns::from_block(&packed_block(b))` gives (tested), without the
 /// packed form's Morton → position → Morton round trip.
-fn block_columns(b: &LodBlock) -> VoxelColumns {
+fn block_columns(b: &LodBlock, field: Option<&AoField>) -> VoxelColumns {
     let level = b.key.level;
     let v = &b.voxels;
     let has_color = v.iter().any(|v| v.voxel.color_weight > 0.0);
+    let edge = (1u32 << level) as f32;
+    let origin = b.key.coord().map(|c| (c * BLOCK_SIZE) as f32 * edge);
     VoxelColumns {
         depth: BLOCK_DEPTH,
         morton: v.iter().map(|v| v.voxel.morton).collect(),
@@ -104,6 +107,18 @@ fn block_columns(b: &LodBlock) -> VoxelColumns {
             v.iter().map(|v| coverage_from_count(v.solid as u64, level)).collect()
         },
         color: if has_color { v.iter().map(|v| srgb8_average(&v.voxel)).collect() } else { Vec::new() },
+        // The AO field's byte for each voxel, read at its centre with its normal.
+        field: match field {
+            Some(f) => v
+                .iter()
+                .map(|v| {
+                    let local = local_position(&v.voxel);
+                    let centre: [f32; 3] = std::array::from_fn(|a| origin[a] + (local[a] as f32 + 0.5) * edge);
+                    f.voxel_byte(centre, v.voxel.normal_sum)
+                })
+                .collect(),
+            None => Vec::new(),
+        },
     }
 }
 
@@ -356,6 +371,8 @@ pub struct BlockWriter {
     pub finished_files: Option<crate::pipeline::FinishedFiles>,
     /// Told of the publish before the replaced scene is removed.
     pub on_published: Option<crate::pipeline::OnPublished>,
+    /// The AO field the blocks were encoded with, recorded in the manifest.
+    pub ao_field: Option<voxstream_format::AoFieldInfo>,
 }
 
 impl BlockWriter {
@@ -389,6 +406,7 @@ impl BlockWriter {
             published: false,
             finished_files: None,
             on_published: None,
+            ao_field: None,
         };
         fs::create_dir_all(&writer.packs_dir).map_err(io("create directory", &writer.packs_dir))?;
         Ok(writer)
@@ -543,6 +561,7 @@ impl BlockWriter {
             root_page: top.root_page,
             root_pack: top.root_pack,
             root_page_pack: top.root_page_pack,
+            ao_field: self.ao_field.clone(),
         };
         write_unsynced(&self.tmp.join("manifest.json"), &manifest.to_json())?;
         sync_tree(&self.tmp, std::slice::from_ref(&self.packs_dir))?;
@@ -565,18 +584,23 @@ fn page_err(e: PageError) -> StoreError {
 /// page builder fills it in; location still a file: the writer places it)
 /// and its bytes.
 pub fn encode_entry(b: &LodBlock) -> (BlockEntry, Vec<u8>) {
-    encode_entry_with(b, false)
+    encode_entry_with(b, false, None)
+}
+
+/// [`encode_entry`] with the AO field's column, when there is a field.
+pub fn encode_entry_field(b: &LodBlock, field: Option<&AoField>) -> (BlockEntry, Vec<u8>) {
+    encode_entry_with(b, false, field)
 }
 
 /// [`encode_entry`] for a level-0 block whose face masks were marked over
 /// exactly its voxels (no buried voxel dropped since): each mask is then the
 /// codec's prediction, which it need not compute again.
-pub fn encode_marked_entry(b: &LodBlock) -> (BlockEntry, Vec<u8>) {
-    encode_entry_with(b, true)
+pub fn encode_marked_entry(b: &LodBlock, field: Option<&AoField>) -> (BlockEntry, Vec<u8>) {
+    encode_entry_with(b, true, field)
 }
 
-fn encode_entry_with(b: &LodBlock, faces_predicted: bool) -> (BlockEntry, Vec<u8>) {
-    let columns = block_columns(b);
+fn encode_entry_with(b: &LodBlock, faces_predicted: bool, field: Option<&AoField>) -> (BlockEntry, Vec<u8>) {
+    let columns = block_columns(b, field);
     let bytes = encode_columns(b.key, &columns, faces_predicted);
     let entry = BlockEntry {
         key: b.key,
@@ -868,7 +892,7 @@ mod tests {
                 .collect();
             let b = LodBlock { key: BlockKey::new(level, 3, 1, 2), voxels };
             let packed = packed_block(&b);
-            assert_eq!(block_columns(&b), VoxelColumns::from_block(&packed), "round {round}");
+            assert_eq!(block_columns(&b, None), VoxelColumns::from_block(&packed), "round {round}");
             let (entry, bytes) = encode_entry(&b);
             assert_eq!(bytes, voxstream_format::encode_block(&packed), "round {round}");
             let base = b.key.coord().map(|c| c * BLOCK_SIZE);

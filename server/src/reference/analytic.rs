@@ -244,12 +244,23 @@ pub fn scenes() -> Vec<AnalyticScene> {
 /// Writes the scene's mesh beside `store` and builds it into `store` at
 /// `resolution`; returns the scene directory.
 pub fn build(scene: &AnalyticScene, store: &Path, resolution: u32) -> anyhow::Result<std::path::PathBuf> {
+    build_with_field(scene, store, resolution, Some(Default::default()))
+}
+
+/// [`build`] with the given AO field options (`None`: no field).
+pub fn build_with_field(
+    scene: &AnalyticScene,
+    store: &Path,
+    resolution: u32,
+    ao_field: Option<crate::pipeline::aofield::AoFieldOptions>,
+) -> anyhow::Result<std::path::PathBuf> {
     std::fs::create_dir_all(store)?;
     let mesh = store.join(format!("{}.obj", scene.name));
     scene.write_obj(&mesh)?;
     let options = crate::pipeline::BuildOptions {
         resolution: crate::pipeline::Resolution::Explicit(resolution),
         name: Some(scene.name.replace('_', "-")),
+        ao_field,
         ..crate::pipeline::BuildOptions::default()
     };
     Ok(crate::pipeline::build_scene(&mesh, store, &options)?.scene_dir)

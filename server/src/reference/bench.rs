@@ -58,6 +58,10 @@ pub enum Sweep {
     /// the default setting (1/2 resolution, bilateral, jittered, interleaved,
     /// N frames) and at the cone sweep's full-resolution single frame.
     Structure,
+    /// Both AO modes: cone tracing (the default setting, N frames, and the
+    /// full-resolution single frame) and the precomputed AO field (full
+    /// resolution, one frame: the field has no noise to accumulate).
+    Mode,
 }
 
 /// One setting of the sweep.
@@ -142,6 +146,22 @@ fn structure_sweep(frames: &[u32]) -> Vec<Point> {
         });
     }
     points
+}
+
+fn mode_sweep(frames: &[u32]) -> Vec<Point> {
+    use voxstream_viewer::ao::AoMode;
+    let n = frames.first().copied().unwrap_or(4).clamp(1, voxstream_viewer::ao::MAX_TEMPORAL_FRAMES);
+    let full = AoSettings { trace_downscale: 1, interleave: false, temporal_frames: 1, ..AoSettings::default() };
+    vec![
+        Point { label: format!("cone, default ({n} frames)"), settings: AoSettings::default(), scale: 1, frames: n },
+        Point { label: "cone, 6 cones, full res, 1 frame".into(), settings: full, scale: 1, frames: 1 },
+        Point {
+            label: "field, full res, 1 frame".into(),
+            settings: AoSettings { mode: AoMode::Field, ..full },
+            scale: 1,
+            frames: 1,
+        },
+    ]
 }
 
 fn sweep() -> Vec<Point> {
@@ -290,6 +310,7 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
         Sweep::Cones => sweep(),
         Sweep::SparseTemporal => sparse_temporal_sweep(&args.frames),
         Sweep::Structure => structure_sweep(&args.frames),
+        Sweep::Mode => mode_sweep(&args.frames),
     };
     let mut rows = Vec::new();
     for view in &views {

@@ -15,7 +15,7 @@ use anyhow::{Context, bail, ensure};
 use glam::{DMat4, DVec3, DVec4, Mat4};
 use serde::{Deserialize, Serialize};
 use voxstream_format::Manifest;
-use voxstream_viewer::ao::{AoSettings, AoStructure, cells_for_grid, cone_directions};
+use voxstream_viewer::ao::{AoMode, AoSettings, AoStructure, cells_for_grid, cone_directions};
 use voxstream_viewer::offscreen::{Offscreen, RenderOptions};
 use voxstream_viewer::scene::FixedView;
 
@@ -141,8 +141,13 @@ impl CameraSpec {
 /// The AO settings of a render, in source units, as recorded in render.json.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct AoRecord {
-    /// "cone" (cone tracing) — the only mode so far.
+    /// "cone" (cone tracing) or "field" (the precomputed AO field; R and λ
+    /// are then the field's).
     pub mode: String,
+    /// The scene's AO field (R in source units) when the mode is "field"; `None`
+    /// when the scene has none (every pixel was then cone-traced).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub field: Option<FieldRecord>,
     /// R in source units.
     pub max_distance: f64,
     /// λ.
@@ -239,6 +244,17 @@ pub struct RenderInfo {
     pub surface_pixels: usize,
 }
 
+/// The AO field a "field" render showed (`Manifest::ao_field`, R in source units).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FieldRecord {
+    pub cells: u32,
+    pub cell_size: f64,
+    pub max_distance: f64,
+    pub falloff: f64,
+    /// Surface pixels that showed the field (the rest were cone-traced).
+    pub pixels: usize,
+}
+
 /// One view's outputs in memory (source units).
 #[derive(Debug, Clone)]
 pub struct RenderOutput {
@@ -294,6 +310,12 @@ pub fn render_view(req: &RenderRequest) -> anyhow::Result<RenderOutput> {
     if let Some(r) = req.max_distance {
         ensure!(r.is_finite() && r > 0.0, "--max-distance must be a positive number, got {r}");
         ao.max_distance = Some((r / grid.voxel_size) as f32);
+    }
+    // The field was computed for one R and λ: the render (and its fallback cones) uses those.
+    let field_info = manifest.ao_field.clone().filter(|_| ao.mode == AoMode::Field);
+    if let Some(f) = &field_info {
+        ao.max_distance = Some(f.max_distance);
+        ao.falloff = f.falloff;
     }
     let (w, h) = (req.width, req.height);
     let mut offscreen = Offscreen::open(&req.scene_dir, &RenderOptions::new(w, h))?;
@@ -384,7 +406,14 @@ pub fn render_view(req: &RenderRequest) -> anyhow::Result<RenderOutput> {
         grid_origin: grid.origin,
         grid_resolution: grid.resolution,
         ao: AoRecord {
-            mode: "cone".into(),
+            mode: ao.mode.name().into(),
+            field: field_info.map(|f| FieldRecord {
+                cells: f.cells,
+                cell_size: grid.resolution as f64 / f.cells as f64 * grid.voxel_size,
+                max_distance: f.max_distance as f64 * grid.voxel_size,
+                falloff: f.falloff as f64,
+                pixels: g.field_pixels,
+            }),
             max_distance: uniform.range[0] as f64 * grid.voxel_size,
             falloff: uniform.range[1] as f64,
             cones: ao.cone_count(),
@@ -583,6 +612,7 @@ mod tests {
                 grid_resolution: 64,
                 ao: AoRecord {
                     mode: "cone".into(),
+                    field: None,
                     max_distance: 1.0,
                     falloff: 1.0,
                     cones: 16,
