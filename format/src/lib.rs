@@ -16,8 +16,8 @@ pub mod test_support;
 mod voxel;
 
 pub use codec::{
-    BLOCK_DEPTH, BLOCK_MAGIC, CodecError, ColumnSizes, FLAG_COLOR, FLAG_FIELD, HEADER_LEN, VoxelColumns, decode_block,
-    encode_block, encode_columns,
+    BLOCK_DEPTH, BLOCK_MAGIC, CodecError, ColumnSizes, FLAG_COLOR, FLAG_FIELD, HEADER_LEN, VoxelColumns,
+    decode_block, encode_block, encode_columns,
 };
 pub use hierarchy::{
     BlockLocation, FinishedHierarchy, HierarchyPage, PAGE_LEVELS, PackRange, PackRef, PageBuilder, PageError,

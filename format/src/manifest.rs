@@ -181,7 +181,12 @@ impl Manifest {
             return Err(ManifestError::Version(self.format_version));
         }
         if let Some(f) = &self.ao_field {
-            if !(f.cells > 0 && f.max_distance.is_finite() && f.max_distance > 0.0 && f.falloff.is_finite() && f.falloff >= 0.0) {
+            if !(f.cells > 0
+                && f.max_distance.is_finite()
+                && f.max_distance > 0.0
+                && f.falloff.is_finite()
+                && f.falloff >= 0.0)
+            {
                 return bad(format!("ao_field is invalid: {f:?}"));
             }
         }

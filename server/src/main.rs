@@ -301,7 +301,17 @@ fn no_bucket_store(path: &std::path::Path, flag: &str) -> anyhow::Result<()> {
 
 fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
-        Command::Build { mesh, out, resolution, voxel_size, name, topology, memory_budget, tmp, no_ao_field } => {
+        Command::Build {
+            mesh,
+            out,
+            resolution,
+            voxel_size,
+            name,
+            topology,
+            memory_budget,
+            tmp,
+            no_ao_field,
+        } => {
             let out = voxstream::objstore::parse_location(&out.to_string_lossy())
                 .map_err(|e| anyhow::anyhow!("--out {e}"))?;
             let resolution = voxel_size.map_or(resolution, Resolution::VoxelSize);

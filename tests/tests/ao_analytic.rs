@@ -18,9 +18,9 @@
 
 use std::path::Path;
 
+use voxstream::pipeline::aofield::AoFieldOptions;
 use voxstream::reference::analytic::{self, AnalyticScene, ExactError, Shape, exact_error, exact_image};
 use voxstream::render::{RenderOutput, RenderRequest, render_view};
-use voxstream::pipeline::aofield::AoFieldOptions;
 use voxstream_viewer::ao::{AoMode, AoSettings};
 
 const WIDTH: u32 = 96;
@@ -250,7 +250,13 @@ fn no_occlusion_leaks_through_a_one_voxel_wall() {
 /// The precomputed AO field mode (issue 9 item 2), full resolution, one frame
 /// (the field has no noise to accumulate).
 fn field_mode() -> AoSettings {
-    AoSettings { mode: AoMode::Field, trace_downscale: 1, interleave: false, temporal_frames: 1, ..AoSettings::default() }
+    AoSettings {
+        mode: AoMode::Field,
+        trace_downscale: 1,
+        interleave: false,
+        temporal_frames: 1,
+        ..AoSettings::default()
+    }
 }
 
 /// The bound the field mode is held to per scene (measured, see
@@ -307,7 +313,8 @@ fn a_wrong_field_fails_the_exact_check() {
         let r = render(&good, &scene, field_mode(), None).info.ao.max_distance;
         let r_grid = voxstream_viewer::ao::default_max_distance(RESOLUTION) / 10.0;
         let opts = AoFieldOptions { max_distance: Some(r_grid), ..AoFieldOptions::default() };
-        let short = analytic::build_with_field(&scene, &store.path().join("short"), RESOLUTION, Some(opts)).unwrap();
+        let short =
+            analytic::build_with_field(&scene, &store.path().join("short"), RESOLUTION, Some(opts)).unwrap();
         let mut out = render(&short, &scene, field_mode(), None);
         assert!(out.info.ao.max_distance < r / 5.0, "the field's R is recorded");
         out.info.ao.max_distance = r;

@@ -272,7 +272,8 @@ impl Cones {
     fn viewer_default() -> Self {
         let s = voxstream_viewer::ao::AoSettings::default();
         let dirs = voxstream_viewer::ao::cone_directions(s.cones);
-        let half = s.aperture_deg.map(f32::to_radians).unwrap_or_else(|| (1.0 / (s.cones as f32).sqrt()).asin());
+        let half =
+            s.aperture_deg.map(f32::to_radians).unwrap_or_else(|| (1.0 / (s.cones as f32).sqrt()).asin());
         Self { dirs, tan_half: half.tan(), step: s.step, offset: s.offset_cells }
     }
 }
@@ -292,7 +293,8 @@ impl AoField {
         let near = |x: usize, y: usize, z: usize| -> bool {
             let lo = |c: usize| c.saturating_sub(DILATE as usize);
             let hi = |c: usize| (c + DILATE as usize).min(n - 1);
-            (lo(z)..=hi(z)).any(|cz| (lo(y)..=hi(y)).any(|cy| (lo(x)..=hi(x)).any(|cx| occ.get([cx, cy, cz]))))
+            (lo(z)..=hi(z))
+                .any(|cz| (lo(y)..=hi(y)).any(|cy| (lo(x)..=hi(x)).any(|cx| occ.get([cx, cy, cz]))))
         };
         cube.par_chunks_mut(n * n).enumerate().for_each(|(z, slab)| {
             for y in 0..n {
@@ -364,7 +366,15 @@ impl AoField {
 /// V at `p` (cell units) for the hemisphere around the unit axis `n`: the cone
 /// set turned to `n`, each cone traced through the mips as `shaders/ao.wgsl`
 /// traces the volume (start offset, width clamp, w(d) half an edge on).
-fn visibility(mips: &Mips, cones: &Cones, p: [f32; 3], n: [f32; 3], radius: f32, falloff: f32, size: f32) -> f32 {
+fn visibility(
+    mips: &Mips,
+    cones: &Cones,
+    p: [f32; 3],
+    n: [f32; 3],
+    radius: f32,
+    falloff: f32,
+    size: f32,
+) -> f32 {
     let helper = if n[1].abs() > 0.9 { [1.0, 0.0, 0.0] } else { [0.0, 1.0, 0.0] };
     let t = normalize(cross(helper, n));
     let b = cross(n, t);
@@ -425,7 +435,11 @@ mod tests {
     #[test]
     fn an_open_floor_is_visible_from_above_and_blocked_from_below() {
         let occ = floor();
-        let field = AoField::compute(&occ, 64, &AoFieldOptions { cells: 64, max_distance: Some(8.0), ..Default::default() });
+        let field = AoField::compute(
+            &occ,
+            64,
+            &AoFieldOptions { cells: 64, max_distance: Some(8.0), ..Default::default() },
+        );
         let up = field.voxel_byte([32.5, 32.5, 8.5], [0.0, 0.0, 1.0]);
         assert!(up >= 240, "{up}");
         // Control: a voxel under the floor, facing it, is occluded.

@@ -364,7 +364,8 @@ fn level0_block(
     let marked = block.voxels.len();
     block.voxels.retain(|v| v.voxel.faces != 0);
     // With no buried voxel dropped, every mask is the codec's own prediction.
-    let encode = if block.voxels.len() == marked { write::encode_marked_entry } else { write::encode_entry_field };
+    let encode =
+        if block.voxels.len() == marked { write::encode_marked_entry } else { write::encode_entry_field };
     let encoded = (!block.voxels.is_empty()).then(|| encode(&block, field));
     Ok(Some(Level0 { key, share, encoded }))
 }
@@ -637,9 +638,9 @@ fn produce(
                     return; // its turn comes in a later round
                 }
                 started.fetch_add(1, Ordering::Relaxed);
-                let result = opts
-                    .check_cancelled()
-                    .and_then(|()| level0_block(bins, slot.key, slot.index, frame, opts.topology, levels, field));
+                let result = opts.check_cancelled().and_then(|()| {
+                    level0_block(bins, slot.key, slot.index, frame, opts.topology, levels, field)
+                });
                 let real = match &result {
                     Ok(Some(l0)) => l0.bytes(),
                     _ => 0,

@@ -113,7 +113,8 @@ fn block_columns(b: &LodBlock, field: Option<&AoField>) -> VoxelColumns {
                 .iter()
                 .map(|v| {
                     let local = local_position(&v.voxel);
-                    let centre: [f32; 3] = std::array::from_fn(|a| origin[a] + (local[a] as f32 + 0.5) * edge);
+                    let centre: [f32; 3] =
+                        std::array::from_fn(|a| origin[a] + (local[a] as f32 + 0.5) * edge);
                     f.voxel_byte(centre, v.voxel.normal_sum)
                 })
                 .collect(),

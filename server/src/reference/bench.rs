@@ -151,9 +151,15 @@ fn structure_sweep(frames: &[u32]) -> Vec<Point> {
 fn mode_sweep(frames: &[u32]) -> Vec<Point> {
     use voxstream_viewer::ao::AoMode;
     let n = frames.first().copied().unwrap_or(4).clamp(1, voxstream_viewer::ao::MAX_TEMPORAL_FRAMES);
-    let full = AoSettings { trace_downscale: 1, interleave: false, temporal_frames: 1, ..AoSettings::default() };
+    let full =
+        AoSettings { trace_downscale: 1, interleave: false, temporal_frames: 1, ..AoSettings::default() };
     vec![
-        Point { label: format!("cone, default ({n} frames)"), settings: AoSettings::default(), scale: 1, frames: n },
+        Point {
+            label: format!("cone, default ({n} frames)"),
+            settings: AoSettings::default(),
+            scale: 1,
+            frames: n,
+        },
         Point { label: "cone, 6 cones, full res, 1 frame".into(), settings: full, scale: 1, frames: 1 },
         Point {
             label: "field, full res, 1 frame".into(),
