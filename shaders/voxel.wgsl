@@ -167,8 +167,11 @@ fn gbuffer(in: VertexOut) -> GBufferOut {
     let s = shade(in);
     var out: GBufferOut;
     out.colour = s.colour;
+    // The field's V was computed for the stored normal; where shade() bent the
+    // normal to the other side (a thin sheet seen from behind) it does not
+    // apply, and the trace pass cone-traces the pixel instead.
     var field_w = 1.0;
-    if in.field > 0u {
+    if in.field > 0u && dot(normalize(in.normal), in.face_normal) >= 0.0 {
         field_w = 2.0 + f32(in.field - 1u) / 254.0;
     }
     out.position = vec4<f32>(in.grid_pos, field_w);
