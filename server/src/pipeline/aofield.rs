@@ -52,7 +52,7 @@ pub const DILATE: i32 = 2;
 pub fn peak_bytes(resolution: u32) -> u64 {
     let n = FIELD_CELLS.min(resolution).max(1) as u64;
     let cells = n * n * n;
-    cells / 8 + 8 + cells * 4 * 8 / 7 + 64 + cells * 6
+    cells / 8 + 8 + cells * 4 * 8 / 7 + 64 + cells * 6 + cells * 2
 }
 
 /// How a build computes its AO field (`BuildOptions::ao_field`).
@@ -290,16 +290,20 @@ impl AoField {
         let mips = Mips::new(occ);
         let cones = Cones::viewer_default();
         let mut cube = vec![[0u8; 6]; n * n * n];
-        let near = |x: usize, y: usize, z: usize| -> bool {
-            let lo = |c: usize| c.saturating_sub(DILATE as usize);
-            let hi = |c: usize| (c + DILATE as usize).min(n - 1);
-            (lo(z)..=hi(z))
-                .any(|cz| (lo(y)..=hi(y)).any(|cy| (lo(x)..=hi(x)).any(|cx| occ.get([cx, cy, cz]))))
-        };
+        // Cells within DILATE (Chebyshev) of a marked one: the base mip dilated one axis at a time.
+        let mut near: Vec<bool> = mips.levels[0].1.iter().map(|&o| o > 0.0).collect();
+        for stride in [1, n, n * n] {
+            let prev = near.clone();
+            for (i, v) in near.iter_mut().enumerate() {
+                let c = i / stride % n;
+                let (lo, hi) = (c.saturating_sub(DILATE as usize), (c + DILATE as usize).min(n - 1));
+                *v = (lo..=hi).any(|k| prev[i - c * stride + k * stride]);
+            }
+        }
         cube.par_chunks_mut(n * n).enumerate().for_each(|(z, slab)| {
             for y in 0..n {
                 for x in 0..n {
-                    if !near(x, y, z) {
+                    if !near[(z * n + y) * n + x] {
                         continue;
                     }
                     let p = [x as f32 + 0.5, y as f32 + 0.5, z as f32 + 0.5];
