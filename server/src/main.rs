@@ -51,6 +51,9 @@ enum Command {
         /// field column and the viewer's `field` AO mode falls back to cones.
         #[arg(long)]
         no_ao_field: bool,
+        /// Distinct values the AO field's V is rounded to (2..=255; fewer compress better).
+        #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(2..=255))]
+        ao_field_levels: u32,
     },
     /// Write a synthetic scan (a displaced, finely tessellated sphere) as binary PLY.
     Synth {
@@ -311,6 +314,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             memory_budget,
             tmp,
             no_ao_field,
+            ao_field_levels,
         } => {
             let out = voxstream::objstore::parse_location(&out.to_string_lossy())
                 .map_err(|e| anyhow::anyhow!("--out {e}"))?;
@@ -339,7 +343,10 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 cancel: None,
                 memory_budget,
                 temp_dir: tmp,
-                ao_field: (!no_ao_field).then(Default::default),
+                ao_field: (!no_ao_field).then(|| voxstream::pipeline::aofield::AoFieldOptions {
+                    levels: ao_field_levels,
+                    ..Default::default()
+                }),
                 ..Default::default()
             };
             let (result, published_at) = match out {
