@@ -50,7 +50,12 @@ pub const DILATE: i32 = 2;
 /// opacity mips and the ambient cubes; pass 3 keeps the cubes only), whatever
 /// the scene: counted in the build's `MemoryPlan` reserve.
 pub fn peak_bytes(resolution: u32) -> u64 {
-    let n = FIELD_CELLS.min(resolution).max(1) as u64;
+    peak_bytes_cells(FIELD_CELLS.min(resolution))
+}
+
+/// [`peak_bytes`] for `cells` an edge.
+pub fn peak_bytes_cells(cells: u32) -> u64 {
+    let n = cells.max(1) as u64;
     let cells = n * n * n;
     cells / 8 + 8 + cells * 4 * 8 / 7 + 64 + cells * 6 + cells * 2
 }

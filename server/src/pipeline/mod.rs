@@ -230,7 +230,9 @@ const SPARE_MIN: u64 = 4 << 20;
 pub struct MemoryPlan {
     pub budget: u64,
     pub resolution: u32,
+    /// Bytes held outside the stores: front, writer, one worker and the AO field's peak.
     pub reserve: u64,
+    field_cells: u32,
 }
 
 impl MemoryPlan {
@@ -246,7 +248,7 @@ impl MemoryPlan {
     /// What the pyramid stage holds at worst besides the bins.
     pub fn reserve(resolution: u32) -> u64 {
         let levels = level_count(resolution);
-        Self::front(levels) + Self::writer(levels) + WORKER_BYTES as u64 + aofield::peak_bytes(resolution)
+        Self::front(levels) + Self::writer(levels) + WORKER_BYTES as u64
     }
 
     /// The smallest budget a build at `resolution` can run in, whatever the input.
@@ -274,7 +276,24 @@ impl MemoryPlan {
                 ),
             });
         }
-        Ok(Self { budget, resolution, reserve: Self::reserve(resolution) })
+        // The AO field's cells: the most (128, 64, 32 or 16 an edge) whose peak fits beside the
+        // smallest plan; none at the smallest budgets (the build then leaves the field out).
+        let field_cells = [aofield::FIELD_CELLS, 64, 32, 16]
+            .into_iter()
+            .map(|n| n.min(resolution))
+            .find(|&n| needed + aofield::peak_bytes_cells(n) <= budget)
+            .unwrap_or(0);
+        let field = if field_cells > 0 { aofield::peak_bytes_cells(field_cells) } else { 0 };
+        Ok(Self { budget, resolution, reserve: Self::reserve(resolution) + field, field_cells })
+    }
+
+    /// The AO field's cells per edge that fit this budget (0: none), at most [`aofield::FIELD_CELLS`].
+    pub fn field_cells(&self) -> u32 {
+        self.field_cells
+    }
+
+    fn field_bytes(&self) -> u64 {
+        if self.field_cells > 0 { aofield::peak_bytes_cells(self.field_cells) } else { 0 }
     }
 
     fn spare(&self) -> u64 {
@@ -309,7 +328,7 @@ impl MemoryPlan {
             + Self::writer(levels)
             + self.bin_resident() as u64
             + index_bytes
-            + aofield::peak_bytes(self.resolution);
+            + self.field_bytes();
         let needed = fixed + WORKER_BYTES as u64;
         if self.budget < needed {
             return Err(BuildError::BudgetTooSmall {
@@ -779,9 +798,14 @@ pub fn build_scene_reporting(
     )?;
     // The AO field, from the stream's triangles, before the stream is dropped.
     let field = match &opts.ao_field {
+        Some(_) if plan.field_cells() == 0 => {
+            tracing::info!("build: no AO field, the memory budget has no room for it");
+            None
+        }
         Some(o) => {
             let check = || opts.check_cancelled();
-            let occ = aofield::Occupancy::from_stream(&stream_store, layout, &frame, o.cells, &check)?;
+            let cells = o.cells.min(plan.field_cells());
+            let occ = aofield::Occupancy::from_stream(&stream_store, layout, &frame, cells, &check)?;
             let field = aofield::AoField::compute(&occ, frame.resolution, o);
             tracing::debug!(
                 seconds = start.elapsed().as_secs_f64(),
