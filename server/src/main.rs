@@ -51,6 +51,10 @@ enum Command {
         /// field column and the viewer's `field` AO mode falls back to cones.
         #[arg(long)]
         no_ao_field: bool,
+        /// Cells per edge of the AO field's whole-grid occupancy (at most the resolution);
+        /// its peak memory (≈ 19 B a cell) must fit the budget beside the build's smallest plan.
+        #[arg(long, default_value_t = 128, value_parser = clap::value_parser!(u32).range(2..=512))]
+        ao_field_cells: u32,
         /// Distinct values the AO field's V is rounded to (2..=255; fewer compress better).
         #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(2..=255))]
         ao_field_levels: u32,
@@ -314,6 +318,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             memory_budget,
             tmp,
             no_ao_field,
+            ao_field_cells,
             ao_field_levels,
         } => {
             let out = voxstream::objstore::parse_location(&out.to_string_lossy())
@@ -345,6 +350,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 temp_dir: tmp,
                 ao_field: (!no_ao_field).then(|| voxstream::pipeline::aofield::AoFieldOptions {
                     levels: ao_field_levels,
+                    cells: ao_field_cells,
                     ..Default::default()
                 }),
                 ..Default::default()

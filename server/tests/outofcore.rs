@@ -116,7 +116,8 @@ fn stores_are_byte_identical_across_runs_budgets_and_threads() {
     assert!(String::from_utf8_lossy(&reference["manifest.json"]).contains("\"ao_field\""));
     // The smallest budget: the stream and the bins spill to disk, the bin
     // buffers flush often, one brick in flight, small batches.
-    let least = MemoryPlan::minimum_budget(128);
+    // The AO field (on, 128³ cells) needs its peak beside the smallest plan.
+    let least = MemoryPlan::minimum_budget(128) + voxstream::pipeline::aofield::peak_bytes(128);
     for (threads, budget, t) in
         [(1, 1 << 30, None), (3, least, Some(tmp.path())), (2, least + (64 << 20), None)]
     {

@@ -276,18 +276,30 @@ impl MemoryPlan {
                 ),
             });
         }
-        // The AO field's cells: the most (128, 64, 32 or 16 an edge) whose peak fits beside the
-        // smallest plan; none at the smallest budgets (the build then leaves the field out).
-        let field_cells = [aofield::FIELD_CELLS, 64, 32, 16]
-            .into_iter()
-            .map(|n| n.min(resolution))
-            .find(|&n| needed + aofield::peak_bytes_cells(n) <= budget)
-            .unwrap_or(0);
-        let field = if field_cells > 0 { aofield::peak_bytes_cells(field_cells) } else { 0 };
-        Ok(Self { budget, resolution, reserve: Self::reserve(resolution) + field, field_cells })
+        Ok(Self { budget, resolution, reserve: Self::reserve(resolution), field_cells: 0 })
     }
 
-    /// The AO field's cells per edge that fit this budget (0: none), at most [`aofield::FIELD_CELLS`].
+    /// The plan with an AO field of `cells`³ (its peak joins the reserve); refused when the
+    /// budget has no room for it beside the smallest plan. The cells come from the options,
+    /// never from the budget, so the store stays the same for any budget that holds it.
+    pub fn with_field(self, cells: u32) -> Result<Self, BuildError> {
+        let field = aofield::peak_bytes_cells(cells);
+        let needed = Self::minimum_budget(self.resolution) + field;
+        if self.budget < needed {
+            return Err(BuildError::BudgetTooSmall {
+                budget: self.budget,
+                resolution: self.resolution,
+                needed,
+                detail: format!(
+                    "the AO field of {cells}³ cells takes {} (build with --no-ao-field or a smaller --ao-field-cells)",
+                    mib(field)
+                ),
+            });
+        }
+        Ok(Self { reserve: self.reserve + field, field_cells: cells, ..self })
+    }
+
+    /// The AO field's cells per edge ([`MemoryPlan::with_field`]; 0: no field).
     pub fn field_cells(&self) -> u32 {
         self.field_cells
     }
@@ -782,7 +794,10 @@ pub fn build_scene_reporting(
     let (frame, resolution_choice) =
         voxelize::choose_resolution(&bounds, opts.resolution, edges.median(), max_auto, read_skipped)?;
     drop(edges);
-    let plan = MemoryPlan::new(opts.memory_budget, frame.resolution)?;
+    let mut plan = MemoryPlan::new(opts.memory_budget, frame.resolution)?;
+    if let Some(o) = &opts.ao_field {
+        plan = plan.with_field(o.cells.min(frame.resolution).max(1))?;
+    }
     tracing::debug!(reason = %resolution_choice.reason, "build: resolution");
 
     // Pass 2: bin by block.
@@ -798,13 +813,9 @@ pub fn build_scene_reporting(
     )?;
     // The AO field, from the stream's triangles, before the stream is dropped.
     let field = match &opts.ao_field {
-        Some(_) if plan.field_cells() == 0 => {
-            tracing::info!("build: no AO field, the memory budget has no room for it");
-            None
-        }
         Some(o) => {
             let check = || opts.check_cancelled();
-            let cells = o.cells.min(plan.field_cells());
+            let cells = plan.field_cells();
             let occ = aofield::Occupancy::from_stream(&stream_store, layout, &frame, cells, &check)?;
             let field = aofield::AoField::compute(&occ, frame.resolution, o);
             tracing::debug!(
