@@ -33,5 +33,7 @@ pub fn manifest(
         root_page,
         root_pack: None,
         root_page_pack: None,
+        bounds: None,
+        page_bytes: None,
     }
 }

@@ -191,7 +191,7 @@ async fn collector_removes_replaced_and_orphan_packs_after_the_grace_period_only
     let index = fresh.load_index("koala", &manifest).await.unwrap();
     let mut read = 0;
     for entry in index.blocks() {
-        let bytes = fresh.block("koala", &index, entry).await.unwrap();
+        let bytes = fresh.block("koala", index.pack_range(&entry.key), entry).await.unwrap();
         assert_eq!(blake3::hash(&bytes).to_hex().as_str(), entry.hash);
         read += 1;
     }

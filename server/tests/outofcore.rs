@@ -247,13 +247,16 @@ fn check_packs(store: &Path, id: &str) {
     let scene = voxstream::store::open_scene(store, id).unwrap();
     let mut ranges: BTreeMap<String, Vec<(u64, u64)>> = BTreeMap::new();
     for e in scene.blocks() {
-        let r =
-            scene.index.pack_range(&e.key).unwrap_or_else(|| panic!("{id}: block {} is not packed", e.key));
+        let r = scene
+            .index
+            .read()
+            .pack_range(&e.key)
+            .unwrap_or_else(|| panic!("{id}: block {} is not packed", e.key));
         ranges.entry(r.pack.hash.clone()).or_default().push((r.offset, r.end()));
-        let bytes = scene.read_block(e).unwrap();
+        let bytes = scene.read_block(&e).unwrap();
         assert_eq!(voxstream_format::decode_block(&bytes).unwrap().key, e.key);
     }
-    for (page, range) in scene.index.loaded_pages() {
+    for (page, range) in scene.index.read().loaded_pages() {
         let r = range.unwrap_or_else(|| panic!("{id}: page {} is not packed", page.root));
         ranges.entry(r.pack.hash.clone()).or_default().push((r.offset, r.end()));
     }
@@ -321,14 +324,15 @@ fn streaming_build_matches_the_in_memory_reference() {
         assert_eq!(want.len(), 1 + packs, "{id}: {:?}", want.keys());
         let blocks = report.blocks as usize;
         let scene = voxstream::store::open_scene(&dir.path().join("reference"), &id).unwrap();
-        let full = (blocks + scene.index.pages_loaded()).div_ceil(voxstream::pipeline::write::PACK_MAX_ITEMS);
+        let full =
+            (blocks + scene.index.read().pages_loaded()).div_ceil(voxstream::pipeline::write::PACK_MAX_ITEMS);
         assert!((full..=full + 3).contains(&packs), "{id}: {packs} packs for {blocks} blocks");
         if resolution >= 256 {
             assert!(4 * want.len() <= blocks, "{id}: {} files for {blocks} blocks", want.len());
         }
         check_packs(&dir.path().join("reference"), &id);
         if resolution > 64 {
-            assert!(scene.index.pages_loaded() > 0, "{id}: pages (inside the packs) are compared too");
+            assert!(scene.index.read().pages_loaded() > 0, "{id}: pages (inside the packs) are compared too");
         }
     }
 }
