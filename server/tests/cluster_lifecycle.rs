@@ -180,6 +180,10 @@ async fn bucket_scenes_are_deleted_renamed_and_collected_across_replicas() {
         }
     }
     let gamma_objects = objects(s3.as_ref(), "gamma").await;
+    assert!(
+        !gamma_objects.contains("building.json"),
+        "a finished build deletes its marker: {gamma_objects:?}"
+    );
     // What a killed CLI build leaves: packs under an id that never got a manifest.
     let orphan = format!("scenes/orphan/{}", pack_path(&"0f".repeat(32)));
     s3.put(&orphan.as_str().into(), vec![7u8; 100].into()).await.unwrap();
