@@ -1399,6 +1399,79 @@ mod tests {
         read_mesh_bytes(bytes, MeshFormat::Ply)
     }
 
+    /// Fails if the fixed-size record decoders give a vertex or a triangle
+    /// other than the crate's parse of the same bytes: every scalar type in
+    /// both byte orders (positions, colour channels, ignored properties),
+    /// random bytes (NaN, infinities, negative indices included).
+    #[test]
+    fn record_decoders_match_the_crate() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(8);
+        let header = |format: &str, props: &str| {
+            let text = format!("ply\nformat {format} 1.0\nelement vertex 1\n{props}end_header\n");
+            let mut r = Reader::new(std::io::BufReader::new(text.as_bytes()));
+            Parser::<Skipped>::new().read_header(&mut r).unwrap()
+        };
+        let vertex_props = "property double x\nproperty float y\nproperty int z\nproperty uchar red\n\
+             property ushort green\nproperty float blue\nproperty short extra\nproperty char x2\n\
+             property uint u\nproperty double diffuse_red\n";
+        let other_props =
+            "property uchar x\nproperty ushort y\nproperty char z\nproperty short r\nproperty int g\n";
+        for format in ["binary_little_endian", "binary_big_endian"] {
+            for props in [vertex_props, other_props] {
+                let h = header(format, props);
+                let def = &h.elements["vertex"];
+                let records = VertexRecords::of(def, h.encoding).unwrap();
+                let parser = Parser::<VertexRecord>::new();
+                for _ in 0..2000 {
+                    let bytes: Vec<u8> = (0..records.size).map(|_| rng.random()).collect();
+                    let mut b = &bytes[..];
+                    let want = if h.encoding == Encoding::BinaryBigEndian {
+                        parser.read_big_endian_element(&mut b, def)
+                    } else {
+                        parser.read_little_endian_element(&mut b, def)
+                    }
+                    .unwrap();
+                    let got = records.decode(&bytes);
+                    assert_eq!(got.p.map(f64::to_bits), want.p.map(f64::to_bits), "{format} {bytes:?}");
+                    assert_eq!(got.c.map(f32::to_bits), want.c.map(f32::to_bits), "{format} {bytes:?}");
+                }
+            }
+            for item in ["int", "uint"] {
+                let h = header(format, &format!("property list uchar {item} vertex_indices\n"));
+                let def = &h.elements["vertex"];
+                let records = TriangleRecords::of(def, h.encoding).unwrap();
+                let parser = Parser::<FaceRecord>::new();
+                for k in 0..2000 {
+                    let mut bytes: Vec<u8> = (0..TRIANGLE_RECORD).map(|_| rng.random()).collect();
+                    bytes[0] = 3;
+                    if k % 3 == 0 {
+                        bytes[1..5].copy_from_slice(&[0x80, 0, 0, 0x80]); // negative either way
+                    }
+                    let mut b = &bytes[..];
+                    let want = if h.encoding == Encoding::BinaryBigEndian {
+                        parser.read_big_endian_element(&mut b, def)
+                    } else {
+                        parser.read_little_endian_element(&mut b, def)
+                    }
+                    .unwrap();
+                    let mut scratch = Vec::new();
+                    assert_eq!(
+                        &records.decode(&bytes)[..],
+                        want.indices(&mut scratch),
+                        "{format} {item} {bytes:?}"
+                    );
+                }
+            }
+        }
+        // Not the common layout: the crate reads them.
+        let h = header("binary_little_endian", "property list uchar short vertex_indices\n");
+        assert!(TriangleRecords::of(&h.elements["vertex"], h.encoding).is_none());
+        let h = header("ascii", "property list uchar int vertex_indices\n");
+        assert!(TriangleRecords::of(&h.elements["vertex"], h.encoding).is_none());
+        assert!(VertexRecords::of(&h.elements["vertex"], h.encoding).is_none());
+    }
+
     const ASCII: &[u8] =
         b"ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n\
 element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n";
