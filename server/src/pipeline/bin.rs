@@ -16,9 +16,12 @@
 //!    segment however many triangles it has. The pipeline runs blocks in the
 //!    Morton order of [`Bins::blocks`], in parallel batches.
 //!
-//! Determinism: passes 1 and 2 are sequential, and in pass 3 each block is
-//! one thread's work over its triangles in input order, so the output does
-//! not depend on the thread count or on where buffers were flushed.
+//! Determinism: passes 1 and 2 do their work on all cores but append it in
+//! input order (pass 1: pieces encoded by the readers' workers; pass 2:
+//! chunks grouped by block on all cores, appended one group after another),
+//! and in pass 3 each block is one thread's work over its triangles in input
+//! order, so the output does not depend on the thread count or on where
+//! buffers were flushed.
 //!
 //! Memory (shares from [`crate::pipeline::MemoryPlan`]): stream and bin
 //! stores keep their resident share of encoded chunks and spill the rest to
