@@ -296,6 +296,12 @@ impl MemoryPlan {
         (self.spare() / 8) as usize
     }
 
+    /// Pass 2: what the chunks being grouped by block may take. The pyramid
+    /// stage's reserve is not in use yet, so they get it.
+    pub fn bin_groups(&self) -> usize {
+        self.reserve as usize
+    }
+
     /// Bytes pass 3 has for workers and waiting level-0 blocks, once the
     /// bins hold `index_bytes` of index; an error when not even one worker fits.
     pub fn pass3_pool(&self, index_bytes: u64) -> Result<u64, BuildError> {
@@ -747,7 +753,7 @@ pub fn build_scene_reporting(
         layout,
         &frame,
         &temp.path().join("bins.vxt"),
-        (plan.bin_resident(), plan.bin_buffers()),
+        (plan.bin_resident(), plan.bin_buffers(), plan.bin_groups()),
         opts,
         &progress,
     )?;
