@@ -958,6 +958,45 @@ impl SceneIndex {
         Some((r, range))
     }
 
+    /// A page named so far, loaded or not, and its range when it lies in a pack.
+    pub fn page(&self, root: &BlockKey) -> Option<(&PageRef, Option<PackRange>)> {
+        self.loaded_page(root).or_else(|| {
+            let (r, pack) = self.pending.get(root)?;
+            Some((r, pack.clone().map(|pack| PackRange { pack, offset: r.location.offset, bytes: r.bytes })))
+        })
+    }
+
+    /// Whether `root`'s page is named and not loaded yet.
+    pub fn is_pending(&self, root: &BlockKey) -> bool {
+        self.pending.contains_key(root)
+    }
+
+    /// The next page to load before `key`'s entry is known: the topmost page on the path from the
+    /// tree's root down to `key` that is named but not loaded. `None` once every page on the path
+    /// is loaded (then [`Self::block`] answers for good), or when the path leaves the named
+    /// pages (then no page can list `key`, and it is not in the scene).
+    ///
+    /// A reader that loads what this returns until it is `None` fetches only the pages on one
+    /// path: a lookup costs at most `levels / page_levels` pages, whatever the scene's size.
+    pub fn page_toward(&self, key: &BlockKey) -> Option<&PageRef> {
+        let coarsest = self.root.level;
+        let mut path = Vec::new();
+        let mut k = *key;
+        while let Some(r) = page_root_of(&k, coarsest, self.page_levels) {
+            path.push(r);
+            k = r;
+        }
+        if k != self.root {
+            return None;
+        }
+        for r in path.iter().rev() {
+            if !self.loaded.contains_key(r) {
+                return self.pending.get(r).map(|(p, _)| p);
+            }
+        }
+        None
+    }
+
     pub fn pages_loaded(&self) -> usize {
         self.pages_loaded
     }
@@ -1364,6 +1403,55 @@ mod tests {
         assert!(
             index.insert_page(HierarchyPage::decode(bytes, root_page.as_ref().unwrap()).unwrap()).is_err()
         );
+    }
+
+    #[test]
+    fn a_lookup_loads_only_the_pages_on_its_path() {
+        let levels = tree(&sample_level0());
+        let coarsest = (levels.len() - 1) as u8;
+        let (pages, root, root_page) = build(&levels.iter().flatten().copied().collect::<Vec<_>>(), coarsest);
+        let store: HashMap<String, Vec<u8>> =
+            pages.iter().map(|(r, b)| (r.hash.clone(), b.clone())).collect();
+        let manifest = manifest_for(root, root_page, coarsest);
+        let full = load_scene_index(&manifest, |r, _| {
+            store.get(&r.hash).cloned().ok_or_else(|| std::io::Error::other("missing"))
+        })
+        .unwrap();
+        let lookup = |index: &mut SceneIndex, key: &BlockKey| {
+            let mut loads = 0;
+            while let Some(r) = index.page_toward(key).cloned() {
+                index.insert_page(HierarchyPage::decode(&store[&r.hash], &r).unwrap()).unwrap();
+                loads += 1;
+            }
+            loads
+        };
+        // Every block of the scene, each from a fresh index: the same entry as the full load,
+        // after at most one page per page layer (two here: levels 5 and 2 root pages).
+        for k in levels.iter().flatten() {
+            let mut index = SceneIndex::new(&manifest);
+            let loads = lookup(&mut index, k);
+            assert!(loads <= 2, "{k}: {loads} pages");
+            assert_eq!(index.block(k), full.block(k), "{k}");
+            assert_eq!(index.pack_range(k), full.pack_range(k), "{k}");
+        }
+        // Keys the scene lacks: at most the path's pages, then a definite no.
+        let level0: BTreeSet<BlockKey> = levels[0].iter().copied().collect();
+        let absent = (0..32).map(|x| BlockKey::new(0, x, 31, 0)).find(|k| !level0.contains(k)).unwrap();
+        let mut index = SceneIndex::new(&manifest);
+        assert!(lookup(&mut index, &absent) <= 2);
+        assert!(index.block(&absent).is_none());
+        assert!(index.pages_loaded() < full.pages_loaded(), "a lookup loaded the whole index");
+        for outside in [
+            BlockKey::new(0, 5000, 0, 0),
+            BlockKey::new(coarsest, 1, 0, 0),
+            BlockKey::new(coarsest + 1, 0, 0, 0),
+        ] {
+            assert!(SceneIndex::new(&manifest).page_toward(&outside).is_none(), "{outside}");
+        }
+        // Control: with nothing loaded, a level-0 block is unknown.
+        let k = levels[0][0];
+        assert!(SceneIndex::new(&manifest).block(&k).is_none());
+        assert!(SceneIndex::new(&manifest).page_toward(&k).is_some());
     }
 
     #[test]

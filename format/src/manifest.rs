@@ -123,6 +123,13 @@ pub struct Manifest {
     /// root page is its own file or there is no root page.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub root_page_pack: Option<PackRef>,
+    /// Tight bounds of the level-0 voxels, so a catalog can show the scene's extent without
+    /// reading every hierarchy page. Absent in scenes built before it was written.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bounds: Option<VoxelBounds>,
+    /// Bytes of all hierarchy pages together (absent in older scenes, like `bounds`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub page_bytes: Option<u64>,
     /// The precomputed AO field the blocks carry (issue 9 item 2; their AO
     /// field column), with the R and λ it was computed for; `None` when the
     /// blocks have none (a scene built without it, or before it existed).
@@ -240,6 +247,11 @@ impl Manifest {
                 _ => return bad("the root page's pack range is not in the root page's pack".into()),
             }
         }
+        if let Some(b) = &self.bounds
+            && (0..3).any(|a| b.min[a] >= b.max[a] || b.max[a] > self.grid.resolution)
+        {
+            return bad(format!("scene bounds {:?}..{:?} are empty or outside the grid", b.min, b.max));
+        }
         if self.resolution_choice.resolution != self.grid.resolution {
             return bad("resolution choice disagrees with the grid".into());
         }
@@ -335,6 +347,8 @@ mod tests {
             root_pack: None,
             root_page_pack: None,
             ao_field: None,
+            bounds: Some(VoxelBounds { min: [0, 0, 0], max: [1, 1, 1] }),
+            page_bytes: Some(99),
         }
     }
 
@@ -344,6 +358,11 @@ mod tests {
         let back = Manifest::from_json(&m.to_json()).unwrap();
         assert_eq!(back, m);
         assert_eq!(back.grid.origin[0], 1e7);
+        // Written before `bounds` and `page_bytes` existed: still read, without them.
+        let mut older: serde_json::Value = serde_json::from_slice(&m.to_json()).unwrap();
+        older.as_object_mut().unwrap().retain(|k, _| k != "bounds" && k != "page_bytes");
+        let back = Manifest::from_json(&serde_json::to_vec(&older).unwrap()).unwrap();
+        assert_eq!((back.bounds, back.page_bytes), (None, None));
         assert_eq!(back.block_count(), 2);
     }
 
@@ -361,6 +380,11 @@ mod tests {
         let mut m = sample();
         m.grid.resolution = 96;
         assert!(Manifest::from_json(&m.to_json()).is_err());
+        let mut m = sample();
+        m.bounds = Some(VoxelBounds { min: [0, 0, 0], max: [129, 1, 1] });
+        assert!(Manifest::from_json(&m.to_json()).is_err(), "bounds beyond the grid");
+        m.bounds = Some(VoxelBounds { min: [0, 3, 0], max: [1, 3, 1] });
+        assert!(Manifest::from_json(&m.to_json()).is_err(), "empty bounds");
         let mut m = sample();
         m.format_version = 99;
         assert!(matches!(Manifest::from_json(&m.to_json()), Err(ManifestError::Version(99))));

@@ -34,5 +34,7 @@ pub fn manifest(
         root_pack: None,
         root_page_pack: None,
         ao_field: None,
+        bounds: None,
+        page_bytes: None,
     }
 }

@@ -26,6 +26,52 @@ pub const UPLOAD_CONCURRENCY: usize = 4;
 /// Immutable, content-addressed objects (packs and pages) are cached by anyone for a year.
 const IMMUTABLE: &str = "public, max-age=31536000, immutable";
 
+/// `<id>/building.json`: written when a build into the bucket starts, rewritten every
+/// [`MARKER_REFRESH`] while it runs, deleted once its manifest is written. The collector leaves an
+/// id alone while its marker is younger than [`MARKER_LIVE`], so a long `voxstream build --out
+/// s3://…` run outside the cluster (no coordinator fences it) keeps its packs however long it
+/// takes; a killed build's marker goes stale and its objects are collected as before.
+pub const BUILD_MARKER: &str = "building.json";
+/// How often a running build rewrites its marker.
+pub const MARKER_REFRESH: std::time::Duration = std::time::Duration::from_secs(30);
+/// How long a marker counts as a running build: four refreshes missed.
+pub const MARKER_LIVE: std::time::Duration = std::time::Duration::from_secs(120);
+
+/// Whether a marker written at `written_ms` (unix ms) still stands for a running build at `now_ms`.
+pub fn marker_is_live(written_ms: i64, now_ms: i64) -> bool {
+    now_ms.saturating_sub(written_ms) < MARKER_LIVE.as_millis() as i64
+}
+
+/// The running build's marker: rewritten by a task on the upload runtime until dropped.
+struct BuildMarker {
+    rel: String,
+    refresh: tokio::task::JoinHandle<()>,
+}
+
+impl BuildMarker {
+    fn start(bucket: &Arc<Bucket>, id: &str, handle: &tokio::runtime::Handle) -> anyhow::Result<Self> {
+        let rel = format!("{id}/{BUILD_MARKER}");
+        let body = serde_json::json!({ "pid": std::process::id() }).to_string().into_bytes();
+        handle.block_on(bucket.put(&rel, body.clone(), "application/json", "no-cache"))?;
+        let (bucket, again) = (bucket.clone(), rel.clone());
+        let refresh = handle.spawn(async move {
+            loop {
+                tokio::time::sleep(MARKER_REFRESH).await;
+                if let Err(e) = bucket.put(&again, body.clone(), "application/json", "no-cache").await {
+                    tracing::warn!(marker = %again, error = %format!("{e:#}"), "cannot refresh the build marker");
+                }
+            }
+        });
+        Ok(Self { rel, refresh })
+    }
+}
+
+impl Drop for BuildMarker {
+    fn drop(&mut self) {
+        self.refresh.abort();
+    }
+}
+
 /// What a build into a bucket published.
 pub struct BucketBuild {
     pub report: BuildReport,
@@ -71,6 +117,8 @@ pub struct StagedScene {
     bytes: u64,
     /// The local build the report names; removed with the staged scene.
     _scratch: tempfile::TempDir,
+    /// Kept fresh until the manifest is written (dropped on failure: it goes stale).
+    marker: BuildMarker,
 }
 
 impl StagedScene {
@@ -78,7 +126,13 @@ impl StagedScene {
     pub async fn publish(&self, bucket: &Bucket) -> anyhow::Result<()> {
         bucket
             .put(&format!("{}/manifest.json", self.id), self.manifest.clone(), "application/json", "no-cache")
-            .await
+            .await?;
+        self.marker.refresh.abort();
+        if let Err(e) = bucket.store.delete(&bucket.path(&self.marker.rel)).await {
+            // Harmless: it goes stale, and the collector removes it.
+            tracing::warn!(marker = %self.marker.rel, error = %e, "cannot delete the build marker");
+        }
+        Ok(())
     }
 
     pub fn into_build(self, bucket: &Bucket) -> BucketBuild {
@@ -115,6 +169,7 @@ pub fn stage_in_bucket(
         .tempdir_in(&scratch_parent)
         .with_context(|| format!("cannot create a temporary store in {}", scratch_parent.display()))?;
 
+    let marker = BuildMarker::start(bucket, &id, handle)?;
     let (tx, rx) = tokio::sync::mpsc::channel::<(String, Vec<u8>)>(UPLOAD_QUEUE);
     let failure: Arc<Mutex<Option<String>>> = Arc::default();
     let uploader = handle.spawn(upload_all(bucket.clone(), id.clone(), rx, failure.clone()));
@@ -141,7 +196,7 @@ pub fn stage_in_bucket(
     let manifest_path = report.scene_dir.join("manifest.json");
     let manifest = std::fs::read(&manifest_path)
         .with_context(|| format!("cannot read the built manifest {}", manifest_path.display()))?;
-    Ok(StagedScene { report, id, manifest, objects, bytes, _scratch: scratch })
+    Ok(StagedScene { report, id, manifest, objects, bytes, _scratch: scratch, marker })
 }
 
 /// Uploads queued files, [`UPLOAD_CONCURRENCY`] at once, until the queue closes; on the first
@@ -204,4 +259,21 @@ async fn upload_all(
         }
     }
     Ok((objects, bytes))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_marker_stands_for_a_build_until_four_refreshes_are_missed() {
+        let now = 1_000_000_000;
+        assert!(marker_is_live(now, now));
+        assert!(marker_is_live(now - MARKER_REFRESH.as_millis() as i64, now), "one refresh late");
+        assert!(marker_is_live(now - 119_999, now));
+        assert!(!marker_is_live(now - 120_000, now), "stale");
+        assert!(!marker_is_live(0, now));
+        assert!(marker_is_live(now + 5_000, now), "a clock ahead of this one still counts");
+        assert!(MARKER_LIVE >= MARKER_REFRESH * 4);
+    }
 }

@@ -354,10 +354,12 @@ impl BucketStore {
 
     /// A block's bytes: one ranged GET of its pack (or the whole object of a block stored as its
     /// own file), checked against the entry's hash before it is cached.
+    /// `range` is where the block lies in its pack (`SceneIndex::pack_range`); `None` for a block
+    /// stored as its own object.
     pub async fn block(
         &self,
         id: &str,
-        index: &SceneIndex,
+        range: Option<PackRange>,
         entry: &BlockEntry,
     ) -> Result<Bytes, BlockReadError> {
         let key = CacheKey::Block(entry.hash.clone());
@@ -367,7 +369,7 @@ impl BucketStore {
         }
         self.metrics.count(&key, false);
         let unreadable = |detail: String| BlockReadError::Unreadable { key: entry.key, detail };
-        let bytes = match index.pack_range(&entry.key) {
+        let bytes = match range {
             None => self
                 .get(&format!("{id}/blocks/{}.vxb", entry.key))
                 .await

@@ -16,13 +16,13 @@ use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use axum::body::Bytes;
 use serde::{Deserialize, Serialize};
-use voxstream_format::Manifest;
+use voxstream_format::{Manifest, SceneIndex};
 
 use futures_util::StreamExt;
 
 use crate::bucket_store::BucketStore;
 use crate::coordinator::Coordinator;
-use crate::store::{self, SceneFiles, StoreError, StoredScene};
+use crate::store::{self, PagedIndex, SceneFiles, StoreError, StoredScene};
 
 pub const BUILD_INFO_FILE: &str = "scene.json";
 
@@ -98,22 +98,20 @@ impl LoadedScene {
 
 fn scene_meta(stored: &StoredScene, info: &BuildInfo, manifest_bytes: u64) -> SceneMeta {
     let (id, m) = (&stored.id, &stored.manifest);
-    let mut lo = [f64::INFINITY; 3];
-    let mut hi = [f64::NEG_INFINITY; 3];
-    let page_bytes = stored.index.page_bytes_loaded();
-    for b in stored.index.blocks() {
-        if b.key.level != 0 {
-            continue;
+    // Scenes built before the manifest stated these were read whole when listed.
+    let (lo, hi) = match m.bounds {
+        Some(b) => b.grid_units(0),
+        None => {
+            let index = stored.index.read();
+            let level0 = index.blocks().filter(|b| b.key.level == 0).map(|b| b.bounds.grid_units(0));
+            level0
+                .reduce(|(lo, hi), (bmin, bmax)| {
+                    (std::array::from_fn(|a| lo[a].min(bmin[a])), std::array::from_fn(|a| hi[a].max(bmax[a])))
+                })
+                .unwrap_or(([0.0; 3], [0.0; 3]))
         }
-        let (bmin, bmax) = b.bounds.grid_units(0);
-        for a in 0..3 {
-            lo[a] = lo[a].min(bmin[a]);
-            hi[a] = hi[a].max(bmax[a]);
-        }
-    }
-    if lo[0] > hi[0] {
-        (lo, hi) = ([0.0; 3], [0.0; 3]);
-    }
+    };
+    let page_bytes = m.page_bytes.unwrap_or_else(|| stored.index.read().page_bytes_loaded());
     let to_source = |g: [f64; 3]| std::array::from_fn(|a| m.grid.origin[a] + g[a] * m.grid.voxel_size);
     SceneMeta {
         id: id.to_string(),
@@ -332,12 +330,17 @@ impl Catalog {
         let info: BuildInfo =
             info_bytes.as_deref().and_then(|b| serde_json::from_slice(b).ok()).unwrap_or_default();
         let manifest = Manifest::from_json(&bytes).map_err(|e| format!("scene {id} is damaged: {e}"))?;
-        let index = bucket.load_index(id, &manifest).await.map_err(|e| e.to_string())?;
+        // Pages are read as lookups reach them, unless the listing itself needs them all.
+        let index = if store::lists_from_manifest(&manifest) {
+            SceneIndex::new(&manifest)
+        } else {
+            bucket.load_index(id, &manifest).await.map_err(|e| e.to_string())?
+        };
         let stored = StoredScene {
             id: id.to_string(),
             files: SceneFiles::Bucket(bucket.clone()),
             manifest,
-            index: Arc::new(index),
+            index: Arc::new(PagedIndex::new(index)),
         };
         let loaded = Arc::new(LoadedScene::load_with(stored, info));
         self.scenes.write().expect("catalog lock").insert(id.to_string(), loaded);
@@ -398,7 +401,7 @@ impl Catalog {
                 message: format!("{} is served read-only", b.url()),
             });
         }
-        let loaded = Arc::new(LoadedScene::load(store::open_scene(&self.store, id)?));
+        let loaded = Arc::new(LoadedScene::load(store::open_scene_listed(&self.store, id)?));
         self.scenes.write().expect("catalog lock").insert(id.to_string(), loaded.clone());
         Ok(loaded)
     }

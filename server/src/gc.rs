@@ -7,7 +7,9 @@
 //!
 //! What is removed, per scene id under the prefix, holding that scene's lock in the coordinator
 //! (tried, not waited for: a scene being edited is skipped) and only when no build of it is queued
-//! or running:
+//! or running, nor a build marker younger than [`crate::bucket_build::MARKER_LIVE`] says a build is
+//! writing it (`<id>/building.json`, rewritten every 30 s by every build into the bucket, the
+//! cluster's and `voxstream build --out s3://…` alike, deleted after its manifest):
 //! - with a manifest: objects under `<id>/packs/` that the manifest's scene (every page of its
 //!   hierarchy) does not name, once both the object and the manifest are older than the grace
 //!   period;
@@ -18,9 +20,10 @@
 //! replaced, a replica may serve the previous manifest until its next listing, and a browser that
 //! fetched it keeps asking for the blocks it names; the objects only that manifest names became
 //! unreferenced when the new one was written, so they are kept until the new manifest is older
-//! than the grace period. The objects' own age covers builds that are not fenced by the
-//! coordinator (`voxstream build --out s3://…` from a workstation): their packs are uploaded before
-//! their manifest, so such a build must finish within the grace period (default one hour).
+//! than the grace period. Builds that are not fenced by the coordinator (`voxstream build --out
+//! s3://…` from a workstation) upload their packs before their manifest and keep them with their
+//! marker, however long they take; once a killed build's marker is stale, its objects are garbage
+//! like any other (a stale marker under a published scene goes too).
 //!
 //! One replica collects at a time (a try-lock in the coordinator, [`crate::coordinator::GC_LOCK`]);
 //! the others skip their pass. What is removed is logged and counted in `/metrics`
@@ -33,6 +36,7 @@ use prometheus_client::metrics::counter::Counter;
 use voxstream_format::Manifest;
 use voxstream_format::hierarchy::pack_path;
 
+use crate::bucket_build::{BUILD_MARKER, marker_is_live};
 use crate::bucket_store::{BucketStore, ObjectInfo};
 use crate::coordinator::{Coordinator, SceneLockError, upload_prefix};
 
@@ -92,7 +96,11 @@ pub async fn collect(
                 .with_scenes_locked(&[id.as_str()], false, collect_scene(bucket, &id, grace))
                 .await
             {
-                Ok(Ok((objects, bytes))) => {
+                Ok(Ok(None)) => {
+                    tracing::info!(scene = %id, "not collected: a build outside the cluster is writing it");
+                    report.skipped.push(id);
+                }
+                Ok(Ok(Some((objects, bytes)))) => {
                     if objects > 0 {
                         tracing::info!(scene = %id, objects, bytes, "collected unreferenced objects");
                     }
@@ -125,12 +133,22 @@ pub async fn collect(
 }
 
 /// The garbage of one scene id (its lock held, no build of it queued or running).
-async fn collect_scene(bucket: &BucketStore, id: &str, grace: Duration) -> Result<(u64, u64), String> {
+/// `None`: a build outside the cluster is writing the id (its marker is live), so it is skipped.
+async fn collect_scene(
+    bucket: &BucketStore,
+    id: &str,
+    grace: Duration,
+) -> Result<Option<(u64, u64)>, String> {
     let now = now_ms();
     let old = |t: i64| now.saturating_sub(t) >= grace.as_millis() as i64;
     // Listed before the manifest is read: an object the listing shows is either named by the
     // manifest read after it or was uploaded before it.
     let objects = bucket.list_under(id).await?;
+    let marker = format!("{id}/{BUILD_MARKER}");
+    let marker_written = objects.iter().find(|o| o.rel == marker).map(|o| o.modified_ms);
+    if marker_written.is_some_and(|t| marker_is_live(t, now)) {
+        return Ok(None);
+    }
     let garbage: Vec<ObjectInfo> = match bucket.manifest_with_time(id).await? {
         None => objects.into_iter().filter(|o| old(o.modified_ms)).collect(),
         Some((_, written)) if !old(written) => Vec::new(),
@@ -144,13 +162,17 @@ async fn collect_scene(bucket: &BucketStore, id: &str, grace: Duration) -> Resul
             let keep: HashSet<String> =
                 index.packs().map(|p| format!("{id}/{}", pack_path(&p.hash))).collect();
             let packs = format!("{id}/packs/");
+            // A killed replacing build's stale marker goes too.
             objects
                 .into_iter()
-                .filter(|o| o.rel.starts_with(&packs) && !keep.contains(&o.rel) && old(o.modified_ms))
+                .filter(|o| {
+                    ((o.rel.starts_with(&packs) && !keep.contains(&o.rel)) || o.rel == marker)
+                        && old(o.modified_ms)
+                })
                 .collect()
         }
     };
-    bucket.delete_all(&garbage).await
+    bucket.delete_all(&garbage).await.map(Some)
 }
 
 /// Parts under `.uploads/<upload>/` whose upload has no record any more, older than `grace`.

@@ -180,14 +180,15 @@ fn read_checked_pack(scene: &StoredScene, pack: &PackRef, blocks: &[PackedBlock]
 /// Every pack the scene's hierarchy names, in a fixed order, with the blocks each holds.
 fn scene_packs(scene: &StoredScene) -> anyhow::Result<Vec<(PackRef, Vec<PackedBlock>)>> {
     let mut by_pack: std::collections::HashMap<String, Vec<PackedBlock>> = Default::default();
+    let index = scene.index.read();
     for e in scene.blocks() {
-        let r = scene.index.pack_range(&e.key).with_context(|| {
+        let r = index.pack_range(&e.key).with_context(|| {
             format!("scene {:?}: block {} is in no pack (rebuild the scene)", scene.id, e.key)
         })?;
         by_pack.entry(r.pack.hash.clone()).or_default().push((e.key, e.hash.clone(), r.offset, r.end()));
     }
     let mut packs: Vec<(PackRef, Vec<PackedBlock>)> =
-        scene.index.packs().map(|p| (p.clone(), by_pack.remove(&p.hash).unwrap_or_default())).collect();
+        index.packs().map(|p| (p.clone(), by_pack.remove(&p.hash).unwrap_or_default())).collect();
     packs.sort_by(|a, b| a.0.hash.cmp(&b.0.hash));
     Ok(packs)
 }

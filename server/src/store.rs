@@ -13,8 +13,8 @@ use std::sync::Arc;
 
 use axum::body::Bytes;
 use futures_util::{StreamExt, TryStreamExt};
-use voxstream_format::hierarchy::{PackRange, content_hash, pack_path, page_path};
-use voxstream_format::{BlockEntry, BlockKey, Manifest, SceneIndex, load_scene_index};
+use voxstream_format::hierarchy::{HierarchyPage, PackRange, content_hash, pack_path, page_path};
+use voxstream_format::{BlockEntry, BlockKey, Manifest, PageRef, SceneIndex, load_scene_index};
 
 use crate::bucket_store::{BucketReadError, BucketStore};
 
@@ -31,6 +31,9 @@ pub enum StoreError {
     BadId(String),
     #[error("scene {id} is damaged: {message}")]
     Damaged { id: String, message: String },
+    /// Part of the scene vanished under a reader that listed it: deleted, renamed or replaced.
+    #[error("scene {id} changed since it was listed ({message}): fetch the manifest again")]
+    Gone { id: String, message: String },
 }
 
 pub(crate) fn io<'a>(action: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -> StoreError + 'a {
@@ -86,14 +89,37 @@ impl std::fmt::Debug for SceneFiles {
     }
 }
 
-/// A published scene, as the server reads it: the manifest and every page,
-/// checked when opened, so a listed scene's hierarchy is complete.
+/// A published scene, as the server reads it: its manifest, and its hierarchy as far as it has
+/// been read ([`PagedIndex`]).
 #[derive(Debug, Clone)]
 pub struct StoredScene {
     pub id: String,
     pub files: SceneFiles,
     pub manifest: Manifest,
-    pub index: std::sync::Arc<SceneIndex>,
+    pub index: Arc<PagedIndex>,
+}
+
+/// A scene's hierarchy as far as it has been read. [`open_scene`] reads every page (the CLI,
+/// publish and thumbnails of old scenes want them all); a server lists a scene from its
+/// manifest alone and reads the pages on a block's path when the block is first asked for
+/// ([`StoredScene::entry`]), so listing a scene of millions of blocks costs one object, and a
+/// lookup at most one page per page layer.
+#[derive(Debug)]
+pub struct PagedIndex(std::sync::RwLock<SceneIndex>);
+
+impl PagedIndex {
+    pub fn new(index: SceneIndex) -> Self {
+        Self(std::sync::RwLock::new(index))
+    }
+
+    /// What is loaded so far. Never held across an await.
+    pub fn read(&self) -> std::sync::RwLockReadGuard<'_, SceneIndex> {
+        self.0.read().unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    fn write(&self) -> std::sync::RwLockWriteGuard<'_, SceneIndex> {
+        self.0.write().unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
 }
 
 impl StoredScene {
@@ -133,10 +159,12 @@ impl StoredScene {
             SceneFiles::Bucket(bucket) => {
                 let handle = tokio::runtime::Handle::try_current()
                     .map_err(|_| unreadable("a bucket scene is read inside the server's runtime".into()))?;
-                return handle.block_on(bucket.block(&self.id, &self.index, entry)).map(|b| b.to_vec());
+                let range = self.index.read().pack_range(&key);
+                return handle.block_on(bucket.block(&self.id, range, entry)).map(|b| b.to_vec());
             }
         };
-        let bytes = match self.index.pack_range(&key) {
+        let range = self.index.read().pack_range(&key);
+        let bytes = match range {
             None => {
                 let rel = format!("blocks/{key}.vxb");
                 fs::read(dir.join(&rel)).map_err(|e| unreadable(format!("{rel}: {e}")))?
@@ -182,7 +210,10 @@ impl StoredScene {
                         Err(BlockReadError::Unreadable { key: entry.key, detail: join.to_string() })
                     })
             }
-            SceneFiles::Bucket(bucket) => bucket.block(&self.id, &self.index, entry).await,
+            SceneFiles::Bucket(bucket) => {
+                let range = self.index.read().pack_range(&entry.key);
+                bucket.block(&self.id, range, entry).await
+            }
         }
     }
 
@@ -200,8 +231,12 @@ impl StoredScene {
                 .unwrap_or_else(|join| Err(BlockReadError::Unreadable { key, detail: join.to_string() }))
             }
             SceneFiles::Bucket(bucket) => {
-                futures_util::stream::iter(entries)
-                    .map(|e| async move { bucket.block(&self.id, &self.index, &e).await })
+                let ranged: Vec<_> = {
+                    let index = self.index.read();
+                    entries.into_iter().map(|e| (index.pack_range(&e.key), e)).collect()
+                };
+                futures_util::stream::iter(ranged)
+                    .map(|(range, e)| async move { bucket.block(&self.id, range, &e).await })
                     .buffered(BUCKET_BATCH_FETCHES)
                     .try_collect()
                     .await
@@ -211,38 +246,103 @@ impl StoredScene {
 
     /// A hierarchy page's bytes if they are the ones `hash` names; `None` when the scene has no such
     /// page (any more).
-    pub async fn read_page(&self, root: &BlockKey, hash: &str) -> Result<Option<Bytes>, String> {
+    pub async fn read_page(&self, root: &BlockKey, hash: &str) -> Result<Option<Bytes>, StoreError> {
+        let Some((page, range)) = self.page_ref(root).await? else { return Ok(None) };
+        if page.hash != hash {
+            return Ok(None);
+        }
+        let failed = |message: String| StoreError::Damaged { id: self.id.clone(), message };
         match &self.files {
             SceneFiles::Dir(dir) => {
-                let (dir, root, range) =
-                    (dir.clone(), *root, self.index.loaded_page(root).and_then(|(_, r)| r));
+                let (dir, root) = (dir.clone(), *root);
                 let bytes = tokio::task::spawn_blocking(move || match range {
                     Some(range) => read_pack_range(&dir, &range),
                     None => fs::read(dir.join(page_path(&root))),
                 })
                 .await
-                .map_err(|e| e.to_string())?
+                .map_err(|e| failed(e.to_string()))?
                 .ok();
                 // Checked on every read, as blocks are: a replaced scene must not answer an old URL
                 // with new bytes.
                 Ok(bytes.filter(|b| content_hash(b) == hash).map(Bytes::from))
             }
-            SceneFiles::Bucket(bucket) => {
-                let Some((page, range)) = self.index.loaded_page(root).filter(|(p, _)| p.hash == hash) else {
-                    return Ok(None);
-                };
-                match bucket.page(&self.id, page, range).await {
-                    Ok(bytes) => Ok(Some(bytes)),
-                    Err(BucketReadError::Missing(_)) => Ok(None),
-                    Err(e) => Err(e.to_string()),
-                }
-            }
+            SceneFiles::Bucket(bucket) => match bucket.page(&self.id, &page, range).await {
+                Ok(bytes) => Ok(Some(bytes)),
+                Err(BucketReadError::Missing(_)) => Ok(None),
+                Err(e) => Err(failed(format!("hierarchy page {root}: {e}"))),
+            },
         }
     }
 
-    /// Every block entry, sorted by key.
-    pub fn blocks(&self) -> Vec<&BlockEntry> {
-        let mut all: Vec<&BlockEntry> = self.index.blocks().collect();
+    /// `key`'s entry, reading the pages on its path first when they are not loaded yet; `None`
+    /// when the scene has no such block.
+    pub async fn entry(&self, key: &BlockKey) -> Result<Option<BlockEntry>, StoreError> {
+        loop {
+            let next = self.index.read().page_toward(key).cloned();
+            let Some(page) = next else { return Ok(self.index.read().block(key).cloned()) };
+            self.load_page(&page).await?;
+        }
+    }
+
+    /// The page rooted at `root` (named by the page that lists `root`'s entry, read first when
+    /// needed) and its range when it lies in a pack; `None` when the scene has no such page.
+    pub async fn page_ref(
+        &self,
+        root: &BlockKey,
+    ) -> Result<Option<(PageRef, Option<PackRange>)>, StoreError> {
+        if self.entry(root).await?.is_none() {
+            return Ok(None);
+        }
+        Ok(self.index.read().page(root).map(|(r, range)| (r.clone(), range)))
+    }
+
+    /// Reads every page that lists blocks of `level` or coarser, so that [`Self::blocks`] holds
+    /// that level whole (a thumbnail reads one coarse level).
+    pub async fn load_down_to(&self, level: u8) -> Result<(), StoreError> {
+        loop {
+            let next = self.index.read().missing_pages().find(|r| r.root.level > level).cloned();
+            let Some(page) = next else { return Ok(()) };
+            self.load_page(&page).await?;
+        }
+    }
+
+    /// Reads, checks and adds one page the index names and has not loaded. Two lookups may read
+    /// the same page at once; the second one's copy is dropped.
+    async fn load_page(&self, page: &PageRef) -> Result<(), StoreError> {
+        let root = page.root;
+        let failed = |message: String| StoreError::Damaged { id: self.id.clone(), message };
+        let range = self.index.read().page(&root).and_then(|(_, range)| range);
+        let bytes: Bytes = match &self.files {
+            SceneFiles::Dir(dir) => {
+                let dir = dir.clone();
+                tokio::task::spawn_blocking(move || match range {
+                    Some(range) => read_pack_range(&dir, &range),
+                    None => fs::read(dir.join(page_path(&root))),
+                })
+                .await
+                .map_err(|e| failed(e.to_string()))?
+                .map_err(|e| failed(format!("hierarchy page {root}: {e}")))?
+                .into()
+            }
+            SceneFiles::Bucket(bucket) => bucket.page(&self.id, page, range).await.map_err(|e| match e {
+                // Deleted, renamed or replaced and collected since this replica listed it.
+                BucketReadError::Missing(m) => StoreError::Gone { id: self.id.clone(), message: m },
+                e => failed(format!("hierarchy page {root}: {e}")),
+            })?,
+        };
+        let decoded =
+            HierarchyPage::decode(&bytes, page).map_err(|e| failed(format!("hierarchy page {root}: {e}")))?;
+        let mut index = self.index.write();
+        if index.is_pending(&root) {
+            index.insert_page(decoded).map_err(|e| failed(format!("hierarchy page {root}: {e}")))?;
+        }
+        Ok(())
+    }
+
+    /// Every block entry loaded so far, sorted by key: all of them for a scene from
+    /// [`open_scene`].
+    pub fn blocks(&self) -> Vec<BlockEntry> {
+        let mut all: Vec<BlockEntry> = self.index.read().blocks().cloned().collect();
         all.sort_by_key(|b| b.key);
         all
     }
@@ -321,24 +421,119 @@ pub fn list_scenes(store: &Path) -> Result<Vec<StoredScene>, StoreError> {
 }
 
 pub fn open_scene(store: &Path, id: &str) -> Result<StoredScene, StoreError> {
-    validate_id(id)?;
-    let dir = store.join(id);
-    let path = dir.join("manifest.json");
-    let bytes = fs::read(&path).map_err(io("read", &path))?;
-    let damaged = |message: String| StoreError::Damaged { id: id.to_string(), message };
-    let manifest = Manifest::from_json(&bytes).map_err(|e| damaged(e.to_string()))?;
-    let index = read_scene_index(&dir, &manifest).map_err(damaged)?;
+    let (dir, manifest) = read_manifest(store, id)?;
+    let index = read_scene_index(&dir, &manifest)
+        .map_err(|message| StoreError::Damaged { id: id.to_string(), message })?;
     Ok(StoredScene {
         id: id.to_string(),
         files: SceneFiles::Dir(dir),
         manifest,
-        index: std::sync::Arc::new(index),
+        index: Arc::new(PagedIndex::new(index)),
     })
+}
+
+/// A scene as a server lists it: from its manifest alone when the manifest states what a
+/// listing shows (`bounds`, `page_bytes`), its pages read as lookups reach them; scenes built
+/// before those fields are read whole, as [`open_scene`] does.
+pub fn open_scene_listed(store: &Path, id: &str) -> Result<StoredScene, StoreError> {
+    let (dir, manifest) = read_manifest(store, id)?;
+    if !lists_from_manifest(&manifest) {
+        return open_scene(store, id);
+    }
+    let index = Arc::new(PagedIndex::new(SceneIndex::new(&manifest)));
+    Ok(StoredScene { id: id.to_string(), files: SceneFiles::Dir(dir), manifest, index })
+}
+
+/// Whether a listing needs nothing but the manifest (see [`open_scene_listed`]).
+pub fn lists_from_manifest(manifest: &Manifest) -> bool {
+    manifest.bounds.is_some() && manifest.page_bytes.is_some()
+}
+
+fn read_manifest(store: &Path, id: &str) -> Result<(PathBuf, Manifest), StoreError> {
+    validate_id(id)?;
+    let dir = store.join(id);
+    let path = dir.join("manifest.json");
+    let bytes = fs::read(&path).map_err(io("read", &path))?;
+    let manifest = Manifest::from_json(&bytes)
+        .map_err(|e| StoreError::Damaged { id: id.to_string(), message: e.to_string() })?;
+    Ok((dir, manifest))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::pipeline::{BuildOptions, Resolution, build_scene};
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_listed_scene_reads_only_the_pages_a_lookup_needs() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = dir.path().join("store");
+        let koala = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/koala.obj");
+        // 1024 = 16 blocks a side: levels 0–4, pages rooted on levels 4 and 1.
+        let opts = BuildOptions { resolution: Resolution::Explicit(1024), ..Default::default() };
+        let id = build_scene(&koala, &store, &opts).unwrap().id;
+        let whole = open_scene(&store, &id).unwrap();
+        let total = whole.index.read().pages_loaded();
+        let all = whole.blocks();
+        assert!(total > 2, "{total} pages");
+
+        let listed = open_scene_listed(&store, &id).unwrap();
+        assert_eq!(listed.index.read().pages_loaded(), 0, "a listing reads the manifest alone");
+        let level0: Vec<&BlockEntry> = all.iter().filter(|e| e.key.level == 0).collect();
+        let union = level0.iter().fold(level0[0].bounds, |mut b, e| {
+            for a in 0..3 {
+                b.min[a] = b.min[a].min(e.bounds.min[a]);
+                b.max[a] = b.max[a].max(e.bounds.max[a]);
+            }
+            b
+        });
+        assert_eq!(listed.manifest.bounds, Some(union));
+        assert_eq!(listed.manifest.page_bytes, Some(whole.index.read().page_bytes_loaded()));
+
+        let deep = level0[level0.len() / 2];
+        assert_eq!(listed.entry(&deep.key).await.unwrap().as_ref(), Some(deep));
+        assert_eq!(listed.index.read().pages_loaded(), 2, "one page per page layer");
+        assert_eq!(listed.read_block_async(deep).await.unwrap(), whole.read_block(deep).unwrap());
+        let absent =
+            (0..16).map(|x| BlockKey::new(0, x, 0, 15)).find(|k| whole.index.read().block(k).is_none());
+        assert!(listed.entry(&absent.expect("a corner block the koala misses")).await.unwrap().is_none());
+        for e in &all {
+            assert_eq!(listed.entry(&e.key).await.unwrap().as_ref(), Some(e), "{}", e.key);
+        }
+        assert_eq!(listed.index.read().pages_loaded(), total);
+
+        // A page URL resolves through the pages above it, and checks the hash.
+        let fresh = open_scene_listed(&store, &id).unwrap();
+        let (page, range) = whole
+            .index
+            .read()
+            .loaded_pages()
+            .find(|(r, _)| r.root.level == 1)
+            .map(|(r, g)| (r.clone(), g))
+            .unwrap();
+        let bytes = fresh.read_page(&page.root, &page.hash).await.unwrap().unwrap();
+        assert_eq!(content_hash(&bytes), page.hash);
+        assert!(fresh.read_page(&page.root, &"0".repeat(64)).await.unwrap().is_none());
+
+        // A damaged page is an error naming it, not a panic or a missing block.
+        let range = range.unwrap();
+        let pack = dir.path().join("store").join(&id).join(pack_path(&range.pack.hash));
+        let mut packed = fs::read(&pack).unwrap();
+        packed[range.offset as usize + 8] ^= 0xff;
+        fs::write(&pack, packed).unwrap();
+        let damaged = open_scene_listed(&store, &id).unwrap();
+        let below = all.iter().find(|e| e.key.level == 0 && e.key.parent() == page.root).unwrap();
+        let err = damaged.entry(&below.key).await.unwrap_err().to_string();
+        assert!(err.contains(&format!("hierarchy page {}", page.root)), "{err}");
+
+        // Control: a manifest from before `bounds` and `page_bytes` is listed whole.
+        let path = store.join(&id).join("manifest.json");
+        let mut older: serde_json::Value = serde_json::from_slice(&fs::read(&path).unwrap()).unwrap();
+        older.as_object_mut().unwrap().retain(|k, _| k != "bounds" && k != "page_bytes");
+        fs::write(&path, serde_json::to_vec(&older).unwrap()).unwrap();
+        let err = open_scene_listed(&store, &id).unwrap_err().to_string();
+        assert!(err.contains("hierarchy page"), "read whole, the damaged page fails the listing: {err}");
+    }
 
     #[test]
     fn ids() {

@@ -78,7 +78,7 @@ pub fn read_level(scene: &StoredScene, level: u8) -> Result<Vec<Block>, Thumbnai
         .filter(|b| b.key.level == level)
         .map(|entry| {
             let key = entry.key.to_string();
-            let bytes = scene.read_block(entry).map_err(|e| match e {
+            let bytes = scene.read_block(&entry).map_err(|e| match e {
                 crate::store::BlockReadError::Changed { .. } => {
                     fail(key.clone(), "its bytes differ from the manifest's hash".into())
                 }
@@ -338,6 +338,15 @@ pub async fn get_thumbnail(
         return Ok((StatusCode::NOT_MODIFIED, [(header::ETAG, etag), (header::CACHE_CONTROL, cache)])
             .into_response());
     }
+    // A scene listed from its manifest reads the pages down to the thumbnail's level first.
+    let level = thumbnail_level(&scene.stored.manifest, MAX_VOXELS);
+    scene.stored.load_down_to(level).await.map_err(|e| {
+        tracing::error!(error = %e, "thumbnail failed");
+        match e {
+            crate::store::StoreError::Gone { .. } => ApiError::not_found(e.to_string()),
+            e => ApiError::internal(e.to_string()),
+        }
+    })?;
     let png = tokio::task::spawn_blocking(move || thumbnail_png(&scene))
         .await
         .map_err(|e| ApiError::internal(e.to_string()))?
@@ -526,7 +535,7 @@ mod tests {
         let level = thumbnail_level(&scene.manifest, MAX_VOXELS);
         let entry = scene.blocks().into_iter().find(|b| b.key.level == level).unwrap().clone();
         // Overwrite the block's range of its pack.
-        let range = scene.index.pack_range(&entry.key).expect("blocks are packed");
+        let range = scene.index.read().pack_range(&entry.key).expect("blocks are packed");
         let pack = scene.pack_path(&range.pack.hash);
         let mut bytes = std::fs::read(&pack).unwrap();
         bytes[range.offset as usize..range.end() as usize].fill(b'x');

@@ -86,6 +86,11 @@ async fn collector_removes_replaced_and_orphan_packs_after_the_grace_period_only
     client.delete(&ObjectPath::from("scenes/orphan/manifest.json")).await.unwrap();
     let orphan = objects(client.as_ref(), "scenes/orphan").await;
     assert!(orphan.iter().any(|o| o.contains("/packs/")), "{orphan:?}");
+    // A long build outside the cluster: an old pack, kept by its live marker (put again below).
+    let cli_pack = format!("scenes/cli/{}", pack_path(&"0e".repeat(32)));
+    let cli_marker = "scenes/cli/building.json";
+    client.put(&ObjectPath::from(cli_pack.as_str()), vec![9u8; 500].into()).await.unwrap();
+    client.put(&ObjectPath::from(cli_marker), b"{}".to_vec().into()).await.unwrap();
     let dead_part = "scenes/.uploads/00000000000000d1/00000000000000000000-0000000000000001";
     let live_part = "scenes/.uploads/00000000000000e2/00000000000000000000-0000000000000002";
     for part in [dead_part, live_part] {
@@ -145,6 +150,7 @@ async fn collector_removes_replaced_and_orphan_packs_after_the_grace_period_only
     .unwrap();
     let r = collect(&store, &a, grace, None, &metrics).await.unwrap().unwrap();
     assert!(r.skipped.contains(&"orphan".to_string()), "{r:?}");
+    assert!(r.skipped.contains(&"cli".to_string()), "the live marker keeps the build's id: {r:?}");
     assert_eq!((r.objects, r.bytes), (1, 1000), "only the dead upload's part: {r:?}");
     let after = objects(client.as_ref(), "scenes").await;
     let expected: BTreeSet<String> = before.iter().filter(|o| *o != dead_part).cloned().collect();
@@ -165,7 +171,7 @@ async fn collector_removes_replaced_and_orphan_packs_after_the_grace_period_only
     .await
     .unwrap();
     let r = collect(&store, &a, grace, None, &metrics).await.unwrap().unwrap();
-    assert_eq!((r.objects, r.skipped.len()), (0, 2), "{r:?}");
+    assert_eq!((r.objects, r.skipped.len()), (0, 3), "{r:?}");
     assert_eq!(objects(client.as_ref(), "scenes").await, expected);
 
     // The builds end: the replaced packs and the orphan's objects go, nothing else.
@@ -176,7 +182,7 @@ async fn collector_removes_replaced_and_orphan_packs_after_the_grace_period_only
     let wanted: BTreeSet<String> = replaced.union(&orphan).cloned().collect();
     assert_eq!(removed, wanted);
     assert_eq!(r.objects as usize, wanted.len(), "{r:?}");
-    assert!(r.skipped.is_empty(), "{r:?}");
+    assert_eq!(r.skipped, ["cli"], "{r:?}");
     assert_eq!(metrics.objects.get(), 1 + wanted.len() as u64);
     assert_eq!(metrics.bytes.get(), 1000 + r.bytes);
     let left = objects(client.as_ref(), "scenes/koala").await;
@@ -191,11 +197,18 @@ async fn collector_removes_replaced_and_orphan_packs_after_the_grace_period_only
     let index = fresh.load_index("koala", &manifest).await.unwrap();
     let mut read = 0;
     for entry in index.blocks() {
-        let bytes = fresh.block("koala", &index, entry).await.unwrap();
+        let bytes = fresh.block("koala", index.pack_range(&entry.key), entry).await.unwrap();
         assert_eq!(blake3::hash(&bytes).to_hex().as_str(), entry.hash);
         read += 1;
     }
     assert_eq!(read as u64, manifest.block_count());
+    // Control 5: the build outside the cluster ends without a manifest (its marker gone): its
+    // pack is garbage now.
+    assert!(objects(client.as_ref(), "scenes/cli").await.contains(&cli_pack));
+    client.delete(&ObjectPath::from(cli_marker)).await.unwrap();
+    let r = collect(&store, &a, grace, None, &metrics).await.unwrap().unwrap();
+    assert_eq!((r.objects, r.bytes), (1, 500), "{r:?}");
+    assert!(objects(client.as_ref(), "scenes/cli").await.is_empty());
     // A second pass finds nothing more.
     let r = collect(&store, &a, grace, None, &metrics).await.unwrap().unwrap();
     assert_eq!(r.objects, 0, "{r:?}");

@@ -24,17 +24,6 @@ fn build(
     budget: &str,
     logs: &Path,
 ) -> voxstream::bench::measure::ChildRun {
-    build_with(input, store, resolution, budget, logs, &[])
-}
-
-fn build_with(
-    input: &Path,
-    store: &Path,
-    resolution: &str,
-    budget: &str,
-    logs: &Path,
-    extra: &[&str],
-) -> voxstream::bench::measure::ChildRun {
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_voxstream"));
     cmd.args(["build", input.to_str().unwrap(), "--out", store.to_str().unwrap()]).args([
         "--resolution",
@@ -42,7 +31,6 @@ fn build_with(
         "--memory-budget",
         budget,
     ]);
-    cmd.args(extra);
     run_child(&mut cmd, logs).unwrap()
 }
 
@@ -67,16 +55,7 @@ fn cedar_creek_at_4096_stays_within_128_mib() {
         base.peak_rss_bytes
     );
 
-    // The smallest AO field (16³ cells, 52 kB): the default 128³ (27 MB) has no room beside
-    // this plan (it is refused with a message naming --no-ao-field and --ao-field-cells).
-    let run = build_with(
-        &cedar,
-        &dir.path().join("store"),
-        "4096",
-        "128M",
-        &dir.path().join("log1"),
-        &["--ao-field-cells", "16"],
-    );
+    let run = build(&cedar, &dir.path().join("store"), "4096", "128M", &dir.path().join("log1"));
     assert!(run.succeeded(), "{}", run.failure());
     let peak = run.peak_rss_bytes;
     eprintln!(

@@ -151,7 +151,9 @@ async fn gc_deleted(http: &reqwest::Client, base: &str) -> u64 {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bucket_scenes_are_deleted_renamed_and_collected_across_replicas() {
     let started = Instant::now();
-    let cluster = Cluster::start_with(&[("CLUSTER_GC_GRACE_SECS", "1")]);
+    // The periodic collector runs every 3 s: it must not disturb anything below, and it alone
+    // removes the orphan put here (the after-publish pass only looks at the scene it built).
+    let cluster = Cluster::start_with(&[("CLUSTER_GC_GRACE_SECS", "1"), ("CLUSTER_GC_INTERVAL_SECS", "3")]);
     let http = reqwest::Client::builder().timeout(Duration::from_secs(60)).build().unwrap();
     let replicas = cluster.list("REPLICA_URLS");
     let (r1, r2) = (replicas[0].as_str(), replicas[1].as_str());
@@ -178,6 +180,15 @@ async fn bucket_scenes_are_deleted_renamed_and_collected_across_replicas() {
         }
     }
     let gamma_objects = objects(s3.as_ref(), "gamma").await;
+    assert!(
+        !gamma_objects.contains("building.json"),
+        "a finished build deletes its marker: {gamma_objects:?}"
+    );
+    // What a killed CLI build leaves: packs under an id that never got a manifest.
+    let orphan = format!("scenes/orphan/{}", pack_path(&"0f".repeat(32)));
+    s3.put(&orphan.as_str().into(), vec![7u8; 100].into()).await.unwrap();
+    let orphan_put = Instant::now();
+    assert_eq!(objects(s3.as_ref(), "orphan").await.len(), 1, "the orphan is where the collector looks");
     eprintln!("{:.1} s: cluster up, three scenes built", started.elapsed().as_secs_f64());
 
     // --- delete ----------------------------------------------------------------------------
@@ -317,5 +328,13 @@ async fn bucket_scenes_are_deleted_renamed_and_collected_across_replicas() {
     // Control: the other scenes lost nothing.
     assert_eq!(objects(s3.as_ref(), "delta").await.len(), beta_objects.len() + 1, "delta: + scene.json");
     fetch_blocks(&http, r2, "delta", &block_names(&store, "delta").await).await;
+
+    // --- the periodic collector ------------------------------------------------------------
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while !objects(s3.as_ref(), "orphan").await.is_empty() {
+        assert!(Instant::now() < deadline, "the periodic collector never removed {orphan}");
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    }
+    eprintln!("the orphan pack was gone {:.1} s after it was put", orphan_put.elapsed().as_secs_f64());
     eprintln!("{:.1} s: all checked", started.elapsed().as_secs_f64());
 }

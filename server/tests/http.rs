@@ -151,7 +151,7 @@ async fn wait_job(base: &str, job: &str) -> serde_json::Value {
 /// A stored scene: its manifest and every block entry of its pages, sorted by key.
 struct OnDisk {
     manifest: Manifest,
-    index: std::sync::Arc<voxstream_format::SceneIndex>,
+    index: voxstream_format::SceneIndex,
     blocks: Vec<voxstream_format::BlockEntry>,
     page_bytes: u64,
 }
@@ -176,17 +176,17 @@ fn block_on_disk(store: &Path, id: &str, index: &voxstream_format::SceneIndex, k
 /// Every page of a stored scene decodes, and every block it lists decodes and matches its hash.
 fn assert_scene_complete(store: &Path, id: &str) -> OnDisk {
     let scene = voxstream::store::open_scene(store, id).unwrap();
-    let blocks: Vec<_> = scene.blocks().into_iter().cloned().collect();
+    let blocks: Vec<_> = scene.blocks();
     assert_eq!(blocks.len() as u64, scene.manifest.block_count());
     for e in &blocks {
-        let bytes = block_on_disk(store, id, &scene.index, &e.key);
+        let bytes = block_on_disk(store, id, &scene.index.read(), &e.key);
         assert_eq!(blake3::hash(&bytes).to_hex().as_str(), e.hash);
         assert_eq!(decode_block(&bytes).unwrap().key, e.key);
     }
     OnDisk {
-        page_bytes: scene.index.page_bytes_loaded(),
+        page_bytes: scene.index.read().page_bytes_loaded(),
         manifest: scene.manifest,
-        index: scene.index,
+        index: scene.index.read().clone(),
         blocks,
     }
 }

@@ -91,6 +91,8 @@ fn build_with(input: &Path, threads: usize, budget: u64, tmp: Option<&Path>) -> 
         resolution: Resolution::Explicit(128),
         memory_budget: budget,
         temp_dir: tmp.map(Path::to_path_buf),
+        // With the (opt-in) AO field, so its column is compared too.
+        ao_field: Some(Default::default()),
         ..Default::default()
     };
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
@@ -112,7 +114,7 @@ fn stores_are_byte_identical_across_runs_budgets_and_threads() {
     assert!(reference.len() >= 2 && reference.contains_key("manifest.json"), "{:?}", reference.keys());
     assert!(reference.keys().any(|n| n.starts_with("packs/")));
     assert!(!reference.keys().any(|n| n.starts_with("pages/")), "pages live in packs");
-    // The AO field is on (the default), so its column is part of what is compared.
+    // The AO field is on, so its column is part of what is compared.
     assert!(String::from_utf8_lossy(&reference["manifest.json"]).contains("\"ao_field\""));
     // The smallest budget: the stream and the bins spill to disk, the bin
     // buffers flush often, one brick in flight, small batches.
@@ -250,13 +252,16 @@ fn check_packs(store: &Path, id: &str) {
     let scene = voxstream::store::open_scene(store, id).unwrap();
     let mut ranges: BTreeMap<String, Vec<(u64, u64)>> = BTreeMap::new();
     for e in scene.blocks() {
-        let r =
-            scene.index.pack_range(&e.key).unwrap_or_else(|| panic!("{id}: block {} is not packed", e.key));
+        let r = scene
+            .index
+            .read()
+            .pack_range(&e.key)
+            .unwrap_or_else(|| panic!("{id}: block {} is not packed", e.key));
         ranges.entry(r.pack.hash.clone()).or_default().push((r.offset, r.end()));
-        let bytes = scene.read_block(e).unwrap();
+        let bytes = scene.read_block(&e).unwrap();
         assert_eq!(voxstream_format::decode_block(&bytes).unwrap().key, e.key);
     }
-    for (page, range) in scene.index.loaded_pages() {
+    for (page, range) in scene.index.read().loaded_pages() {
         let r = range.unwrap_or_else(|| panic!("{id}: page {} is not packed", page.root));
         ranges.entry(r.pack.hash.clone()).or_default().push((r.offset, r.end()));
     }
@@ -327,14 +332,15 @@ fn streaming_build_matches_the_in_memory_reference() {
         assert_eq!(want.len(), 1 + packs, "{id}: {:?}", want.keys());
         let blocks = report.blocks as usize;
         let scene = voxstream::store::open_scene(&dir.path().join("reference"), &id).unwrap();
-        let full = (blocks + scene.index.pages_loaded()).div_ceil(voxstream::pipeline::write::PACK_MAX_ITEMS);
+        let full =
+            (blocks + scene.index.read().pages_loaded()).div_ceil(voxstream::pipeline::write::PACK_MAX_ITEMS);
         assert!((full..=full + 3).contains(&packs), "{id}: {packs} packs for {blocks} blocks");
         if resolution >= 256 {
             assert!(4 * want.len() <= blocks, "{id}: {} files for {blocks} blocks", want.len());
         }
         check_packs(&dir.path().join("reference"), &id);
         if resolution > 64 {
-            assert!(scene.index.pages_loaded() > 0, "{id}: pages (inside the packs) are compared too");
+            assert!(scene.index.read().pages_loaded() > 0, "{id}: pages (inside the packs) are compared too");
         }
     }
 }

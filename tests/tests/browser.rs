@@ -230,8 +230,9 @@ fn render_and_check(url: &str, out: &Path, scene_dir: &Path, interact: bool) {
         .iter()
         .map(|k| {
             let key: BlockKey = k.parse().unwrap_or_else(|e| panic!("bad block key {k:?}: {e}"));
-            let entry = scene.index.block(&key).unwrap_or_else(|| panic!("{k} is not in the scene"));
-            let bytes = scene.read_block(entry).unwrap_or_else(|e| panic!("{k}: {e}"));
+            let entry =
+                scene.index.read().block(&key).cloned().unwrap_or_else(|| panic!("{k} is not in the scene"));
+            let bytes = scene.read_block(&entry).unwrap_or_else(|e| panic!("{k}: {e}"));
             (key, decode_block(&bytes).unwrap_or_else(|e| panic!("decode {k}: {e}")))
         })
         .collect();

@@ -18,7 +18,7 @@ use voxstream_format::{BlockEntry, BlockKey};
 use super::access::{ReadAccess, WriteAccess};
 use super::{ApiError, AppState, JSON_BODY_LIMIT, read_json};
 use crate::catalog::{CatalogError, LoadedScene, SceneMeta};
-use crate::store::{BlockReadError, validate_id};
+use crate::store::{BlockReadError, StoreError, validate_id};
 
 pub const BLOCK_CACHE_CONTROL: &str = "public, max-age=31536000, immutable";
 /// Manifests and key-only block URLs change when a scene is rebuilt.
@@ -179,8 +179,9 @@ fn etag_matches(headers: &HeaderMap, etag: &HeaderValue) -> bool {
         .any(|t| t.trim() == etag || t.trim() == "*")
 }
 
-/// `key` or `key.hash` → the manifest entry; a hash the scene lacks is a 404.
-fn find_block<'a>(scene: &'a LoadedScene, name: &str) -> Result<(&'a BlockEntry, bool), ApiError> {
+/// `key` or `key.hash` → the scene's entry (its hierarchy pages read on the way when needed); a
+/// key or hash the scene lacks is a 404.
+async fn find_block(scene: &LoadedScene, name: &str) -> Result<(BlockEntry, bool), ApiError> {
     let (key_text, hash) = match name.split_once('.') {
         Some((k, h)) => (k, Some(h)),
         None => (name, None),
@@ -191,8 +192,9 @@ fn find_block<'a>(scene: &'a LoadedScene, name: &str) -> Result<(&'a BlockEntry,
     let id = &scene.stored.id;
     let entry = scene
         .stored
-        .index
-        .block(&key)
+        .entry(&key)
+        .await
+        .map_err(|e| store_error(id, e))?
         .ok_or_else(|| ApiError::not_found(format!("scene {id:?} has no block {key}")))?;
     if let Some(h) = hash
         && h != entry.hash
@@ -202,6 +204,18 @@ fn find_block<'a>(scene: &'a LoadedScene, name: &str) -> Result<(&'a BlockEntry,
         )));
     }
     Ok((entry, hash.is_some()))
+}
+
+/// A hierarchy read error as a response: a scene that vanished under this replica is a 404
+/// (fetch the manifest again), a damaged one a 500.
+fn store_error(id: &str, e: StoreError) -> ApiError {
+    match e {
+        StoreError::Gone { .. } => ApiError::not_found(e.to_string()),
+        e => {
+            tracing::error!(scene = %id, error = %e, "hierarchy page cannot be read");
+            ApiError::internal(e.to_string())
+        }
+    }
 }
 
 /// A block read error as a response: a damaged store is a 500, changed bytes a 404.
@@ -237,7 +251,7 @@ pub async fn get_block(
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     let scene = state.scene(&id).await?;
-    let (entry, addressed) = find_block(&scene, &block)?;
+    let (entry, addressed) = find_block(&scene, &block).await?;
     let etag = HeaderValue::from_str(&format!("\"{}\"", entry.hash))
         .map_err(|_| ApiError::internal(format!("scene {id:?} has a malformed block hash")))?;
     let cache =
@@ -245,7 +259,7 @@ pub async fn get_block(
     if etag_matches(&headers, &etag) {
         return Ok(not_modified(etag, cache));
     }
-    let bytes = scene.stored.read_block_async(entry).await.map_err(|e| block_error(&scene, entry, e))?;
+    let bytes = scene.stored.read_block_async(&entry).await.map_err(|e| block_error(&scene, &entry, e))?;
     state.metrics.blocks_served.inc();
     state.metrics.block_bytes_served.inc_by(bytes.len() as u64);
     Ok(octet_stream(etag, cache, bytes))
@@ -291,15 +305,8 @@ pub async fn get_page(
     }
     let etag = HeaderValue::from_str(&format!("\"{hash}\"")).map_err(|_| malformed())?;
     let cache = HeaderValue::from_static(BLOCK_CACHE_CONTROL);
-    let bytes = scene
-        .stored
-        .read_page(&root, hash)
-        .await
-        .map_err(|e| {
-            tracing::error!(scene = %id, page = %root, error = %e, "hierarchy page cannot be read");
-            ApiError::internal(format!("scene {id:?}: hierarchy page {root}: {e}"))
-        })?
-        .ok_or_else(|| {
+    let bytes =
+        scene.stored.read_page(&root, hash).await.map_err(|e| store_error(&id, e))?.ok_or_else(|| {
             ApiError::not_found(format!(
                 "scene {id:?} has no page {root} with hash {hash:?} (rebuilt? fetch the manifest again)"
             ))
@@ -339,11 +346,10 @@ pub async fn post_batch(
             request.blocks.len()
         )));
     }
-    let entries = request
-        .blocks
-        .iter()
-        .map(|name| find_block(&scene, name).map(|(e, _)| e.clone()))
-        .collect::<Result<Vec<_>, _>>()?;
+    let mut entries = Vec::with_capacity(request.blocks.len());
+    for name in &request.blocks {
+        entries.push(find_block(&scene, name).await?.0);
+    }
     let total: u64 = entries.iter().map(|e| 4 + e.bytes as u64).sum();
     if total > BATCH_MAX_BYTES {
         return Err(ApiError::bad_request(format!(

@@ -16,9 +16,12 @@
 //!    segment however many triangles it has. The pipeline runs blocks in the
 //!    Morton order of [`Bins::blocks`], in parallel batches.
 //!
-//! Determinism: passes 1 and 2 are sequential, and in pass 3 each block is
-//! one thread's work over its triangles in input order, so the output does
-//! not depend on the thread count or on where buffers were flushed.
+//! Determinism: passes 1 and 2 do their work on all cores but append it in
+//! input order (pass 1: pieces encoded by the readers' workers; pass 2:
+//! chunks grouped by block on all cores, appended one group after another),
+//! and in pass 3 each block is one thread's work over its triangles in input
+//! order, so the output does not depend on the thread count or on where
+//! buffers were flushed.
 //!
 //! Memory (shares from [`crate::pipeline::MemoryPlan`]): stream and bin
 //! stores keep their resident share of encoded chunks and spill the rest to
@@ -37,11 +40,11 @@ use voxstream_format::{BlockKey, GridFrame};
 use crate::pipeline::progress::{ProgressSink, Stage};
 use crate::pipeline::pyramid::{LodBlock, LodVoxel, block_coord, block_morton};
 use crate::pipeline::read::{IngestError, TriangleSink};
-use crate::pipeline::stream::{Bounds, ChunkStore, MAX_CHUNK_TRIANGLES, RecordLayout};
+use crate::pipeline::stream::{Bounds, ChunkStore, HEADER_LEN, MAX_CHUNK_TRIANGLES, RecordLayout};
 use crate::pipeline::voxelize::{
     EdgeHistogram, Topology, block_range, to_grid, to_grid_unchecked, valid_triangle, with_block_voxelizer,
 };
-use crate::pipeline::{BuildError, BuildOptions};
+use crate::pipeline::{BuildError, BuildOptions, MAX_RECORD_BYTES};
 
 /// Chunks encoded (lz4 when spilled) together on all cores.
 const PENDING_CHUNKS: usize = 8;
@@ -51,6 +54,40 @@ const SINK_BATCH: usize = 1 << 14;
 
 /// One triangle as readers hand it over: source positions and linear colour.
 pub type SourceTriangle = ([[f64; 3]; 3], [f32; 3]);
+
+/// Triangles checked and encoded as pass 1's records (valid ones only, with
+/// their edges' histogram bins), on whatever thread made them; a
+/// [`StreamSink`] appends pieces in order.
+#[derive(Debug, Default)]
+pub struct EncodedPiece {
+    pub bytes: Vec<u8>,
+    pub bins: Vec<u16>,
+    pub valid: u64,
+    pub invalid: u64,
+}
+
+impl EncodedPiece {
+    pub fn with_capacity(layout: RecordLayout, triangles: usize) -> Self {
+        Self {
+            bytes: Vec::with_capacity(triangles * layout.size()),
+            bins: Vec::with_capacity(triangles * 3),
+            valid: 0,
+            invalid: 0,
+        }
+    }
+
+    /// Encodes a valid triangle; counts an invalid one (non-finite or zero area).
+    #[inline]
+    pub fn push(&mut self, layout: RecordLayout, tri: &[[f64; 3]; 3], color: [f32; 3]) {
+        if valid_triangle(tri) {
+            layout.encode(&mut self.bytes, tri, color);
+            EdgeHistogram::bins(tri, &mut self.bins);
+            self.valid += 1;
+        } else {
+            self.invalid += 1;
+        }
+    }
+}
 
 /// Pass 1: packs valid triangles into chunks. Triangles come in batches
 /// (readers' own, or gathered here from single ones); each batch is checked,
@@ -127,24 +164,28 @@ impl<'a> StreamSink<'a> {
     /// Checks, encodes and measures a batch on all cores and appends it in order.
     fn push_batch(&mut self, tris: &[SourceTriangle]) -> Result<(), IngestError> {
         let layout = self.layout;
-        let pieces: Vec<(Vec<u8>, Vec<u16>, u64, u64)> = tris
+        let pieces: Vec<EncodedPiece> = tris
             .par_chunks(1024)
             .map(|piece| {
-                let mut bytes = Vec::with_capacity(piece.len() * layout.size());
-                let mut bins = Vec::with_capacity(piece.len() * 3);
-                let mut valid = 0;
+                let mut out = EncodedPiece::with_capacity(layout, piece.len());
                 for (tri, color) in piece {
-                    if valid_triangle(tri) {
-                        layout.encode(&mut bytes, tri, *color);
-                        EdgeHistogram::bins(tri, &mut bins);
-                        valid += 1;
-                    }
+                    out.push(layout, tri, *color);
                 }
-                (bytes, bins, valid, piece.len() as u64 - valid)
+                out
             })
             .collect();
-        let chunk_bytes = MAX_CHUNK_TRIANGLES * layout.size();
-        for (bytes, bins, valid, invalid) in pieces {
+        self.push_pieces(pieces)
+    }
+
+    /// Appends pieces encoded elsewhere (in order) to the chunks.
+    pub fn push_pieces(&mut self, pieces: impl IntoIterator<Item = EncodedPiece>) -> Result<(), IngestError> {
+        // Earlier single triangles first: file order.
+        if !self.gathered.is_empty() {
+            let gathered = std::mem::take(&mut self.gathered);
+            self.push_batch(&gathered)?;
+        }
+        let chunk_bytes = MAX_CHUNK_TRIANGLES * self.layout.size();
+        for EncodedPiece { bytes, bins, valid, invalid } in pieces {
             self.edges.count(&bins);
             self.triangles += valid;
             self.skipped += invalid;
@@ -200,6 +241,14 @@ impl TriangleSink for StreamSink<'_> {
         self.push_batch(tris)
     }
 
+    fn encoded_layout(&self) -> Option<RecordLayout> {
+        self.begun.then_some(self.layout)
+    }
+
+    fn pieces(&mut self, pieces: Vec<EncodedPiece>) -> Result<(), IngestError> {
+        self.push_pieces(pieces)
+    }
+
     fn tick(&mut self) -> Result<(), IngestError> {
         (self.on_tick)()
     }
@@ -253,131 +302,291 @@ fn temp_err(e: crate::pipeline::stream::ChunkError) -> BuildError {
     BuildError::Temp(e.to_string())
 }
 
-/// A triangle's block range (closed) and its source-space bounds.
-type Placement = ([u32; 3], [u32; 3], Bounds);
+/// Stream chunks read, placed and grouped by block together, on all cores.
+const BIN_GROUP_PER_THREAD: usize = 2;
 
-/// Pass 2: bins the stream's triangles by the 64³ blocks they overlap.
-/// `resident` bytes of segments stay in memory; buffers and their
-/// bookkeeping are flushed when they pass `buffer_limit` bytes (counted by
-/// length; capacities reach at most twice that).
-pub fn bin_triangles(
-    stream: &ChunkStore,
+/// A chunk whose triangles make more block records than this is binned one
+/// triangle at a time instead (its grouped copy would hold them all).
+const LOCAL_RECORDS: usize = 2 * MAX_CHUNK_TRIANGLES;
+
+/// The most one chunk takes while it is grouped: the chunk as stored and
+/// decoded, and its records grouped by block (capacity up to twice).
+pub const BIN_CHUNK_BYTES: usize = 2 * (HEADER_LEN + MAX_CHUNK_TRIANGLES * MAX_RECORD_BYTES)
+    + 2 * LOCAL_RECORDS * MAX_RECORD_BYTES
+    + (64 << 10);
+
+/// One stream chunk's valid records grouped by the blocks they overlap:
+/// blocks in first-hit order, each block's records in input order.
+struct Grouped {
+    /// (block Morton code, records, bounds of their triangles)
+    blocks: Vec<(u64, Vec<u8>, Bounds)>,
+    triangles: u64,
+    skipped: u64,
+}
+
+/// A chunk ready to be appended to the bins.
+enum Placed {
+    Grouped(Grouped),
+    /// Too many block records to group: appended one triangle at a time.
+    Raw(Vec<u8>),
+}
+
+/// The bin buffers and store of pass 2 (appends are serial, in input order).
+struct Binner {
     layout: RecordLayout,
-    frame: &GridFrame,
-    spill_path: &Path,
-    (resident, buffer_limit): (usize, usize),
-    opts: &BuildOptions,
-    progress: &ProgressSink,
-) -> Result<Bins, BuildError> {
-    let res = frame.resolution as i64;
-    let rec = layout.size();
-    let mut store = ChunkStore::new(spill_path, resident);
-    // Buffers in first-hit order, found through a map and a one-entry cache
-    // (consecutive triangles mostly share a block).
-    let mut buffers: Vec<BinBuffer> = Vec::new();
-    let mut lookup: HashMap<u64, usize> = HashMap::new();
-    let mut last: Option<(u64, usize)> = None;
-    let mut buffered = 0usize;
-    let mut index: Vec<u64> = Vec::new();
-    let (mut skipped, mut triangles) = (0u64, 0u64);
-    // Full buffers wait here (block, records, bounds) and are encoded together.
-    let mut pending: Vec<(u64, Vec<u8>, Bounds)> = Vec::new();
-    let take = |b: &mut BinBuffer, pending: &mut Vec<(u64, Vec<u8>, Bounds)>| {
+    store: ChunkStore,
+    /// Buffers in first-hit order, found through a map.
+    buffers: Vec<BinBuffer>,
+    lookup: HashMap<u64, usize>,
+    buffered: usize,
+    buffer_limit: usize,
+    index: Vec<u64>,
+    /// Full buffers wait here (block, records, bounds) and are encoded together.
+    pending: Vec<(u64, Vec<u8>, Bounds)>,
+    triangles: u64,
+    skipped: u64,
+}
+
+fn records_bounds(layout: RecordLayout, records: &[u8]) -> Bounds {
+    let mut b = Bounds::EMPTY;
+    for r in records.chunks_exact(layout.size()) {
+        b.add_triangle(&layout.decode(r).0);
+    }
+    b
+}
+
+/// Where one triangle goes: its block range (closed) and source bounds; `None` when invalid in grid units.
+#[inline]
+fn place(layout: RecordLayout, record: &[u8], frame: &GridFrame) -> Option<([u32; 3], [u32; 3], Bounds)> {
+    let (tri, _) = layout.decode(record);
+    let g = to_grid(tri, frame)?;
+    let (lo, hi) = block_range(&g, frame.resolution as i64);
+    let mut bounds = Bounds::EMPTY;
+    bounds.add_triangle(&tri);
+    Some((lo, hi, bounds))
+}
+
+impl Binner {
+    fn take(b: &mut BinBuffer, pending: &mut Vec<(u64, Vec<u8>, Bounds)>) {
         if !b.raw.is_empty() {
             // Moved out, not cleared: idle blocks must not keep their high-water capacity.
             pending.push((b.morton, std::mem::take(&mut b.raw), std::mem::take(&mut b.bounds)));
         }
-    };
-    let drain = |store: &mut ChunkStore,
-                 index: &mut Vec<u64>,
-                 pending: &mut Vec<(u64, Vec<u8>, Bounds)>|
-     -> Result<(), BuildError> {
+    }
+
+    fn drain(&mut self) -> Result<(), BuildError> {
         let items: Vec<(Vec<u8>, Bounds)> =
-            pending.iter_mut().map(|(_, r, b)| (std::mem::take(r), *b)).collect();
-        let ids = store.push_many(layout, &items).map_err(temp_err)?;
-        for ((m, _, _), id) in pending.drain(..).zip(ids) {
+            self.pending.iter_mut().map(|(_, r, b)| (std::mem::take(r), *b)).collect();
+        let ids = self.store.push_many(self.layout, &items).map_err(temp_err)?;
+        for ((m, _, _), id) in self.pending.drain(..).zip(ids) {
             if id as u64 >= 1 << SEGMENT_BITS {
                 return Err(BuildError::Temp(format!("more than 2^{SEGMENT_BITS} bin segments")));
             }
-            index.push(m << SEGMENT_BITS | id as u64);
+            self.index.push(m << SEGMENT_BITS | id as u64);
         }
         Ok(())
-    };
-    for id in 0..stream.len() {
-        opts.check_cancelled()?;
-        let (_, raw) = stream.read(id).map_err(temp_err)?;
-        // Where each triangle goes, computed on all cores; appended below in input order.
-        let placed: Vec<Option<Placement>> = raw
-            .par_chunks_exact(rec)
-            .with_min_len(1024)
-            .map(|record| {
-                let (tri, _) = layout.decode(record);
-                let g = to_grid(tri, frame)?;
-                let (lo, hi) = block_range(&g, res);
-                let mut bounds = Bounds::EMPTY;
-                bounds.add_triangle(&tri);
-                Some((lo, hi, bounds))
-            })
-            .collect();
-        for (record, place) in raw.chunks_exact(rec).zip(placed) {
-            let Some((blo, bhi, bounds)) = place else {
-                skipped += 1;
-                continue;
+    }
+
+    /// Every buffer goes, bookkeeping included, so many blocks cost no more than few.
+    fn flush_all(&mut self) -> Result<(), BuildError> {
+        for buf in &mut self.buffers {
+            Self::take(buf, &mut self.pending);
+        }
+        self.drain()?;
+        self.buffers = Vec::new();
+        self.lookup = HashMap::new();
+        self.buffered = 0;
+        Ok(())
+    }
+
+    /// Appends whole records of block `m` (`bounds`: their triangles'),
+    /// storing a buffer as a segment when it is full and flushing every
+    /// buffer as soon as they pass their limit, as one record at a time would.
+    fn append(&mut self, m: u64, records: &[u8], bounds: &Bounds) -> Result<(), BuildError> {
+        let rec = self.layout.size();
+        let full = MAX_CHUNK_TRIANGLES * rec;
+        let mut rest = records;
+        while !rest.is_empty() {
+            let i = match self.lookup.get(&m) {
+                Some(&i) => i,
+                None => {
+                    self.buffers.push(BinBuffer { morton: m, raw: Vec::new(), bounds: Bounds::EMPTY });
+                    self.buffered += BUFFER_ENTRY_BYTES;
+                    self.lookup.insert(m, self.buffers.len() - 1);
+                    self.buffers.len() - 1
+                }
             };
-            triangles += 1;
-            for bz in blo[2]..=bhi[2] {
-                for by in blo[1]..=bhi[1] {
-                    for bx in blo[0]..=bhi[0] {
-                        let m = block_morton([bx, by, bz]);
-                        let i = match last {
-                            Some((k, i)) if k == m => i,
-                            _ => {
-                                let i = *lookup.entry(m).or_insert_with(|| {
-                                    buffers.push(BinBuffer {
-                                        morton: m,
-                                        raw: Vec::new(),
-                                        bounds: Bounds::EMPTY,
-                                    });
-                                    buffered += BUFFER_ENTRY_BYTES;
-                                    buffers.len() - 1
-                                });
-                                last = Some((m, i));
-                                i
-                            }
-                        };
-                        let buf = &mut buffers[i];
-                        buf.raw.extend_from_slice(record);
-                        buf.bounds.union(&bounds);
-                        buffered += rec;
-                        if buf.raw.len() >= MAX_CHUNK_TRIANGLES * rec {
-                            buffered -= buf.raw.len();
-                            take(buf, &mut pending);
-                            if pending.len() >= PENDING_CHUNKS {
-                                drain(&mut store, &mut index, &mut pending)?;
+            let buf = &mut self.buffers[i];
+            // Up to the buffer's end, and up to the record that passes the limit.
+            let allowed = (self.buffer_limit.saturating_sub(self.buffered) / rec + 1) * rec;
+            let take = (full - buf.raw.len()).min(allowed).min(rest.len());
+            let (now, later) = rest.split_at(take);
+            buf.raw.extend_from_slice(now);
+            if now.len() == records.len() {
+                buf.bounds.union(bounds);
+            } else {
+                buf.bounds.union(&records_bounds(self.layout, now));
+            }
+            self.buffered += take;
+            rest = later;
+            if buf.raw.len() >= full {
+                self.buffered -= buf.raw.len();
+                Self::take(buf, &mut self.pending);
+                if self.pending.len() >= PENDING_CHUNKS {
+                    self.drain()?;
+                }
+            }
+            if self.buffered > self.buffer_limit {
+                self.flush_all()?;
+            }
+        }
+        Ok(())
+    }
+
+    fn append_placed(&mut self, placed: Placed, frame: &GridFrame) -> Result<(), BuildError> {
+        match placed {
+            Placed::Grouped(g) => {
+                self.triangles += g.triangles;
+                self.skipped += g.skipped;
+                for (m, records, bounds) in &g.blocks {
+                    self.append(*m, records, bounds)?;
+                }
+            }
+            Placed::Raw(raw) => {
+                for record in raw.chunks_exact(self.layout.size()) {
+                    let Some((blo, bhi, bounds)) = place(self.layout, record, frame) else {
+                        self.skipped += 1;
+                        continue;
+                    };
+                    self.triangles += 1;
+                    for bz in blo[2]..=bhi[2] {
+                        for by in blo[1]..=bhi[1] {
+                            for bx in blo[0]..=bhi[0] {
+                                self.append(block_morton([bx, by, bz]), record, &bounds)?;
                             }
                         }
                     }
                 }
             }
-            if buffered > buffer_limit {
-                // Everything goes, bookkeeping included, so many blocks cost no more than few.
-                for buf in &mut buffers {
-                    take(buf, &mut pending);
+        }
+        Ok(())
+    }
+}
+
+/// Groups one stream chunk's records by block (on a worker thread).
+fn group_chunk(layout: RecordLayout, raw: Vec<u8>, frame: &GridFrame) -> Placed {
+    let rec = layout.size();
+    let mut blocks: Vec<(u64, Vec<u8>, Bounds)> = Vec::new();
+    let mut lookup: HashMap<u64, usize> = HashMap::new();
+    let mut last: Option<(u64, usize)> = None;
+    let (mut triangles, mut skipped, mut records) = (0u64, 0u64, 0usize);
+    for record in raw.chunks_exact(rec) {
+        let Some((blo, bhi, bounds)) = place(layout, record, frame) else {
+            skipped += 1;
+            continue;
+        };
+        triangles += 1;
+        let copies = ((bhi[0] - blo[0] + 1) as usize)
+            .saturating_mul((bhi[1] - blo[1] + 1) as usize)
+            .saturating_mul((bhi[2] - blo[2] + 1) as usize);
+        records = records.saturating_add(copies);
+        if records > LOCAL_RECORDS {
+            return Placed::Raw(raw);
+        }
+        for bz in blo[2]..=bhi[2] {
+            for by in blo[1]..=bhi[1] {
+                for bx in blo[0]..=bhi[0] {
+                    let m = block_morton([bx, by, bz]);
+                    let i = match last {
+                        Some((k, i)) if k == m => i,
+                        _ => {
+                            let i = *lookup.entry(m).or_insert_with(|| {
+                                blocks.push((m, Vec::new(), Bounds::EMPTY));
+                                blocks.len() - 1
+                            });
+                            last = Some((m, i));
+                            i
+                        }
+                    };
+                    let b = &mut blocks[i];
+                    b.1.extend_from_slice(record);
+                    b.2.union(&bounds);
                 }
-                drain(&mut store, &mut index, &mut pending)?;
-                buffers = Vec::new();
-                lookup = HashMap::new();
-                last = None;
-                buffered = 0;
             }
         }
-        progress.stage(Stage::Voxelize, 0.3 * (id + 1) as f64 / stream.len() as f64);
     }
-    for buf in &mut buffers {
-        take(buf, &mut pending);
+    Placed::Grouped(Grouped { blocks, triangles, skipped })
+}
+
+/// Pass 2: bins the stream's triangles by the 64³ blocks they overlap.
+/// `resident` bytes of segments stay in memory; buffers and their
+/// bookkeeping are flushed when they pass `buffer_limit` bytes (counted by
+/// length; capacities reach at most twice that). Chunks are read and grouped
+/// by block on all cores, `group_bytes` of them at a time (two groups alive:
+/// one grouping while the one before is appended), and appended in input
+/// order; a budget too small for two chunks bins one chunk at a time.
+pub fn bin_triangles(
+    stream: &ChunkStore,
+    layout: RecordLayout,
+    frame: &GridFrame,
+    spill_path: &Path,
+    (resident, buffer_limit, group_bytes): (usize, usize, usize),
+    opts: &BuildOptions,
+    progress: &ProgressSink,
+) -> Result<Bins, BuildError> {
+    let mut binner = Binner {
+        layout,
+        store: ChunkStore::new(spill_path, resident),
+        buffers: Vec::new(),
+        lookup: HashMap::new(),
+        buffered: 0,
+        buffer_limit,
+        index: Vec::new(),
+        pending: Vec::new(),
+        triangles: 0,
+        skipped: 0,
+    };
+    let group = (group_bytes / 2 / BIN_CHUNK_BYTES).min(BIN_GROUP_PER_THREAD * rayon::current_num_threads());
+    let read_group = |ids: std::ops::Range<usize>| -> Result<Vec<Placed>, BuildError> {
+        ids.into_par_iter()
+            .map(|id| {
+                let (_, raw) = stream.read(id).map_err(temp_err)?;
+                Ok(group_chunk(layout, raw, frame))
+            })
+            .collect()
+    };
+    let total = stream.len();
+    if group == 0 {
+        for id in 0..total {
+            opts.check_cancelled()?;
+            let (_, raw) = stream.read(id).map_err(temp_err)?;
+            binner.append_placed(Placed::Raw(raw), frame)?;
+            progress.stage(Stage::Voxelize, 0.3 * (id + 1) as f64 / total as f64);
+        }
+    } else {
+        let mut ready: Vec<Placed> = Vec::new();
+        let mut next = 0;
+        while next < total || !ready.is_empty() {
+            opts.check_cancelled()?;
+            let ids = next..(next + group).min(total);
+            next = ids.end;
+            // Appends the group before while this one is read and grouped.
+            let (appended, grouped) = rayon::join(
+                || -> Result<(), BuildError> {
+                    for p in std::mem::take(&mut ready) {
+                        binner.append_placed(p, frame)?;
+                    }
+                    Ok(())
+                },
+                || read_group(ids),
+            );
+            appended?;
+            ready = grouped?;
+            progress.stage(Stage::Voxelize, 0.3 * next as f64 / total.max(1) as f64);
+        }
     }
-    drain(&mut store, &mut index, &mut pending)?;
-    drop((buffers, lookup));
+    binner.flush_all()?;
+    let Binner { store, mut index, triangles, skipped, .. } = binner;
     index.sort_unstable();
     index.shrink_to_fit();
     Ok(Bins { store, layout, index, skipped, triangles })

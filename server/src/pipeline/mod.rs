@@ -143,7 +143,9 @@ impl Default for BuildOptions {
             ply_vertex_memory: None,
             finished_files: None,
             on_published: None,
-            ao_field: Some(aofield::AoFieldOptions::default()),
+            // Opt-in: the field costs ~30 % more bytes a block and is less accurate than cone
+            // tracing on every benchmarked view (docs/ao-benchmark.md).
+            ao_field: None,
         }
     }
 }
@@ -291,7 +293,7 @@ impl MemoryPlan {
                 resolution: self.resolution,
                 needed,
                 detail: format!(
-                    "the AO field of {cells}³ cells takes {} (build with --no-ao-field or a smaller --ao-field-cells)",
+                    "the AO field of {cells}³ cells takes {} (build without --ao-field, or with a smaller --ao-field-cells)",
                     mib(field)
                 ),
             });
@@ -330,6 +332,12 @@ impl MemoryPlan {
 
     pub fn bin_buffers(&self) -> usize {
         (self.spare() / 8) as usize
+    }
+
+    /// Pass 2: what the chunks being grouped by block may take. The pyramid
+    /// stage's reserve is not in use yet, so they get it.
+    pub fn bin_groups(&self) -> usize {
+        self.reserve as usize
     }
 
     /// Bytes pass 3 has for workers and waiting level-0 blocks, once the
@@ -807,7 +815,7 @@ pub fn build_scene_reporting(
         layout,
         &frame,
         &temp.path().join("bins.vxt"),
-        (plan.bin_resident(), plan.bin_buffers()),
+        (plan.bin_resident(), plan.bin_buffers(), plan.bin_groups()),
         opts,
         &progress,
     )?;

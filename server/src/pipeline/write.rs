@@ -367,6 +367,10 @@ pub struct BlockWriter {
     pages: PageBuilder,
     written: usize,
     levels: Vec<LevelInfo>,
+    /// Union of the level-0 blocks' tight bounds (the manifest's `bounds`).
+    bounds: Option<VoxelBounds>,
+    /// Bytes of the pages placed so far (the manifest's `page_bytes`).
+    page_bytes: u64,
     published: bool,
     /// Told of each pack and page as it is finished.
     pub finished_files: Option<crate::pipeline::FinishedFiles>,
@@ -404,6 +408,8 @@ impl BlockWriter {
             levels: (0..levels)
                 .map(|l| LevelInfo { level: l, resolution: resolution >> l, blocks: 0, voxels: 0, bytes: 0 })
                 .collect(),
+            bounds: None,
+            page_bytes: 0,
             published: false,
             finished_files: None,
             on_published: None,
@@ -462,6 +468,13 @@ impl BlockWriter {
         level.voxels += e.voxels as u64;
         level.bytes += e.bytes as u64;
         self.written += 1;
+        if e.key.level == 0 {
+            let b = self.bounds.get_or_insert(e.bounds);
+            for a in 0..3 {
+                b.min[a] = b.min[a].min(e.bounds.min[a]);
+                b.max[a] = b.max[a].max(e.bounds.max[a]);
+            }
+        }
         let pack = self.open_pack()?;
         e.location = BlockLocation { pack: pack.serial, offset: pack.append(bytes)? };
         let pages = self.pages.add(e).map_err(page_err)?;
@@ -507,6 +520,7 @@ impl BlockWriter {
         pages: Vec<voxstream_format::hierarchy::FinishedPage>,
     ) -> Result<(), StoreError> {
         for (page_ref, bytes) in pages {
+            self.page_bytes += bytes.len() as u64;
             let pack = self.open_pack()?;
             let (serial, offset) = (pack.serial, pack.append(&bytes)?);
             self.pages.page_placed(page_ref.root, serial, offset).map_err(page_err)?;
@@ -563,6 +577,8 @@ impl BlockWriter {
             root_pack: top.root_pack,
             root_page_pack: top.root_page_pack,
             ao_field: self.ao_field.clone(),
+            bounds: self.bounds,
+            page_bytes: Some(self.page_bytes),
         };
         write_unsynced(&self.tmp.join("manifest.json"), &manifest.to_json())?;
         sync_tree(&self.tmp, std::slice::from_ref(&self.packs_dir))?;
@@ -772,7 +788,7 @@ mod tests {
         assert_eq!(scene.manifest, manifest);
         assert_eq!(scene.blocks().len(), blocks.len());
         assert!(!dir.path().join("t/pages").exists(), "pages live in packs");
-        let pages = scene.index.pages_loaded();
+        let pages = scene.index.read().pages_loaded();
         let packs = std::fs::read_dir(dir.path().join("t/packs")).unwrap().count();
         let items = blocks.len() + pages;
         // Full packs but for the last few: each page layer's last pages close one more pack.
@@ -782,9 +798,9 @@ mod tests {
         );
         assert!(pages > 2 * packs, "{pages} pages, {packs} packs: packs span pages");
         assert!(per_pack.iter().all(|&n| n <= PACK_MAX_ITEMS), "{per_pack:?}");
-        assert_eq!(scene.index.packs().count(), packs);
+        assert_eq!(scene.index.read().packs().count(), packs);
         for e in scene.blocks() {
-            let bytes = scene.read_block(e).unwrap();
+            let bytes = scene.read_block(&e).unwrap();
             assert_eq!(voxstream_format::decode_block(&bytes).unwrap().key, e.key);
         }
         // Control: a byte cap below one block's size closes a pack after every block (with the

@@ -324,6 +324,8 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
         let options = crate::pipeline::BuildOptions {
             resolution: crate::pipeline::Resolution::Explicit(args.resolution),
             name: Some(view.name.replace('_', "-")),
+            // Both modes are benchmarked from one build; cone tracing ignores the field.
+            ao_field: Some(Default::default()),
             ..Default::default()
         };
         let scene_dir = crate::pipeline::build_scene(&view.mesh, &store, &options)

@@ -150,7 +150,7 @@ fn local_blocks_of(mesh: &Path, id: &str, resolution: &str) -> (Manifest, Vec<(S
     let blocks = scene
         .blocks()
         .into_iter()
-        .map(|e| (format!("/api/scenes/{id}/blocks/{}.{}", e.key, e.hash), scene.read_block(e).unwrap()))
+        .map(|e| (format!("/api/scenes/{id}/blocks/{}.{}", e.key, e.hash), scene.read_block(&e).unwrap()))
         .collect();
     let manifest = scene.manifest;
     (manifest, blocks)

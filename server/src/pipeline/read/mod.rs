@@ -34,6 +34,7 @@ use std::sync::Arc;
 use std::sync::LazyLock;
 use std::sync::atomic::{AtomicU64, Ordering};
 
+pub use crate::pipeline::bin::EncodedPiece;
 pub use crate::pipeline::stream::RecordLayout;
 
 /// An indexed triangle mesh in the source file's own coordinates and units.
@@ -109,6 +110,16 @@ pub trait TriangleSink {
             self.triangle(tri, color)?;
         }
         Ok(())
+    }
+    /// The record layout when this sink takes triangles already checked and
+    /// encoded ([`Self::pieces`]), which readers then do on their worker
+    /// threads; `None`: it takes triangles.
+    fn encoded_layout(&self) -> Option<RecordLayout> {
+        None
+    }
+    /// Encoded pieces, in order; only called when [`Self::encoded_layout`] is `Some`.
+    fn pieces(&mut self, _pieces: Vec<EncodedPiece>) -> Result<(), IngestError> {
+        Err(IngestError::Invalid("this sink takes triangles, not encoded records".into()))
     }
     /// Called now and then during long reads: report progress, stop when cancelled.
     fn tick(&mut self) -> Result<(), IngestError> {

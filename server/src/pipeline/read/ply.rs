@@ -26,8 +26,109 @@ use ply_rs_bw::ply::{
     BeginList, ElementDef, Encoding, Header, PropertyAccess, PropertyAccessResult, PropertyType, ScalarType,
 };
 
-use super::{IngestError, MeshFormat, ReadOptions, SRGB_TO_LINEAR, TICK_EVERY, TriangleSink, check_polygon};
+use super::{
+    EncodedPiece, IngestError, MeshFormat, ReadOptions, SRGB_TO_LINEAR, TICK_EVERY, TriangleSink,
+    check_polygon,
+};
 use crate::pipeline::stream::RecordLayout;
+
+/// Where one scalar vertex property goes, as [`VertexRecord`]'s setters decide.
+#[derive(Clone, Copy)]
+enum VertexTarget {
+    Position(usize),
+    Color(usize),
+    Ignored,
+}
+
+/// Binary vertex elements of scalar properties only: fixed-size records,
+/// decoded straight from their bytes into the values the crate's setters
+/// would store (same conversions, properties applied in header order).
+struct VertexRecords {
+    size: usize,
+    big: bool,
+    fields: Vec<(usize, ScalarType, VertexTarget)>,
+}
+
+impl VertexRecords {
+    fn of(def: &ElementDef, encoding: Encoding) -> Option<Self> {
+        if encoding == Encoding::Ascii {
+            return None;
+        }
+        let mut fields = Vec::new();
+        let mut at = 0usize;
+        for (name, p) in &def.properties {
+            let PropertyType::Scalar(t) = &p.data_type else {
+                return None;
+            };
+            let position = match name.as_str() {
+                "x" => VertexTarget::Position(0),
+                "y" => VertexTarget::Position(1),
+                "z" => VertexTarget::Position(2),
+                _ => VertexTarget::Ignored,
+            };
+            let target = match t {
+                ScalarType::UChar | ScalarType::UShort | ScalarType::Float | ScalarType::Double => {
+                    color_channel(name).map_or(position, VertexTarget::Color)
+                }
+                _ => position,
+            };
+            fields.push((at, t.clone(), target));
+            at += scalar_size(t) as usize;
+        }
+        (at > 0).then_some(Self { size: at, big: encoding == Encoding::BinaryBigEndian, fields })
+    }
+
+    fn decode(&self, r: &[u8]) -> VertexRecord {
+        fn word<const N: usize>(r: &[u8], at: usize) -> [u8; N] {
+            r[at..at + N].try_into().expect("in the record")
+        }
+        let mut v = VertexRecord::new();
+        for &(at, ref t, target) in &self.fields {
+            if let VertexTarget::Ignored = target {
+                continue;
+            }
+            let big = self.big;
+            // (as f64 for a position, the setter's colour value for a channel)
+            let (p, c): (f64, f32) = match t {
+                ScalarType::Char => (r[at] as i8 as f64, 0.0),
+                ScalarType::UChar => (r[at] as f64, r[at] as f32 / 255.0),
+                ScalarType::Short => {
+                    let w = word::<2>(r, at);
+                    ((if big { i16::from_be_bytes(w) } else { i16::from_le_bytes(w) }) as f64, 0.0)
+                }
+                ScalarType::UShort => {
+                    let w = word::<2>(r, at);
+                    let x = if big { u16::from_be_bytes(w) } else { u16::from_le_bytes(w) };
+                    (x as f64, x as f32 / 65535.0)
+                }
+                ScalarType::Int => {
+                    let w = word::<4>(r, at);
+                    ((if big { i32::from_be_bytes(w) } else { i32::from_le_bytes(w) }) as f64, 0.0)
+                }
+                ScalarType::UInt => {
+                    let w = word::<4>(r, at);
+                    ((if big { u32::from_be_bytes(w) } else { u32::from_le_bytes(w) }) as f64, 0.0)
+                }
+                ScalarType::Float => {
+                    let w = word::<4>(r, at);
+                    let x = if big { f32::from_be_bytes(w) } else { f32::from_le_bytes(w) };
+                    (x as f64, x)
+                }
+                ScalarType::Double => {
+                    let w = word::<8>(r, at);
+                    let x = if big { f64::from_be_bytes(w) } else { f64::from_le_bytes(w) };
+                    (x, x as f32)
+                }
+            };
+            match target {
+                VertexTarget::Position(a) => v.p[a] = p,
+                VertexTarget::Color(i) => v.c[i] = c,
+                VertexTarget::Ignored => {}
+            }
+        }
+        v
+    }
+}
 
 /// One vertex as read: position and colour channels in [0, 1] (NaN = absent).
 struct VertexRecord {
@@ -157,6 +258,63 @@ impl Polygon for FaceRecord {
             3 => &self.other,
             _ => &[],
         }
+    }
+}
+
+/// A face as [`ElementReader::read_faces`] reads it: a triangle decoded
+/// straight from its fixed-size record, or any other face as the crate reads it.
+enum Face {
+    Triangle([u32; 3]),
+    Other(Box<FaceRecord>),
+}
+
+impl Polygon for Face {
+    fn indices<'a>(&'a self, scratch: &'a mut Vec<u32>) -> &'a [u32] {
+        match self {
+            Face::Triangle(t) => t,
+            Face::Other(r) => r.indices(scratch),
+        }
+    }
+}
+
+/// The common binary face element: one property, a list of vertex indices
+/// with a one-byte count and 4-byte items (`list uchar int|uint vertex_indices`).
+/// Its triangles are fixed-size records of 13 bytes, decoded here exactly as
+/// the crate's setters would store them; every other face goes to the crate.
+#[derive(Clone, Copy)]
+struct TriangleRecords {
+    signed: bool,
+    big: bool,
+}
+
+const TRIANGLE_RECORD: usize = 13;
+
+impl TriangleRecords {
+    fn of(def: &ElementDef, encoding: Encoding) -> Option<Self> {
+        if encoding == Encoding::Ascii || def.properties.len() != 1 {
+            return None;
+        }
+        let (name, p) = def.properties.iter().next()?;
+        let PropertyType::List(ScalarType::UChar, item) = &p.data_type else {
+            return None;
+        };
+        let signed = match item {
+            ScalarType::Int => true,
+            ScalarType::UInt => false,
+            _ => return None,
+        };
+        is_index_list(name).then_some(Self { signed, big: encoding == Encoding::BinaryBigEndian })
+    }
+
+    /// The indices of one 13-byte record whose count byte is 3; negative
+    /// `int`s become `u32::MAX`, as [`FaceRecord::indices`] makes them.
+    #[inline]
+    fn decode(self, r: &[u8]) -> [u32; 3] {
+        std::array::from_fn(|k| {
+            let b: [u8; 4] = r[1 + 4 * k..5 + 4 * k].try_into().expect("4 bytes");
+            let v = if self.big { u32::from_be_bytes(b) } else { u32::from_le_bytes(b) };
+            if self.signed && (v as i32) < 0 { u32::MAX } else { v }
+        })
     }
 }
 
@@ -350,6 +508,30 @@ impl<R: BufRead> ElementReader<R> {
         Ok(())
     }
 
+    /// [`Self::read_batch`] for vertices; fixed-size binary records are decoded
+    /// by `records` on all cores.
+    fn read_vertex_batch(
+        &mut self,
+        parser: &Parser<VertexRecord>,
+        def: &ElementDef,
+        records: Option<&VertexRecords>,
+        start: usize,
+        n: usize,
+        out: &mut Vec<VertexRecord>,
+    ) -> Result<(), IngestError> {
+        use rayon::prelude::*;
+        let Some(records) = records else {
+            return self.read_batch(parser, def, start, n, out);
+        };
+        out.clear();
+        let mut bytes = vec![0u8; n * records.size];
+        std::io::Read::read_exact(self.reader.get_mut(), &mut bytes).map_err(|e| {
+            parse_err(format!("{} {start}..{}: {e} (the header declares {})", def.name, start + n, def.count))
+        })?;
+        out.par_extend(bytes.par_chunks_exact(records.size).with_min_len(1024).map(|r| records.decode(r)));
+        Ok(())
+    }
+
     /// Binary elements with lists: whole elements found in the reader's buffer
     /// (their lengths from the list counts) are parsed on all cores straight
     /// from it; an element straddling the buffer's end is read on its own.
@@ -399,6 +581,44 @@ impl<R: BufRead> ElementReader<R> {
                 .collect();
             out.extend(parsed?);
             self.reader.get_mut().consume(at);
+        }
+        Ok(())
+    }
+
+    /// Reads faces `start..start + n` into `out` (cleared first), in order:
+    /// runs of triangles whole in the reader's buffer are decoded on all cores
+    /// straight from it; any other face (a polygon, a record straddling the
+    /// buffer's end, a bad count, the file's end) is read by the crate, which
+    /// parses it or says what is wrong.
+    fn read_faces(
+        &mut self,
+        parser: &Parser<FaceRecord>,
+        def: &ElementDef,
+        records: TriangleRecords,
+        start: usize,
+        n: usize,
+        out: &mut Vec<Face>,
+    ) -> Result<(), IngestError> {
+        use rayon::prelude::*;
+        out.clear();
+        while out.len() < n {
+            let i = start + out.len();
+            let buf =
+                self.reader.get_mut().fill_buf().map_err(|e| parse_err(format!("{} {i}: {e}", def.name)))?;
+            let whole = (buf.len() / TRIANGLE_RECORD).min(n - out.len());
+            let run = (0..whole).take_while(|&k| buf[k * TRIANGLE_RECORD] == 3).count();
+            if run == 0 {
+                out.push(Face::Other(Box::new(self.read(parser, def, i)?)));
+                continue;
+            }
+            let bytes = &buf[..run * TRIANGLE_RECORD];
+            out.par_extend(
+                bytes
+                    .par_chunks_exact(TRIANGLE_RECORD)
+                    .with_min_len(4096)
+                    .map(|r| Face::Triangle(records.decode(r))),
+            );
+            self.reader.get_mut().consume(run * TRIANGLE_RECORD);
         }
         Ok(())
     }
@@ -901,12 +1121,20 @@ fn read_vertices<R: BufRead>(
     let needed = def.count as u64 * per_vertex;
     let limit = opts.vertex_memory.unwrap_or(opts.memory_budget / 2);
     let parser = Parser::<VertexRecord>::new();
+    let records = VertexRecords::of(def, input.encoding);
     let mut batch = Vec::new();
     if needed <= limit {
         // Reserving by the count is safe here: it was checked against the file size and the budget.
         let mut table = VertexTable::new(f32_exact, has_color, def.count);
         for start in (0..def.count).step_by(BATCH) {
-            input.read_batch(&parser, def, start, BATCH.min(def.count - start), &mut batch)?;
+            input.read_vertex_batch(
+                &parser,
+                def,
+                records.as_ref(),
+                start,
+                BATCH.min(def.count - start),
+                &mut batch,
+            )?;
             batch.iter().for_each(|v| table.push(v));
             sink.tick()?;
         }
@@ -922,7 +1150,14 @@ fn read_vertices<R: BufRead>(
     let mut chunk = VertexTable::new(f32_exact, has_color, BATCH);
     let mut bytes = Vec::with_capacity(BATCH * per_vertex as usize);
     for start in (0..def.count).step_by(BATCH) {
-        input.read_batch(&parser, def, start, BATCH.min(def.count - start), &mut batch)?;
+        input.read_vertex_batch(
+            &parser,
+            def,
+            records.as_ref(),
+            start,
+            BATCH.min(def.count - start),
+            &mut batch,
+        )?;
         chunk.clear();
         batch.iter().for_each(|v| chunk.push(v));
         bytes.clear();
@@ -951,8 +1186,14 @@ fn read_vertices<R: BufRead>(
 /// One triangle for the sink: positions and linear colour.
 type Tri = ([[f64; 3]; 3], [f32; 3]);
 
-/// Fans a polygon into `out`.
-fn fan<V: Vertices>(poly: &[u32], table: &V, face: usize, out: &mut Vec<Tri>) -> Result<(), IngestError> {
+/// Fans a polygon, calling `f` with each triangle and its colour.
+#[inline]
+fn fan_each<V: Vertices>(
+    poly: &[u32],
+    table: &V,
+    face: usize,
+    mut f: impl FnMut([[f64; 3]; 3], [f32; 3]),
+) -> Result<(), IngestError> {
     check_polygon(poly, table.len(), face)?;
     for k in 1..poly.len().saturating_sub(1) {
         let idx = [poly[0], poly[k], poly[k + 1]];
@@ -963,14 +1204,20 @@ fn fan<V: Vertices>(poly: &[u32], table: &V, face: usize, out: &mut Vec<Tri>) ->
         } else {
             [0.0; 3]
         };
-        out.push((tri, color));
+        f(tri, color);
     }
     Ok(())
 }
 
+/// Fans a polygon into `out`.
+fn fan<V: Vertices>(poly: &[u32], table: &V, face: usize, out: &mut Vec<Tri>) -> Result<(), IngestError> {
+    fan_each(poly, table, face, |tri, color| out.push((tri, color)))
+}
+
 /// Fans a batch of faces (the first is face `start`) on all cores and hands
 /// the triangles to the sink in file order; the first bad face in file order
-/// is the error.
+/// is the error. A sink that takes encoded records gets them checked and
+/// encoded here, on the same cores.
 fn emit_faces<P: Polygon + Sync, V: Vertices>(
     faces: &[P],
     start: usize,
@@ -979,6 +1226,24 @@ fn emit_faces<P: Polygon + Sync, V: Vertices>(
 ) -> Result<(), IngestError> {
     use rayon::prelude::*;
     const PIECE: usize = 1024;
+    if let Some(layout) = sink.encoded_layout() {
+        let pieces: Vec<Result<EncodedPiece, IngestError>> = faces
+            .par_chunks(PIECE)
+            .enumerate()
+            .map(|(p, piece)| {
+                let mut scratch = Vec::new();
+                let mut out = EncodedPiece::with_capacity(layout, piece.len());
+                for (k, f) in piece.iter().enumerate() {
+                    fan_each(f.indices(&mut scratch), table, start + p * PIECE + k, |tri, color| {
+                        out.push(layout, &tri, color)
+                    })?;
+                }
+                Ok(out)
+            })
+            .collect();
+        let pieces = pieces.into_iter().collect::<Result<Vec<_>, _>>()?;
+        return sink.pieces(pieces);
+    }
     let pieces: Vec<Result<Vec<Tri>, IngestError>> = faces
         .par_chunks(PIECE)
         .enumerate()
@@ -995,6 +1260,49 @@ fn emit_faces<P: Polygon + Sync, V: Vertices>(
         sink.triangles(&piece?)?;
     }
     Ok(())
+}
+
+/// One batch of faces read: fanned into the sink, or held (as triangles)
+/// when the vertices are still to come.
+struct FaceBatch<'a> {
+    /// Its first face's index.
+    start: usize,
+    table: &'a mut Option<Table>,
+    early: &'a mut Vec<[u32; 3]>,
+    /// The header's vertex count.
+    vertices: usize,
+}
+
+impl FaceBatch<'_> {
+    fn take<P: Polygon + Sync>(
+        &mut self,
+        batch: &[P],
+        sink: &mut dyn TriangleSink,
+        opts: &ReadOptions,
+    ) -> Result<(), IngestError> {
+        if let Some(t) = self.table {
+            return t.emit(batch, self.start, sink);
+        }
+        let mut scratch = Vec::new();
+        for (k, f) in batch.iter().enumerate() {
+            let i = self.start + k;
+            let poly = f.indices(&mut scratch);
+            if poly.iter().any(|&v| v as usize >= self.vertices) {
+                check_polygon(poly, self.vertices, i)?;
+            }
+            for k in 1..poly.len().saturating_sub(1) {
+                self.early.push([poly[0], poly[k], poly[k + 1]]);
+            }
+            if self.early.len() as u64 * 12 > opts.memory_budget / 4 {
+                return Err(IngestError::TooLarge(
+                    "the PLY's faces come before its vertices and do not fit a quarter of \
+                     the memory budget: raise --memory-budget"
+                        .into(),
+                ));
+            }
+        }
+        Ok(())
+    }
 }
 
 /// Streams a PLY's triangles into `sink`. `len` is the whole input's size.
@@ -1037,36 +1345,26 @@ pub(super) fn stream<R: BufRead>(
     let mut table: Option<Table> = None;
     // Faces that come before the vertices (rare): their fans are held until the vertices are read.
     let mut early: Vec<[u32; 3]> = Vec::new();
-    let mut scratch = Vec::new();
     // Elements must be read in header order.
     for (name, def) in &header.elements {
         match name.as_str() {
             "vertex" => table = Some(read_vertices(&mut input, def, sink, opts)?),
             "face" => {
                 let parser = Parser::<FaceRecord>::new();
-                let mut batch = Vec::new();
+                let records = TriangleRecords::of(def, header.encoding);
+                let (mut fast, mut crate_read) = (Vec::new(), Vec::new());
                 for start in (0..def.count).step_by(BATCH) {
-                    input.read_batch(&parser, def, start, BATCH.min(def.count - start), &mut batch)?;
-                    if let Some(t) = &mut table {
-                        t.emit(&batch, start, sink)?;
-                        sink.tick()?;
-                        continue;
-                    }
-                    for (k, f) in batch.iter().enumerate() {
-                        let i = start + k;
-                        let poly = f.indices(&mut scratch);
-                        if poly.iter().any(|&v| v as usize >= vertex_def.count) {
-                            check_polygon(poly, vertex_def.count, i)?;
+                    let n = BATCH.min(def.count - start);
+                    let mut faces =
+                        FaceBatch { start, table: &mut table, early: &mut early, vertices: vertex_def.count };
+                    match records {
+                        Some(r) => {
+                            input.read_faces(&parser, def, r, start, n, &mut fast)?;
+                            faces.take(&fast, sink, opts)?;
                         }
-                        for k in 1..poly.len().saturating_sub(1) {
-                            early.push([poly[0], poly[k], poly[k + 1]]);
-                        }
-                        if early.len() as u64 * 12 > opts.memory_budget / 4 {
-                            return Err(IngestError::TooLarge(
-                                "the PLY's faces come before its vertices and do not fit a quarter of \
-                                 the memory budget: raise --memory-budget"
-                                    .into(),
-                            ));
+                        None => {
+                            input.read_batch(&parser, def, start, n, &mut crate_read)?;
+                            faces.take(&crate_read, sink, opts)?;
                         }
                     }
                     sink.tick()?;
@@ -1099,6 +1397,79 @@ mod tests {
 
     fn read(bytes: &[u8]) -> Result<TriangleMesh, IngestError> {
         read_mesh_bytes(bytes, MeshFormat::Ply)
+    }
+
+    /// Fails if the fixed-size record decoders give a vertex or a triangle
+    /// other than the crate's parse of the same bytes: every scalar type in
+    /// both byte orders (positions, colour channels, ignored properties),
+    /// random bytes (NaN, infinities, negative indices included).
+    #[test]
+    fn record_decoders_match_the_crate() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(8);
+        let header = |format: &str, props: &str| {
+            let text = format!("ply\nformat {format} 1.0\nelement vertex 1\n{props}end_header\n");
+            let mut r = Reader::new(std::io::BufReader::new(text.as_bytes()));
+            Parser::<Skipped>::new().read_header(&mut r).unwrap()
+        };
+        let vertex_props = "property double x\nproperty float y\nproperty int z\nproperty uchar red\n\
+             property ushort green\nproperty float blue\nproperty short extra\nproperty char x2\n\
+             property uint u\nproperty double diffuse_red\n";
+        let other_props =
+            "property uchar x\nproperty ushort y\nproperty char z\nproperty short r\nproperty int g\n";
+        for format in ["binary_little_endian", "binary_big_endian"] {
+            for props in [vertex_props, other_props] {
+                let h = header(format, props);
+                let def = &h.elements["vertex"];
+                let records = VertexRecords::of(def, h.encoding).unwrap();
+                let parser = Parser::<VertexRecord>::new();
+                for _ in 0..2000 {
+                    let bytes: Vec<u8> = (0..records.size).map(|_| rng.random()).collect();
+                    let mut b = &bytes[..];
+                    let want = if h.encoding == Encoding::BinaryBigEndian {
+                        parser.read_big_endian_element(&mut b, def)
+                    } else {
+                        parser.read_little_endian_element(&mut b, def)
+                    }
+                    .unwrap();
+                    let got = records.decode(&bytes);
+                    assert_eq!(got.p.map(f64::to_bits), want.p.map(f64::to_bits), "{format} {bytes:?}");
+                    assert_eq!(got.c.map(f32::to_bits), want.c.map(f32::to_bits), "{format} {bytes:?}");
+                }
+            }
+            for item in ["int", "uint"] {
+                let h = header(format, &format!("property list uchar {item} vertex_indices\n"));
+                let def = &h.elements["vertex"];
+                let records = TriangleRecords::of(def, h.encoding).unwrap();
+                let parser = Parser::<FaceRecord>::new();
+                for k in 0..2000 {
+                    let mut bytes: Vec<u8> = (0..TRIANGLE_RECORD).map(|_| rng.random()).collect();
+                    bytes[0] = 3;
+                    if k % 3 == 0 {
+                        bytes[1..5].copy_from_slice(&[0x80, 0, 0, 0x80]); // negative either way
+                    }
+                    let mut b = &bytes[..];
+                    let want = if h.encoding == Encoding::BinaryBigEndian {
+                        parser.read_big_endian_element(&mut b, def)
+                    } else {
+                        parser.read_little_endian_element(&mut b, def)
+                    }
+                    .unwrap();
+                    let mut scratch = Vec::new();
+                    assert_eq!(
+                        &records.decode(&bytes)[..],
+                        want.indices(&mut scratch),
+                        "{format} {item} {bytes:?}"
+                    );
+                }
+            }
+        }
+        // Not the common layout: the crate reads them.
+        let h = header("binary_little_endian", "property list uchar short vertex_indices\n");
+        assert!(TriangleRecords::of(&h.elements["vertex"], h.encoding).is_none());
+        let h = header("ascii", "property list uchar int vertex_indices\n");
+        assert!(TriangleRecords::of(&h.elements["vertex"], h.encoding).is_none());
+        assert!(VertexRecords::of(&h.elements["vertex"], h.encoding).is_none());
     }
 
     const ASCII: &[u8] =
