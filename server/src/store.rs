@@ -255,13 +255,10 @@ impl StoredScene {
         match &self.files {
             SceneFiles::Dir(dir) => {
                 let (dir, root) = (dir.clone(), *root);
-                let bytes = tokio::task::spawn_blocking(move || match range {
-                    Some(range) => read_pack_range(&dir, &range),
-                    None => fs::read(dir.join(page_path(&root))),
-                })
-                .await
-                .map_err(|e| failed(e.to_string()))?
-                .ok();
+                let bytes = tokio::task::spawn_blocking(move || read_page_bytes(&dir, &root, range.as_ref()))
+                    .await
+                    .map_err(|e| failed(e.to_string()))?
+                    .ok();
                 // Checked on every read, as blocks are: a replaced scene must not answer an old URL
                 // with new bytes.
                 Ok(bytes.filter(|b| content_hash(b) == hash).map(Bytes::from))
@@ -315,14 +312,11 @@ impl StoredScene {
         let bytes: Bytes = match &self.files {
             SceneFiles::Dir(dir) => {
                 let dir = dir.clone();
-                tokio::task::spawn_blocking(move || match range {
-                    Some(range) => read_pack_range(&dir, &range),
-                    None => fs::read(dir.join(page_path(&root))),
-                })
-                .await
-                .map_err(|e| failed(e.to_string()))?
-                .map_err(|e| failed(format!("hierarchy page {root}: {e}")))?
-                .into()
+                tokio::task::spawn_blocking(move || read_page_bytes(&dir, &root, range.as_ref()))
+                    .await
+                    .map_err(|e| failed(e.to_string()))?
+                    .map_err(|e| failed(format!("hierarchy page {root}: {e}")))?
+                    .into()
             }
             SceneFiles::Bucket(bucket) => bucket.page(&self.id, page, range).await.map_err(|e| match e {
                 // Deleted, renamed or replaced and collected since this replica listed it.
@@ -378,6 +372,15 @@ pub fn read_pack_range(dir: &Path, range: &PackRange) -> std::io::Result<Vec<u8>
         });
     }
     Ok(bytes)
+}
+
+/// A hierarchy page's bytes in the scene folder `dir`: its range of a pack, or its own file
+/// (`pages/<root>.vxh`, older builds). Not checked against its hash here.
+fn read_page_bytes(dir: &Path, root: &BlockKey, range: Option<&PackRange>) -> std::io::Result<Vec<u8>> {
+    match range {
+        Some(range) => read_pack_range(dir, range),
+        None => fs::read(dir.join(page_path(root))),
+    }
 }
 
 /// Reads every hierarchy page of the scene in `dir` (from its packs; older pages from files).
