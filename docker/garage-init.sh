@@ -9,7 +9,8 @@ set -eu
 BUCKET="${GARAGE_BUCKET:-voxstream}"
 
 config() {
-  # config I: a CLI config that reaches node I with its own node key.
+  # config I: a CLI config that reaches node I with its own node key (Garage 2 refuses a config
+  # without [s3_api], even for the CLI).
   cat >"/tmp/garage-$1.toml" <<TOML
 metadata_dir = "/meta/$1"
 data_dir = "/tmp/unused-data"
@@ -17,6 +18,10 @@ db_engine = "sqlite"
 replication_factor = 3
 rpc_bind_addr = "[::]:3901"
 rpc_public_addr = "garage-$1:3901"
+
+[s3_api]
+s3_region = "garage"
+api_bind_addr = "[::]:3900"
 TOML
 }
 
