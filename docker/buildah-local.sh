@@ -172,8 +172,14 @@ curl -fsS "$URL/api/scenes/koala/manifest" >"$WORK/manifest.json" || die "GET ma
 key="$(grep -Eo '"key": *"[0-9]+-[0-9]+-[0-9]+-[0-9]+"' "$WORK/manifest.json" | head -n1 | cut -d'"' -f4 || true)"
 [ -n "$key" ] || die "no block key in the manifest"
 curl -fsS "$URL/api/scenes/koala/blocks/$key" -o "$WORK/block.vxb" || die "GET block $key failed"
-[ "$(head -c4 "$WORK/block.vxb")" = VXB1 ] || die "block $key does not start with the VXB1 magic"
-cmp -s "$WORK/block.vxb" "$STORE_VOL/koala/blocks/$key.vxb" || die "served block differs from the one in the mounted store"
+# format::codec::BLOCK_MAGIC
+[ "$(head -c4 "$WORK/block.vxb")" = VXB2 ] || die "block $key does not start with the VXB2 magic"
+# Blocks live in packs (one byte range each): the served bytes must be a range of a pack on the volume.
+python3 - "$WORK/block.vxb" "$STORE_VOL"/koala/packs/*.vxp <<'PY' || die "served block $key is in no pack of the mounted store"
+import sys
+block = open(sys.argv[1], "rb").read()
+sys.exit(0 if any(block in open(p, "rb").read() for p in sys.argv[2:]) else 1)
+PY
 [ "$(stat -c %u "$STORE_VOL/koala/manifest.json")" = 10001 ] || die "store files are not owned by the image's user (10001)"
 wasm="$(grep -o 'pkg/[A-Za-z0-9_.-]*\.js' "$WORK/index.html" | head -n1 || true)"
 if [ -n "$wasm" ]; then
