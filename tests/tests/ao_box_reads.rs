@@ -52,15 +52,14 @@ fn render(scene_dir: &Path, scene: &AnalyticScene) -> RenderOutput {
 fn band_error(scene: &AnalyticScene, out: &RenderOutput, x_face: f64, band: f64) -> (usize, f64, f64) {
     let exact = exact_image(&scene.shapes, out, QUADRATURE);
     let (mut n, mut err, mut v) = (0usize, 0.0, 0.0);
-    for i in 0..out.ao.len() {
-        let (p, nrm) = (out.position[i], out.normal[i]);
-        if !(out.ao[i].is_finite() && exact[i].is_finite() && nrm[1] > 0.9) {
+    for (((&ao, &e), p), nrm) in out.ao.iter().zip(&exact).zip(&out.position).zip(&out.normal) {
+        if !(ao.is_finite() && e.is_finite() && nrm[1] > 0.9) {
             continue;
         }
         if p[0] >= x_face && p[0] - x_face < band {
             n += 1;
-            err += (out.ao[i] as f64 - exact[i] as f64).abs();
-            v += exact[i] as f64;
+            err += (ao as f64 - e as f64).abs();
+            v += e as f64;
         }
     }
     let k = n.max(1) as f64;
