@@ -29,7 +29,7 @@ const HEIGHT: u32 = 64;
 const RESOLUTION: u32 = 256;
 const QUADRATURE: u32 = 48;
 /// How much box reads must lower the mean |V − exact| at the wall's foot
-/// (0.015 when written: 0.1215 against 0.1360 with 2048 reference rays).
+/// (0.014 when written: 0.1174 against 0.1315).
 const MIN_GAIN: f64 = 0.007;
 
 fn render(scene_dir: &Path, scene: &AnalyticScene) -> RenderOutput {
