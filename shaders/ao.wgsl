@@ -53,11 +53,15 @@ fn clip_holds_within(level: u32, p: vec3<f32>, margin: f32) -> bool {
 // height above the surface is a few cells at most, then stay in the level.
 const CLIP_HOME_MARGIN: f32 = 12.0;
 
-// Trilinear opacity of one level at `p` (grid units).
-fn clip_trilinear(level: u32, p: vec3<f32>) -> f32 {
+// Trilinear opacity of one level at `p` (grid units); with `box_read`, the
+// opacity of the one cell p lies in (the same eight loads, weights 0 or 1).
+fn clip_trilinear(level: u32, p: vec3<f32>, box_read: bool) -> f32 {
     let q = p / clip_cell_edge(level) - 0.5;
     let base = floor(q);
-    let f = q - base;
+    var f = q - base;
+    if box_read {
+        f = select(vec3<f32>(0.0), vec3<f32>(1.0), f >= vec3<f32>(0.5));
+    }
     let b = vec3<i32>(base);
     let x00 = mix(clip_cell(level, b), clip_cell(level, b + vec3<i32>(1, 0, 0)), f.x);
     let x10 = mix(clip_cell(level, b + vec3<i32>(0, 1, 0)), clip_cell(level, b + vec3<i32>(1, 1, 0)), f.x);
@@ -70,6 +74,16 @@ fn clip_trilinear(level: u32, p: vec3<f32>) -> f32 {
 // blended by lod's fraction. Where p lies outside the level the cone's width
 // asks for (far from the camera), the first coarser level holding p stands in.
 // Returns (opacity, the level actually read).
+//
+// Box reads (lod <= 0: the cone is no wider than the finest cell, which the
+// width clamp makes of every sample within a few cells of the start plane):
+// such a sample reads the cell it lies in, the voxel as the box it is, not the
+// trilinear tent, which spreads each cell's opacity half a cell beyond its
+// faces. A narrow cone running beside a surface (along a wall near a floor
+// corner, past a chair leg, under a table edge) would otherwise read about
+// half that surface's opacity at every step and, compounded front to back,
+// come out nearly blocked by a surface it never crosses (docs/ao-benchmark.md,
+// "Where the conference room's error comes from").
 fn clip_sample(p: vec3<f32>, lod: f32) -> vec2<f32> {
     let levels = u32(clipmap.info.x);
     var level = u32(clamp(floor(lod), 0.0, f32(levels - 1u)));
@@ -84,9 +98,9 @@ fn clip_sample(p: vec3<f32>, lod: f32) -> vec2<f32> {
     if !clip_contains(level, p) {
         return vec2<f32>(0.0, f32(level));
     }
-    var v = clip_trilinear(level, p);
+    var v = clip_trilinear(level, p, lod <= 0.0);
     if frac > 0.0 && level + 1u < levels && clip_contains(level + 1u, p) {
-        v = mix(v, clip_trilinear(level + 1u, p), frac);
+        v = mix(v, clip_trilinear(level + 1u, p, false), frac);
     } else {
         frac = 0.0;
     }

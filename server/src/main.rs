@@ -113,6 +113,12 @@ enum Command {
         /// Skip the ray-traced view of the mesh (primary rays through each pixel).
         #[arg(long)]
         no_primary: bool,
+        /// Trace against this stored scene's level-0 voxels (its exposed faces)
+        /// instead of the mesh: the AO of the voxelized geometry, which the cone
+        /// tracer estimates (the rest of its error against the mesh is the
+        /// voxelization's).
+        #[arg(long, value_name = "SCENE_DIR")]
+        voxels: Option<PathBuf>,
     },
 }
 
@@ -460,8 +466,14 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             Ok(())
         }
         Command::AoBench(args) => voxstream::reference::bench::ao_bench_main(&args),
-        Command::ReferenceAo { mesh, render, rays, no_primary } => {
-            let report = voxstream::reference::reference_command(&mesh, &render, rays, !no_primary)?;
+        Command::ReferenceAo { mesh, render, rays, no_primary, voxels } => {
+            let report = voxstream::reference::reference_command(
+                &mesh,
+                &render,
+                rays,
+                !no_primary,
+                voxels.as_deref(),
+            )?;
             println!("{}", serde_json::to_string_pretty(&report)?);
             Ok(())
         }

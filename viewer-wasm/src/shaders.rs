@@ -60,12 +60,40 @@ impl AoPass {
     /// (the trace pass with ao.wgsl before it).
     pub fn module_source(self) -> String {
         match self {
-            AoPass::Trace => format!("{FRAME_WGSL}\n{SCREEN_WGSL}\n{AO_WGSL}\n{AO_TRACE_WGSL}"),
+            AoPass::Trace => {
+                let (ao, trace) = trace_sources();
+                format!("{FRAME_WGSL}\n{SCREEN_WGSL}\n{ao}\n{trace}")
+            }
             AoPass::Upsample => format!("{FRAME_WGSL}\n{SCREEN_WGSL}\n{AO_UPSAMPLE_WGSL}"),
             AoPass::Temporal => format!("{FRAME_WGSL}\n{SCREEN_WGSL}\n{AO_TEMPORAL_WGSL}"),
             AoPass::Composite => format!("{FRAME_WGSL}\n{SCREEN_WGSL}\n{AO_COMPOSITE_WGSL}"),
         }
     }
+}
+
+/// Environment variable (native builds only) naming a directory whose
+/// `ao.wgsl` and `ao_trace.wgsl` replace the built-in ones when a trace
+/// pipeline is created: to try a change to the tracer without rebuilding
+/// (a release build takes minutes), and for tests whose negative control is
+/// a deliberately different tracer (`tests/tests/ao_box_reads.rs`).
+pub const DEV_AO_WGSL_ENV: &str = "VOXSTREAM_DEV_AO_WGSL";
+
+/// The trace pass's ao.wgsl and ao_trace.wgsl: the built-in ones, or those in
+/// [`DEV_AO_WGSL_ENV`]'s directory (a file that cannot be read is a panic
+/// naming it: a developer asked for it).
+fn trace_sources() -> (std::borrow::Cow<'static, str>, std::borrow::Cow<'static, str>) {
+    #[cfg(not(target_arch = "wasm32"))]
+    if let Some(dir) = std::env::var_os(DEV_AO_WGSL_ENV) {
+        let read = |name: &str| {
+            let path = std::path::Path::new(&dir).join(name);
+            std::borrow::Cow::Owned(
+                std::fs::read_to_string(&path)
+                    .unwrap_or_else(|e| panic!("{DEV_AO_WGSL_ENV}: reading {}: {e}", path.display())),
+            )
+        };
+        return (read("ao.wgsl"), read("ao_trace.wgsl"));
+    }
+    (std::borrow::Cow::Borrowed(AO_WGSL), std::borrow::Cow::Borrowed(AO_TRACE_WGSL))
 }
 
 /// The compute module that expands voxels into face records.

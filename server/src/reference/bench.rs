@@ -48,6 +48,12 @@ pub struct AoBenchArgs {
     /// Frame counts N of the `sparse-temporal` sweep's accumulated points (comma-separated).
     #[arg(long, value_delimiter = ',', default_value = "4,16")]
     pub frames: Vec<u32>,
+    /// Also write each view's per-pixel arrays under DIR/<view>/<point index>/:
+    /// ao.f32, reference.f32, reference_variance.f32 (little-endian f32),
+    /// position.f64 (source units, xyz), normal.f32 (xyz) and
+    /// info.json (size, grid origin, voxel size, R), for error maps.
+    #[arg(long)]
+    pub dump_dir: Option<PathBuf>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -62,6 +68,8 @@ pub enum Sweep {
     /// full-resolution single frame) and the precomputed AO field (full
     /// resolution, one frame: the field has no noise to accumulate).
     Mode,
+    /// The default setting alone (clipmap, N frames): the quickest before/after.
+    Default,
 }
 
 /// One setting of the sweep.
@@ -246,6 +254,34 @@ struct View {
     shapes: Option<Vec<analytic::Shape>>,
 }
 
+/// Writes one render's per-pixel arrays beside the reference's (`--dump-dir`).
+fn dump_pixels(
+    dir: &std::path::Path,
+    out: &crate::render::RenderOutput,
+    reference: &[f32],
+    variance: &[f32],
+) -> anyhow::Result<()> {
+    std::fs::create_dir_all(dir)?;
+    let f32s = |v: &mut dyn Iterator<Item = f32>| v.flat_map(f32::to_le_bytes).collect::<Vec<u8>>();
+    std::fs::write(dir.join("ao.f32"), f32s(&mut out.ao.iter().copied()))?;
+    std::fs::write(dir.join("reference.f32"), f32s(&mut reference.iter().copied()))?;
+    std::fs::write(dir.join("reference_variance.f32"), f32s(&mut variance.iter().copied()))?;
+    std::fs::write(dir.join("normal.f32"), f32s(&mut out.normal.iter().flatten().copied()))?;
+    let pos: Vec<u8> = out.position.iter().flatten().flat_map(|x| x.to_le_bytes()).collect();
+    std::fs::write(dir.join("position.f64"), pos)?;
+    let info = serde_json::json!({
+        "width": out.info.width,
+        "height": out.info.height,
+        "grid_origin": out.info.grid_origin,
+        "voxel_size": out.info.voxel_size,
+        "grid_resolution": out.info.grid_resolution,
+        "max_distance": out.info.ao.max_distance,
+        "levels_drawn": out.info.levels_drawn,
+    });
+    std::fs::write(dir.join("info.json"), serde_json::to_vec_pretty(&info)?)?;
+    Ok(())
+}
+
 fn camera_around(mesh: &crate::pipeline::read::TriangleMesh, inside: bool) -> CameraSpec {
     let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
     for p in &mesh.positions {
@@ -317,6 +353,16 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
         Sweep::SparseTemporal => sparse_temporal_sweep(&args.frames),
         Sweep::Structure => structure_sweep(&args.frames),
         Sweep::Mode => mode_sweep(&args.frames),
+        Sweep::Default => {
+            let n =
+                args.frames.first().copied().unwrap_or(4).clamp(1, voxstream_viewer::ao::MAX_TEMPORAL_FRAMES);
+            vec![Point {
+                label: format!("default ({n} frames)"),
+                settings: AoSettings::default(),
+                scale: 1,
+                frames: n,
+            }]
+        }
     };
     let mut rows = Vec::new();
     for view in &views {
@@ -374,6 +420,10 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
                 "{}: the render's points changed with the AO setting",
                 view.name
             );
+            if let Some(dir) = &args.dump_dir {
+                let index = points.iter().position(|p| std::ptr::eq(p, point)).unwrap_or(0);
+                dump_pixels(&dir.join(&view.name).join(index.to_string()), &out, reference, variance)?;
+            }
             let c = compare(&out.ao, reference, variance, args.rays, w, h);
             let p = compare(&out.ao, primary, variance, args.rays / 4, w, h);
             let t = &out.info.timings;

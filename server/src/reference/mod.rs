@@ -256,18 +256,66 @@ pub struct CompareReport {
     pub seconds: f64,
 }
 
+/// A stored scene's level-0 voxels as triangles in source units: two per
+/// exposed face (the faces the renderer draws). `reference-ao --voxels` traces
+/// the reference against these instead of the original mesh: the AO of the
+/// voxelized geometry itself, which separates the error the voxelization puts
+/// in from the error of the cone tracer (which sees only these voxels).
+pub fn voxel_mesh(scene_dir: &Path) -> anyhow::Result<TriangleMesh> {
+    use voxstream_format::{BLOCK_SIZE, Face, decode_block};
+    let store = scene_dir.parent().context("the scene directory has no parent (the store)")?;
+    let id = scene_dir.file_name().and_then(|n| n.to_str()).context("the scene directory's name")?;
+    let scene = crate::store::open_scene(store, id)?;
+    let grid = &scene.manifest.grid;
+    let mut mesh = TriangleMesh { positions: Vec::new(), triangles: Vec::new(), colors: Vec::new() };
+    for entry in scene.blocks().iter().filter(|e| e.key.level == 0) {
+        let block = decode_block(&scene.read_block(entry)?)?;
+        let origin = block.key.coord().map(|c| c as u64 * BLOCK_SIZE as u64);
+        for v in &block.voxels {
+            let local = v.local();
+            let corner: [u64; 3] = std::array::from_fn(|a| origin[a] + local[a] as u64);
+            for face in Face::ALL {
+                if v.faces() & face.bit() == 0 {
+                    continue;
+                }
+                let (a, u, w) = (face.axis(), (face.axis() + 1) % 3, (face.axis() + 2) % 3);
+                let base = mesh.positions.len() as u32;
+                for (du, dw) in [(0, 0), (1, 0), (1, 1), (0, 1)] {
+                    let mut g = corner;
+                    g[a] += u64::from(face.sign() > 0);
+                    g[u] += du;
+                    g[w] += dw;
+                    mesh.positions
+                        .push(std::array::from_fn(|k| grid.origin[k] + g[k] as f64 * grid.voxel_size));
+                }
+                mesh.triangles.push([base, base + 1, base + 2]);
+                mesh.triangles.push([base, base + 2, base + 3]);
+            }
+        }
+    }
+    ensure!(!mesh.triangles.is_empty(), "{} has no level-0 voxels", scene_dir.display());
+    Ok(mesh)
+}
+
 /// Runs `reference-ao` on a render directory and writes its outputs there.
 pub fn reference_command(
     mesh_path: &Path,
     render_dir: &Path,
     rays: u32,
     primary: bool,
+    voxels: Option<&Path>,
 ) -> anyhow::Result<CompareReport> {
     ensure!((1..=1 << 20).contains(&rays), "--rays must be 1..=1048576, got {rays}");
     let start = std::time::Instant::now();
     let (info, ao, positions, normals) = read_outputs(render_dir)?;
-    let (mesh, _) = crate::pipeline::read::read_mesh(mesh_path)
-        .with_context(|| format!("reading {}", mesh_path.display()))?;
+    let mesh = match voxels {
+        Some(scene_dir) => voxel_mesh(scene_dir)?,
+        None => {
+            crate::pipeline::read::read_mesh(mesh_path)
+                .with_context(|| format!("reading {}", mesh_path.display()))?
+                .0
+        }
+    };
     ensure!(!mesh.triangles.is_empty(), "{} has no triangles", mesh_path.display());
     let bvh = MeshBvh::new(&mesh, info.grid_origin);
     let params = AoParams {
