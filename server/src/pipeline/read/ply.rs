@@ -58,6 +58,14 @@ impl VertexTarget {
     }
 }
 
+/// How vertex batches are decoded: fixed-size binary records, common ASCII
+/// lines, or element by element through the crate.
+enum VertexDecoder {
+    Records(VertexRecords),
+    Ascii(AsciiVertices),
+    General,
+}
+
 /// Binary vertex elements of scalar properties only: fixed-size records,
 /// decoded straight from their bytes into the values the crate's setters
 /// would store (same conversions, properties applied in header order).
@@ -600,23 +608,23 @@ impl<R: BufRead> ElementReader<R> {
         &mut self,
         parser: &Parser<VertexRecord>,
         def: &ElementDef,
-        records: Option<&VertexRecords>,
-        ascii: Option<&AsciiVertices>,
+        decoder: &VertexDecoder,
         start: usize,
         n: usize,
         out: &mut Vec<VertexRecord>,
     ) -> Result<(), IngestError> {
         use rayon::prelude::*;
-        if let Some(ascii) = ascii {
-            self.read_lines(def, start, n)?;
-            *out = self.parse_lines(def, start, |line, i| match ascii.decode(line) {
-                Some(v) => Ok(v),
-                None => ascii_element(parser, line, def, i),
-            })?;
-            return Ok(());
-        }
-        let Some(records) = records else {
-            return self.read_batch(parser, def, start, n, out);
+        let records = match decoder {
+            VertexDecoder::Records(records) => records,
+            VertexDecoder::Ascii(ascii) => {
+                self.read_lines(def, start, n)?;
+                *out = self.parse_lines(def, start, |line, i| match ascii.decode(line) {
+                    Some(v) => Ok(v),
+                    None => ascii_element(parser, line, def, i),
+                })?;
+                return Ok(());
+            }
+            VertexDecoder::General => return self.read_batch(parser, def, start, n, out),
         };
         out.clear();
         let mut bytes = vec![0u8; n * records.size];
@@ -1357,8 +1365,11 @@ fn read_vertices<R: BufRead>(
     let needed = def.count as u64 * per_vertex;
     let limit = opts.vertex_memory.unwrap_or(opts.memory_budget / 2);
     let parser = Parser::<VertexRecord>::new();
-    let records = VertexRecords::of(def, input.encoding);
-    let ascii = AsciiVertices::of(def, input.encoding);
+    let decoder = match (VertexRecords::of(def, input.encoding), AsciiVertices::of(def, input.encoding)) {
+        (Some(records), _) => VertexDecoder::Records(records),
+        (None, Some(ascii)) => VertexDecoder::Ascii(ascii),
+        (None, None) => VertexDecoder::General,
+    };
     let mut batch = Vec::new();
     if needed <= limit {
         // Reserving by the count is safe here: it was checked against the file size and the budget.
@@ -1367,8 +1378,7 @@ fn read_vertices<R: BufRead>(
             input.read_vertex_batch(
                 &parser,
                 def,
-                records.as_ref(),
-                ascii.as_ref(),
+                &decoder,
                 start,
                 BATCH.min(def.count - start),
                 &mut batch,
@@ -1388,15 +1398,7 @@ fn read_vertices<R: BufRead>(
     let mut chunk = VertexTable::new(f32_exact, has_color, BATCH);
     let mut bytes = Vec::with_capacity(BATCH * per_vertex as usize);
     for start in (0..def.count).step_by(BATCH) {
-        input.read_vertex_batch(
-            &parser,
-            def,
-            records.as_ref(),
-            ascii.as_ref(),
-            start,
-            BATCH.min(def.count - start),
-            &mut batch,
-        )?;
+        input.read_vertex_batch(&parser, def, &decoder, start, BATCH.min(def.count - start), &mut batch)?;
         chunk.clear();
         batch.iter().for_each(|v| chunk.push(v));
         bytes.clear();
