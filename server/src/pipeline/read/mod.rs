@@ -21,6 +21,7 @@
 //! Triangles may still be degenerate or non-finite; the voxelizer skips and
 //! counts those.
 
+mod ahead;
 mod gltf;
 mod obj;
 mod ply;
@@ -347,14 +348,15 @@ pub fn stream_mesh(
     std::io::Seek::rewind(&mut file).map_err(io)?;
     match format {
         MeshFormat::Ply | MeshFormat::Stl => {
-            let input = BufReader::with_capacity(
-                1 << 20,
-                CountingReader { inner: file, count: opts.bytes_read.clone() },
-            );
+            let counted = CountingReader { inner: file, count: opts.bytes_read.clone() };
             if format == MeshFormat::Ply {
-                ply::stream(input, len, sink, opts)?;
+                // The file is read ahead on its own thread while the blocks before are parsed.
+                std::thread::scope(|s| {
+                    let input = ahead::ReadAhead::spawn(s, counted).map_err(io)?;
+                    ply::stream(input, len, sink, opts)
+                })?;
             } else {
-                stl::stream(input, len, sink, opts)?;
+                stl::stream(BufReader::with_capacity(1 << 20, counted), len, sink, opts)?;
             }
         }
         MeshFormat::Obj | MeshFormat::Gltf | MeshFormat::Glb => {

@@ -40,6 +40,32 @@ enum VertexTarget {
     Ignored,
 }
 
+impl VertexTarget {
+    /// Where [`VertexRecord`]'s setter for a `t` property called `name` stores its value.
+    fn of(name: &str, t: &ScalarType) -> Self {
+        let position = match name {
+            "x" => VertexTarget::Position(0),
+            "y" => VertexTarget::Position(1),
+            "z" => VertexTarget::Position(2),
+            _ => VertexTarget::Ignored,
+        };
+        match t {
+            ScalarType::UChar | ScalarType::UShort | ScalarType::Float | ScalarType::Double => {
+                color_channel(name).map_or(position, VertexTarget::Color)
+            }
+            _ => position,
+        }
+    }
+}
+
+/// How vertex batches are decoded: fixed-size binary records, common ASCII
+/// lines, or element by element through the crate.
+enum VertexDecoder {
+    Records(VertexRecords),
+    Ascii(AsciiVertices),
+    General,
+}
+
 /// Binary vertex elements of scalar properties only: fixed-size records,
 /// decoded straight from their bytes into the values the crate's setters
 /// would store (same conversions, properties applied in header order).
@@ -60,19 +86,7 @@ impl VertexRecords {
             let PropertyType::Scalar(t) = &p.data_type else {
                 return None;
             };
-            let position = match name.as_str() {
-                "x" => VertexTarget::Position(0),
-                "y" => VertexTarget::Position(1),
-                "z" => VertexTarget::Position(2),
-                _ => VertexTarget::Ignored,
-            };
-            let target = match t {
-                ScalarType::UChar | ScalarType::UShort | ScalarType::Float | ScalarType::Double => {
-                    color_channel(name).map_or(position, VertexTarget::Color)
-                }
-                _ => position,
-            };
-            fields.push((at, t.clone(), target));
+            fields.push((at, t.clone(), VertexTarget::of(name, t)));
             at += scalar_size(t) as usize;
         }
         (at > 0).then_some(Self { size: at, big: encoding == Encoding::BinaryBigEndian, fields })
@@ -433,6 +447,9 @@ struct ElementReader<R: BufRead> {
     reader: Reader<R>,
     encoding: Encoding,
     line: String,
+    /// The ASCII lines of one batch, and where each ends.
+    text: Vec<u8>,
+    ends: Vec<usize>,
 }
 
 /// Longest ASCII element line accepted (a face of ~100k vertices).
@@ -485,26 +502,103 @@ impl<R: BufRead> ElementReader<R> {
             *out = parsed?;
             return Ok(());
         }
-        let mut text = String::new();
-        let mut ends = Vec::with_capacity(n);
-        for i in start..start + n {
-            self.read_line(def, i, &mut text)?;
-            ends.push(text.len());
+        self.read_lines(def, start, n)?;
+        *out = self.parse_lines(def, start, |line, i| ascii_element(parser, line, def, i))?;
+        Ok(())
+    }
+
+    /// Reads the next `n` ASCII lines (elements `start..start + n`) into
+    /// `self.text`, line breaks kept, each line's end in `self.ends`: runs of
+    /// lines are copied from the reader's buffer at once, their breaks found
+    /// by `memchr`, and nothing past the `n`th line is consumed. A line is
+    /// what `BufRead::read_line` reads (up to and with `\n`, or the file's
+    /// last bytes); one longer than 1 MiB is an error, as is the file ending
+    /// before the `n`th line. UTF-8 is checked by [`Self::parse_lines`].
+    fn read_lines(&mut self, def: &ElementDef, start: usize, n: usize) -> Result<(), IngestError> {
+        let too_long = |i: usize| parse_err(format!("{} {i}: line longer than 1 MiB", def.name));
+        self.text.clear();
+        self.ends.clear();
+        let mut line_start = 0usize;
+        while self.ends.len() < n {
+            let i = start + self.ends.len();
+            let buf =
+                self.reader.get_mut().fill_buf().map_err(|e| parse_err(format!("{} {i}: {e}", def.name)))?;
+            if buf.is_empty() {
+                if self.text.len() > line_start {
+                    // The file's last line, without a break.
+                    line_start = self.text.len();
+                    self.ends.push(line_start);
+                    continue;
+                }
+                return Err(parse_err(format!(
+                    "{} {i}: the file ends early (the header declares {})",
+                    def.name, def.count
+                )));
+            }
+            let base = self.text.len();
+            let mut used = buf.len();
+            for nl in memchr::memchr_iter(b'\n', buf) {
+                let end = base + nl + 1;
+                if end - line_start > MAX_LINE as usize {
+                    return Err(too_long(start + self.ends.len()));
+                }
+                self.ends.push(end);
+                line_start = end;
+                if self.ends.len() == n {
+                    used = nl + 1;
+                    break;
+                }
+            }
+            self.text.extend_from_slice(&buf[..used]);
+            self.reader.get_mut().consume(used);
+            if self.text.len() - line_start >= MAX_LINE as usize {
+                return Err(too_long(start + self.ends.len()));
+            }
         }
-        let parsed: Result<Vec<E>, IngestError> = (0..n)
+        Ok(())
+    }
+
+    /// Parses the lines [`Self::read_lines`] read on all cores, in order: `f`
+    /// takes each line (checked to be UTF-8, as `read_line` checks it) and
+    /// its element's index.
+    fn parse_lines<T: Send>(
+        &self,
+        def: &ElementDef,
+        start: usize,
+        f: impl Fn(&str, usize) -> Result<T, IngestError> + Sync + Send,
+    ) -> Result<Vec<T>, IngestError> {
+        use rayon::prelude::*;
+        let (text, ends) = (&self.text, &self.ends);
+        (0..ends.len())
             .into_par_iter()
             .with_min_len(256)
             .map(|k| {
-                let line = &text[if k == 0 { 0 } else { ends[k - 1] }..ends[k]];
-                if let Some(e) = numeric_ascii_element(line, def) {
-                    return Ok(e);
-                }
-                parser
-                    .read_ascii_element(line, def)
-                    .map_err(|e| parse_err(format!("{} {}: {e}", def.name, start + k)))
+                let bytes = &text[if k == 0 { 0 } else { ends[k - 1] }..ends[k]];
+                let line = std::str::from_utf8(bytes).map_err(|_| {
+                    parse_err(format!("{} {}: stream did not contain valid UTF-8", def.name, start + k))
+                })?;
+                f(line, start + k)
             })
-            .collect();
-        *out = parsed?;
+            .collect()
+    }
+
+    /// Reads ASCII faces `start..start + n` into `out`, in order: triangles
+    /// of the common face element decoded by `triangles`, any other line
+    /// parsed as [`Self::read_batch`] parses it (or its error).
+    fn read_ascii_faces(
+        &mut self,
+        parser: &Parser<FaceRecord>,
+        def: &ElementDef,
+        triangles: AsciiTriangles,
+        start: usize,
+        n: usize,
+        out: &mut Vec<Face>,
+    ) -> Result<(), IngestError> {
+        self.read_lines(def, start, n)?;
+        *out = self.parse_lines(def, start, |line, i| match triangles.decode(line) {
+            Some(t) => Ok(Face::Triangle(t)),
+            None => Ok(Face::Other(Box::new(ascii_element(parser, line, def, i)?))),
+        })?;
         Ok(())
     }
 
@@ -514,14 +608,23 @@ impl<R: BufRead> ElementReader<R> {
         &mut self,
         parser: &Parser<VertexRecord>,
         def: &ElementDef,
-        records: Option<&VertexRecords>,
+        decoder: &VertexDecoder,
         start: usize,
         n: usize,
         out: &mut Vec<VertexRecord>,
     ) -> Result<(), IngestError> {
         use rayon::prelude::*;
-        let Some(records) = records else {
-            return self.read_batch(parser, def, start, n, out);
+        let records = match decoder {
+            VertexDecoder::Records(records) => records,
+            VertexDecoder::Ascii(ascii) => {
+                self.read_lines(def, start, n)?;
+                *out = self.parse_lines(def, start, |line, i| match ascii.decode(line) {
+                    Some(v) => Ok(v),
+                    None => ascii_element(parser, line, def, i),
+                })?;
+                return Ok(());
+            }
+            VertexDecoder::General => return self.read_batch(parser, def, start, n, out),
         };
         out.clear();
         let mut bytes = vec![0u8; n * records.size];
@@ -663,6 +766,19 @@ impl<R: BufRead> ElementReader<R> {
     }
 }
 
+/// One ASCII element line, element `i`: [`numeric_ascii_element`], else the crate's parse (or its error).
+fn ascii_element<E: PropertyAccess>(
+    parser: &Parser<E>,
+    line: &str,
+    def: &ElementDef,
+    i: usize,
+) -> Result<E, IngestError> {
+    if let Some(e) = numeric_ascii_element(line, def) {
+        return Ok(e);
+    }
+    parser.read_ascii_element(line, def).map_err(|e| parse_err(format!("{} {i}: {e}", def.name)))
+}
+
 /// A narrow fast path for ASCII body lines, in front of the crate's
 /// `Parser::read_ascii_element` (not a PLY parser: the header, and any line
 /// this does not take, stay ply-rs-bw's). The crate matches each line with
@@ -676,11 +792,7 @@ impl<R: BufRead> ElementReader<R> {
 /// through a `set_list_*` setter, an unsupported type), and the caller
 /// hands the line to the crate, which parses it or says what is wrong.
 fn numeric_ascii_element<E: PropertyAccess>(line: &str, def: &ElementDef) -> Option<E> {
-    let body = line
-        .strip_suffix("\r\n")
-        .or_else(|| line.strip_suffix('\n'))
-        .or_else(|| line.strip_suffix('\r'))
-        .unwrap_or(line);
+    let body = line_body(line);
     let mut tokens = body.split([' ', '\t']).filter(|t| !t.is_empty());
     // The grammar checks every token of the line, used or not.
     if !body.split([' ', '\t']).all(|t| t.is_empty() || is_ply_number(t)) {
@@ -757,6 +869,138 @@ fn is_ply_number(t: &str) -> bool {
         b = &rest[n..];
     }
     b.is_empty()
+}
+
+/// A line without its line break (`\r\n`, `\n` or `\r`), as the crate's grammar takes it.
+fn line_body(line: &str) -> &str {
+    line.strip_suffix("\r\n")
+        .or_else(|| line.strip_suffix('\n'))
+        .or_else(|| line.strip_suffix('\r'))
+        .unwrap_or(line)
+}
+
+/// ASCII vertex lines of scalar properties only, decoded straight into a
+/// [`VertexRecord`]: the tokens [`numeric_ascii_element`] would take (every
+/// token a PLY number, at least one a property), each parsed by the same
+/// `str::parse` for its property's type and stored where that type's setter
+/// stores it (targets found once, from the header). `None` for any other
+/// line, which then takes the general path (and its errors).
+struct AsciiVertices {
+    fields: Vec<(ScalarType, VertexTarget)>,
+}
+
+impl AsciiVertices {
+    fn of(def: &ElementDef, encoding: Encoding) -> Option<Self> {
+        if encoding != Encoding::Ascii || def.properties.is_empty() {
+            return None;
+        }
+        let fields = def
+            .properties
+            .iter()
+            .map(|(name, p)| match &p.data_type {
+                PropertyType::Scalar(t) => Some((t.clone(), VertexTarget::of(name, t))),
+                PropertyType::List(..) => None,
+            })
+            .collect::<Option<Vec<_>>>()?;
+        Some(Self { fields })
+    }
+
+    fn decode(&self, line: &str) -> Option<VertexRecord> {
+        let mut v = VertexRecord::new();
+        let mut fields = self.fields.iter();
+        for token in line_body(line).split([' ', '\t']).filter(|t| !t.is_empty()) {
+            if !is_ply_number(token) {
+                return None;
+            }
+            // Tokens past the properties are checked, not used (as by the crate).
+            let Some((t, target)) = fields.next() else { continue };
+            // (as f64 for a position, the setter's colour value for a channel)
+            let (p, c): (f64, f32) = match t {
+                ScalarType::Char => (token.parse::<i8>().ok()? as f64, 0.0),
+                ScalarType::UChar => {
+                    let x = token.parse::<u8>().ok()?;
+                    (x as f64, x as f32 / 255.0)
+                }
+                ScalarType::Short => (token.parse::<i16>().ok()? as f64, 0.0),
+                ScalarType::UShort => {
+                    let x = token.parse::<u16>().ok()?;
+                    (x as f64, x as f32 / 65535.0)
+                }
+                ScalarType::Int => (token.parse::<i32>().ok()? as f64, 0.0),
+                ScalarType::UInt => (token.parse::<u32>().ok()? as f64, 0.0),
+                ScalarType::Float => {
+                    let x = token.parse::<f32>().ok()?;
+                    (x as f64, x)
+                }
+                ScalarType::Double => {
+                    let x = token.parse::<f64>().ok()?;
+                    (x, x as f32)
+                }
+            };
+            match *target {
+                VertexTarget::Position(a) => v.p[a] = p,
+                VertexTarget::Color(i) => v.c[i] = c,
+                VertexTarget::Ignored => {}
+            }
+        }
+        // Too few tokens: the crate says which is missing.
+        fields.next().is_none().then_some(v)
+    }
+}
+
+/// The common ASCII face element: one property, a list of vertex indices
+/// with `int` or `uint` items. A line holding a triangle (count 3) is
+/// decoded straight to its indices, as [`numeric_ascii_element`] and
+/// [`FaceRecord::indices`] would make them (count parsed as `usize`, items
+/// as `i32`/`u32`, a negative `int` becoming `u32::MAX`); any other line
+/// (a polygon, a token that is not a PLY number) returns `None` and takes
+/// the general path.
+#[derive(Clone, Copy)]
+struct AsciiTriangles {
+    signed: bool,
+}
+
+impl AsciiTriangles {
+    fn of(def: &ElementDef, encoding: Encoding) -> Option<Self> {
+        if encoding != Encoding::Ascii || def.properties.len() != 1 {
+            return None;
+        }
+        let (name, p) = def.properties.iter().next()?;
+        let signed = match &p.data_type {
+            PropertyType::List(_, ScalarType::Int) => true,
+            PropertyType::List(_, ScalarType::UInt) => false,
+            _ => return None,
+        };
+        is_index_list(name).then_some(Self { signed })
+    }
+
+    fn decode(self, line: &str) -> Option<[u32; 3]> {
+        let mut tokens = line_body(line).split([' ', '\t']).filter(|t| !t.is_empty());
+        let mut out = [0u32; 3];
+        let mut k = 0usize;
+        for token in tokens.by_ref() {
+            if !is_ply_number(token) {
+                return None;
+            }
+            if k == 0 {
+                if token.parse::<usize>().ok()? != 3 {
+                    return None;
+                }
+            } else {
+                out[k - 1] = if self.signed {
+                    u32::try_from(token.parse::<i32>().ok()?).unwrap_or(u32::MAX)
+                } else {
+                    token.parse::<u32>().ok()?
+                };
+            }
+            k += 1;
+            if k == 4 {
+                break;
+            }
+        }
+        // Tokens past the list are checked, not used (as by the crate).
+        (k == 4 && tokens.all(is_ply_number)).then_some(out)
+    }
 }
 
 /// The crate's in-place list read: the list cleared and filled with `count`
@@ -1121,7 +1365,11 @@ fn read_vertices<R: BufRead>(
     let needed = def.count as u64 * per_vertex;
     let limit = opts.vertex_memory.unwrap_or(opts.memory_budget / 2);
     let parser = Parser::<VertexRecord>::new();
-    let records = VertexRecords::of(def, input.encoding);
+    let decoder = match (VertexRecords::of(def, input.encoding), AsciiVertices::of(def, input.encoding)) {
+        (Some(records), _) => VertexDecoder::Records(records),
+        (None, Some(ascii)) => VertexDecoder::Ascii(ascii),
+        (None, None) => VertexDecoder::General,
+    };
     let mut batch = Vec::new();
     if needed <= limit {
         // Reserving by the count is safe here: it was checked against the file size and the budget.
@@ -1130,7 +1378,7 @@ fn read_vertices<R: BufRead>(
             input.read_vertex_batch(
                 &parser,
                 def,
-                records.as_ref(),
+                &decoder,
                 start,
                 BATCH.min(def.count - start),
                 &mut batch,
@@ -1150,14 +1398,7 @@ fn read_vertices<R: BufRead>(
     let mut chunk = VertexTable::new(f32_exact, has_color, BATCH);
     let mut bytes = Vec::with_capacity(BATCH * per_vertex as usize);
     for start in (0..def.count).step_by(BATCH) {
-        input.read_vertex_batch(
-            &parser,
-            def,
-            records.as_ref(),
-            start,
-            BATCH.min(def.count - start),
-            &mut batch,
-        )?;
+        input.read_vertex_batch(&parser, def, &decoder, start, BATCH.min(def.count - start), &mut batch)?;
         chunk.clear();
         batch.iter().for_each(|v| chunk.push(v));
         bytes.clear();
@@ -1341,7 +1582,13 @@ pub(super) fn stream<R: BufRead>(
         .all(|a| vertex_def.properties.get(*a).is_some_and(|p| exact_in_f32(&p.data_type)));
     sink.begin(RecordLayout { f64_positions: !f32_exact, color: has_color })?;
 
-    let mut input = ElementReader { reader, encoding: header.encoding, line: String::new() };
+    let mut input = ElementReader {
+        reader,
+        encoding: header.encoding,
+        line: String::new(),
+        text: Vec::new(),
+        ends: Vec::new(),
+    };
     let mut table: Option<Table> = None;
     // Faces that come before the vertices (rare): their fans are held until the vertices are read.
     let mut early: Vec<[u32; 3]> = Vec::new();
@@ -1352,17 +1599,22 @@ pub(super) fn stream<R: BufRead>(
             "face" => {
                 let parser = Parser::<FaceRecord>::new();
                 let records = TriangleRecords::of(def, header.encoding);
+                let ascii = AsciiTriangles::of(def, header.encoding);
                 let (mut fast, mut crate_read) = (Vec::new(), Vec::new());
                 for start in (0..def.count).step_by(BATCH) {
                     let n = BATCH.min(def.count - start);
                     let mut faces =
                         FaceBatch { start, table: &mut table, early: &mut early, vertices: vertex_def.count };
-                    match records {
-                        Some(r) => {
+                    match (records, ascii) {
+                        (Some(r), _) => {
                             input.read_faces(&parser, def, r, start, n, &mut fast)?;
                             faces.take(&fast, sink, opts)?;
                         }
-                        None => {
+                        (None, Some(t)) => {
+                            input.read_ascii_faces(&parser, def, t, start, n, &mut fast)?;
+                            faces.take(&fast, sink, opts)?;
+                        }
+                        (None, None) => {
                             input.read_batch(&parser, def, start, n, &mut crate_read)?;
                             faces.take(&crate_read, sink, opts)?;
                         }
@@ -1560,6 +1812,277 @@ element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0
                 Err(_) => assert!(fast.is_none(), "{line:?}: the crate rejects it"),
             }
         }
+    }
+
+    /// A random ASCII token for a value of type `t`: integers and floats in
+    /// the grammar's forms (leading `+`, exponents, `E`), sometimes out of
+    /// the type's range or not a PLY number at all.
+    fn ascii_token(rng: &mut impl rand::Rng, t: &ScalarType) -> String {
+        let sign = ["", "-", "+"][rng.random_range(0..3)];
+        match rng.random_range(0..20) {
+            0 => ["1.", ".5", "nan", "inf", "1e", "0x1", "1,5", "--1"][rng.random_range(0..8)].to_string(),
+            1 => format!("{sign}{}", rng.random_range(0u64..100_000)),
+            _ => match t {
+                ScalarType::Float | ScalarType::Double => match rng.random_range(0..4) {
+                    0 => format!("{sign}{}", rng.random::<f32>() * 10.0),
+                    1 => format!("{sign}{}e{}", rng.random_range(1..10), rng.random_range(-40..40)),
+                    2 => format!(
+                        "{sign}{}.{}E+{}",
+                        rng.random_range(0..100),
+                        rng.random_range(0..1000),
+                        rng.random_range(0..3)
+                    ),
+                    _ => format!("{sign}{}", rng.random_range(0..300)),
+                },
+                _ => format!("{sign}{}", rng.random_range(0..300)),
+            },
+        }
+    }
+
+    /// Joins tokens with random runs of spaces and tabs, and a random line ending.
+    fn ascii_line(rng: &mut impl rand::Rng, tokens: &[String]) -> String {
+        let gap = |rng: &mut dyn rand::RngCore| [" ", "  ", "\t", " \t "][(rng.next_u32() % 4) as usize];
+        let mut line = String::new();
+        if rng.random_range(0..4) == 0 {
+            line.push_str(gap(rng));
+        }
+        for (k, t) in tokens.iter().enumerate() {
+            if k > 0 {
+                line.push_str(gap(rng));
+            }
+            line.push_str(t);
+        }
+        if rng.random_range(0..4) == 0 {
+            line.push_str(gap(rng));
+        }
+        line.push_str(["\n", "\r\n", "\r", ""][rng.random_range(0..4)]);
+        line
+    }
+
+    #[test]
+    fn ascii_decoders_agree_with_the_crate() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(9);
+        let header = |props: &str| {
+            let text = format!("ply\nformat ascii 1.0\nelement vertex 1\n{props}end_header\n");
+            let mut r = Reader::new(std::io::BufReader::new(text.as_bytes()));
+            Parser::<Skipped>::new().read_header(&mut r).unwrap()
+        };
+        let vertex_props = [
+            "property float x\nproperty float y\nproperty float z\n",
+            "property double x\nproperty float y\nproperty int z\nproperty uchar red\n\
+             property ushort green\nproperty float blue\nproperty short extra\nproperty char x2\n\
+             property uint u\nproperty double diffuse_red\n",
+            "property uchar x\nproperty ushort y\nproperty char z\nproperty short r\nproperty int g\n",
+            "property float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\n\
+             property float nz\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nproperty uchar alpha\n",
+        ];
+        let parser = Parser::<VertexRecord>::new();
+        let (mut taken, mut rejected) = (0, 0);
+        for props in vertex_props {
+            let h = header(props);
+            let def = &h.elements["vertex"];
+            let fast = AsciiVertices::of(def, h.encoding).unwrap();
+            let types: Vec<ScalarType> = def
+                .properties
+                .values()
+                .map(|p| match &p.data_type {
+                    PropertyType::Scalar(t) => t.clone(),
+                    PropertyType::List(..) => unreachable!(),
+                })
+                .collect();
+            for _ in 0..4000 {
+                let mut n = types.len();
+                match rng.random_range(0..10) {
+                    0 => n -= 1,
+                    1 => n += rng.random_range(1..3),
+                    _ => {}
+                }
+                let tokens: Vec<String> =
+                    (0..n).map(|k| ascii_token(&mut rng, &types[k.min(types.len() - 1)])).collect();
+                let line = ascii_line(&mut rng, &tokens);
+                let got = fast.decode(&line);
+                match parser.read_ascii_element(&line, def) {
+                    Ok(want) => {
+                        if let Some(got) = got {
+                            assert_eq!(got.p.map(f64::to_bits), want.p.map(f64::to_bits), "{line:?}");
+                            assert_eq!(got.c.map(f32::to_bits), want.c.map(f32::to_bits), "{line:?}");
+                            taken += 1;
+                        }
+                    }
+                    Err(_) => {
+                        assert!(got.is_none(), "{line:?}: the crate rejects it");
+                        rejected += 1;
+                    }
+                }
+            }
+        }
+        assert!(taken > 3000 && rejected > 1000, "taken {taken}, rejected {rejected}");
+
+        let parser = Parser::<FaceRecord>::new();
+        let (mut triangles, mut polygons) = (0, 0);
+        for list in ["uchar int", "uchar uint", "int int", "uint uint"] {
+            let h = header(&format!("property list {list} vertex_indices\n"));
+            let def = &h.elements["vertex"];
+            let fast = AsciiTriangles::of(def, h.encoding).unwrap();
+            let item = if list.ends_with("uint") { ScalarType::UInt } else { ScalarType::Int };
+            for _ in 0..4000 {
+                let count: usize = [3, 3, 3, 3, 4, 5, 0, 1, 2][rng.random_range(0..9)];
+                let mut tokens = vec![match rng.random_range(0..12) {
+                    0 => format!("+{count}"),
+                    1 => "3.0".to_string(),
+                    _ => count.to_string(),
+                }];
+                let items = match rng.random_range(0..10) {
+                    0 => count.saturating_sub(1),
+                    1 => count + 2,
+                    _ => count,
+                };
+                tokens.extend((0..items).map(|_| ascii_token(&mut rng, &item)));
+                let line = ascii_line(&mut rng, &tokens);
+                let got = fast.decode(&line);
+                match parser.read_ascii_element(&line, def) {
+                    Ok(want) => {
+                        let mut scratch = Vec::new();
+                        let want = want.indices(&mut scratch);
+                        match got {
+                            Some(t) => {
+                                assert_eq!(&t[..], want, "{line:?}");
+                                triangles += 1;
+                            }
+                            // Only polygons (and degenerate lists) step aside.
+                            None => {
+                                assert_ne!(want.len(), 3, "{line:?}: a triangle stepped aside");
+                                polygons += 1;
+                            }
+                        }
+                    }
+                    Err(_) => assert!(got.is_none(), "{line:?}: the crate rejects it"),
+                }
+            }
+        }
+        assert!(triangles > 2000 && polygons > 1000, "triangles {triangles}, polygons {polygons}");
+        // Not the common layout: the general path reads them.
+        let h = header("property list uchar short vertex_indices\n");
+        assert!(AsciiTriangles::of(&h.elements["vertex"], h.encoding).is_none());
+        let h = header("property list uchar int vertex_indices\nproperty uchar flags\n");
+        assert!(AsciiTriangles::of(&h.elements["vertex"], h.encoding).is_none());
+        let h = header("property list uchar float x\n");
+        assert!(AsciiVertices::of(&h.elements["vertex"], h.encoding).is_none());
+        let h = header("property float x\n");
+        let text = "ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nend_header\n";
+        let mut r = Reader::new(std::io::BufReader::new(text.as_bytes()));
+        let b = Parser::<Skipped>::new().read_header(&mut r).unwrap();
+        assert!(AsciiVertices::of(&h.elements["vertex"], b.encoding).is_none());
+    }
+
+    /// A random ASCII PLY (spanning several batches, polygons among the
+    /// triangles, colours, CRLF and LF, extra spaces, blank trailing lines)
+    /// read by the reader and by the crate's serial whole-file parse give the
+    /// same triangles, bit for bit.
+    #[test]
+    fn ascii_file_matches_the_crate_serial_parse() {
+        use ply_rs_bw::ply::{DefaultElement, Property};
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(10);
+        let (nv, nf) = (BATCH + 1234, 2 * BATCH + 77);
+        for (item, eol) in [("int", "\n"), ("uint", "\r\n")] {
+            let mut text = format!(
+                "ply{eol}format ascii 1.0{eol}element vertex {nv}{eol}property float x{eol}property double y{eol}\
+                 property float z{eol}property uchar red{eol}property uchar green{eol}property uchar blue{eol}\
+                 element face {nf}{eol}property list uchar {item} vertex_indices{eol}end_header{eol}"
+            );
+            for _ in 0..nv {
+                let x: f32 = rng.random_range(-1.0..1.0);
+                let y = format!("{:e}", rng.random_range(-1.0e3..1.0e3f64));
+                let z = format!("+{}", rng.random::<f32>());
+                let sep = if rng.random_range(0..8) == 0 { " \t " } else { " " };
+                let (r, g, b) = (rng.random::<u8>(), rng.random::<u8>(), rng.random::<u8>());
+                text.push_str(&format!("{x}{sep}{y} {z} {r} {g} {b} {eol}"));
+            }
+            for _ in 0..nf {
+                let n = if rng.random_range(0..10) == 0 { rng.random_range(4..7) } else { 3 };
+                text.push_str(&n.to_string());
+                for _ in 0..n {
+                    text.push_str(&format!(" {}", rng.random_range(0..nv)));
+                }
+                text.push_str(eol);
+            }
+            text.push_str(eol);
+            text.push_str(eol);
+            let got = read(text.as_bytes()).unwrap();
+
+            let mut r = std::io::BufReader::new(text.as_bytes());
+            let ply = Parser::<DefaultElement>::new().read_ply(&mut r).unwrap();
+            let num = |p: &Property| match p {
+                Property::Float(v) => *v as f64,
+                Property::Double(v) => *v,
+                Property::UChar(v) => *v as f64,
+                _ => unreachable!(),
+            };
+            let vertices: Vec<[f64; 3]> =
+                ply.payload["vertex"].iter().map(|v| ["x", "y", "z"].map(|a| num(&v[a]))).collect();
+            let mut want = Vec::new();
+            for f in &ply.payload["face"] {
+                let idx: Vec<usize> = match &f["vertex_indices"] {
+                    Property::ListInt(v) => v.iter().map(|&i| i as usize).collect(),
+                    Property::ListUInt(v) => v.iter().map(|&i| i as usize).collect(),
+                    _ => unreachable!(),
+                };
+                for k in 1..idx.len() - 1 {
+                    want.push([idx[0], idx[k], idx[k + 1]].map(|i| vertices[i]));
+                }
+            }
+            assert_eq!(got.triangles.len(), want.len(), "{item}");
+            for (t, w) in want.iter().enumerate() {
+                assert_eq!(
+                    got.triangle(t).map(|p| p.map(f64::to_bits)),
+                    w.map(|p| p.map(f64::to_bits)),
+                    "{item} {t}"
+                );
+            }
+            assert!(got.triangle_color(0).is_some());
+        }
+    }
+
+    /// A malformed line is an error naming its element and line, from any
+    /// batch, never a panic; so are a file that ends early and bytes that
+    /// are not UTF-8.
+    #[test]
+    fn ascii_errors_name_the_line() {
+        let (nv, nf) = (BATCH + 10, 3);
+        let mut text = format!(
+            "ply\nformat ascii 1.0\nelement vertex {nv}\nproperty float x\nproperty float y\nproperty float z\n\
+             element face {nf}\nproperty list uchar int vertex_indices\nend_header\n"
+        );
+        for i in 0..nv {
+            text.push_str(&format!("{i} 0 1\n"));
+        }
+        text.push_str("3 0 1 2\n3 1 2 3\n4 0 1 2 3\n");
+        assert_eq!(read(text.as_bytes()).unwrap().triangles.len(), 4);
+        let message = |bytes: &[u8]| match read(bytes) {
+            Err(IngestError::Parse { message, .. }) => message,
+            other => panic!("{:?}", other.map(|m| m.triangles.len())),
+        };
+        let at = BATCH + 5;
+        let bad = text.replace(&format!("\n{at} 0 1\n"), &format!("\n{at} 0 x1\n"));
+        let m = message(bad.as_bytes());
+        assert!(m.starts_with(&format!("vertex {at}: ")), "{m}");
+        let bad = text.replace("3 1 2 3\n", "3 1 2 3e\n");
+        let m = message(bad.as_bytes());
+        assert!(m.starts_with("face 1: "), "{m}");
+        let bad = text.replace("3 1 2 3\n", "3 1 2\n");
+        assert!(message(bad.as_bytes()).starts_with("face 1: "));
+        let m = message(text.replace("4 0 1 2 3\n", "").as_bytes());
+        assert!(m.starts_with("face 2: the file ends early"), "{m}");
+        let mut bytes = text.clone().into_bytes();
+        let p = text.find("\n7 0 1\n").unwrap() + 1;
+        bytes[p] = 0xff;
+        let m = message(&bytes);
+        assert!(m.starts_with("vertex 7: ") && m.contains("UTF-8"), "{m}");
+        let long = text.replace("\n9 0 1\n", &format!("\n9 0 1{}\n", " ".repeat(MAX_LINE as usize)));
+        let m = message(long.as_bytes());
+        assert!(m.starts_with("vertex 9: line longer than 1 MiB"), "{m}");
     }
 
     #[test]
