@@ -168,37 +168,16 @@ pub struct SceneContent<'a> {
     pub levels: &'a [Vec<LodBlock>],
 }
 
-/// Writes a file of the temporary scene; [`sync_tree`] makes it durable later.
-fn write_unsynced(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
-    let mut f = fs::File::create(path).map_err(io("create", path))?;
-    f.write_all(bytes).map_err(io("write", path))
-}
-
-/// Makes every file and directory under `dir` (the temporary scene) durable.
-/// Linux: one `syncfs` of the filesystem that holds it (it reports writeback
-/// errors since Linux 5.8), then the directories themselves. Elsewhere:
-/// every file synced, on all cores, then the directories.
-fn sync_tree(dir: &Path, subdirs: &[PathBuf]) -> Result<(), StoreError> {
-    #[cfg(target_os = "linux")]
-    {
-        use std::os::fd::AsRawFd;
-        let d = fs::File::open(dir).map_err(io("open", dir))?;
-        // SAFETY: a valid open descriptor for the duration of the call.
-        if unsafe { libc::syncfs(d.as_raw_fd()) } != 0 {
-            return Err(io("sync", dir)(std::io::Error::last_os_error()));
-        }
-    }
-    #[cfg(not(target_os = "linux"))]
-    for sub in subdirs {
-        let files: Vec<PathBuf> = fs::read_dir(sub)
-            .map_err(io("list", sub))?
-            .map(|e| e.map(|e| e.path()))
-            .collect::<Result<_, _>>()
-            .map_err(io("list", sub))?;
-        files
-            .par_iter()
-            .try_for_each(|f| fs::File::open(f).and_then(|f| f.sync_all()).map_err(io("sync", f)))?;
-    }
+/// Writes the temporary scene's manifest and makes the scene durable. Every
+/// pack was synced when it closed ([`OpenPack::close`]), so what is left is
+/// the manifest and the directories' entries. Not `syncfs`: that would also
+/// wait for every other writer's dirty pages on the same filesystem (on a
+/// shared machine, seconds for a scene of a few files).
+fn write_durable(dir: &Path, subdirs: &[PathBuf], name: &str, bytes: &[u8]) -> Result<(), StoreError> {
+    let path = dir.join(name);
+    let mut f = fs::File::create(&path).map_err(io("create", &path))?;
+    f.write_all(bytes).map_err(io("write", &path))?;
+    f.sync_all().map_err(io("sync", &path))?;
     for d in subdirs.iter().map(PathBuf::as_path).chain([dir]) {
         fs::File::open(d).and_then(|f| f.sync_all()).map_err(io("sync", d))?;
     }
@@ -580,8 +559,12 @@ impl BlockWriter {
             bounds: self.bounds,
             page_bytes: Some(self.page_bytes),
         };
-        write_unsynced(&self.tmp.join("manifest.json"), &manifest.to_json())?;
-        sync_tree(&self.tmp, std::slice::from_ref(&self.packs_dir))?;
+        write_durable(
+            &self.tmp,
+            std::slice::from_ref(&self.packs_dir),
+            "manifest.json",
+            &manifest.to_json(),
+        )?;
         let on_published = |id: &str| {
             if let Some(hook) = &self.on_published {
                 (hook.0)(id)
