@@ -30,6 +30,27 @@ impl Face {
     pub fn sign(self) -> i32 {
         if self as u8 & 1 == 1 { 1 } else { -1 }
     }
+
+    /// The four corners of this face of the cube at `min` with edge `size`,
+    /// counter-clockwise seen from outside the cube (the GPU's front faces; see
+    /// shaders/voxel.wgsl).
+    pub fn corners(self, min: [f64; 3], size: f64) -> [[f64; 3]; 4] {
+        let axis = self.axis();
+        let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
+        let positive = self.sign() > 0;
+        let uv: [(f64, f64); 4] = if positive {
+            [(0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0)]
+        } else {
+            [(0.0, 0.0), (0.0, 1.0), (1.0, 1.0), (1.0, 0.0)]
+        };
+        uv.map(|(a, b)| {
+            let mut p = min;
+            p[axis] += if positive { size } else { 0.0 };
+            p[u] += a * size;
+            p[v] += b * size;
+            p
+        })
+    }
 }
 
 /// A voxel as decoded from a block and as read by the GPU: 12 bytes.
@@ -267,6 +288,18 @@ pub fn oct_decode(e: u32) -> [f32; 3] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn corners_wind_counter_clockwise_from_outside() {
+        for face in Face::ALL {
+            let c = face.corners([0.0; 3], 1.0);
+            let e1: Vec<f64> = (0..3).map(|i| c[1][i] - c[0][i]).collect();
+            let e2: Vec<f64> = (0..3).map(|i| c[2][i] - c[0][i]).collect();
+            let n =
+                [e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]];
+            assert_eq!(n[face.axis()].signum() as i32, face.sign(), "{face:?}");
+        }
+    }
 
     /// Fails if `round_snorm` differs from `f32::round` anywhere a snorm8 can
     /// land: every float of [-127, 127] around each half-integer and integer,

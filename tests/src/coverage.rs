@@ -39,26 +39,6 @@ fn transform(m: &[f32; 16], p: [f64; 3]) -> Vec4 {
     })
 }
 
-/// The four corners of a voxel face in grid units, counter-clockwise seen from
-/// outside the voxel (the GPU's front faces; see shaders/voxel.wgsl).
-pub fn face_corners(min: [f64; 3], size: f64, face: Face) -> [[f64; 3]; 4] {
-    let axis = face.axis();
-    let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
-    let positive = face.sign() > 0;
-    let uv: [(f64, f64); 4] = if positive {
-        [(0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0)]
-    } else {
-        [(0.0, 0.0), (0.0, 1.0), (1.0, 1.0), (1.0, 0.0)]
-    };
-    uv.map(|(a, b)| {
-        let mut p = min;
-        p[axis] += if positive { size } else { 0.0 };
-        p[u] += a * size;
-        p[v] += b * size;
-        p
-    })
-}
-
 /// Clips a polygon in clip space to 0 <= z <= w (wgpu's depth range). The side
 /// planes need no clipping: rasterising is bounded by the viewport anyway.
 fn clip_depth(poly: &[Vec4]) -> Vec<Vec4> {
@@ -135,7 +115,7 @@ pub fn coverage_mask<B: AsBlock>(blocks: &[B], view_proj: &[f32; 16], width: u32
                 if voxel.faces() & face.bit() == 0 {
                     continue;
                 }
-                let clip = face_corners(min, size, face).map(|p| transform(view_proj, p));
+                let clip = face.corners(min, size).map(|p| transform(view_proj, p));
                 let poly = clip_depth(&clip);
                 if poly.is_empty() {
                     continue;
@@ -273,18 +253,6 @@ mod tests {
         // Side faces are edge-on: zero area, nothing drawn.
         let sides = Face::NegX.bit() | Face::PosX.bit() | Face::NegY.bit() | Face::PosY.bit();
         assert!(coverage_mask(&[one_voxel(sides)], &ortho_over(-1.0, 3.0), 8, 8).iter().all(|&m| !m));
-    }
-
-    #[test]
-    fn corners_wind_counter_clockwise_from_outside() {
-        for face in Face::ALL {
-            let c = face_corners([0.0; 3], 1.0, face);
-            let e1: Vec<f64> = (0..3).map(|i| c[1][i] - c[0][i]).collect();
-            let e2: Vec<f64> = (0..3).map(|i| c[2][i] - c[0][i]).collect();
-            let n =
-                [e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]];
-            assert_eq!(n[face.axis()].signum() as i32, face.sign(), "{face:?}");
-        }
     }
 
     #[test]

@@ -273,20 +273,15 @@ pub fn voxel_mesh(scene_dir: &Path) -> anyhow::Result<TriangleMesh> {
         let origin = block.key.coord().map(|c| c as u64 * BLOCK_SIZE as u64);
         for v in &block.voxels {
             let local = v.local();
-            let corner: [u64; 3] = std::array::from_fn(|a| origin[a] + local[a] as u64);
+            // In grid units (integers, exact in f64), then source units.
+            let corner: [f64; 3] = std::array::from_fn(|a| (origin[a] + local[a] as u64) as f64);
             for face in Face::ALL {
                 if v.faces() & face.bit() == 0 {
                     continue;
                 }
-                let (a, u, w) = (face.axis(), (face.axis() + 1) % 3, (face.axis() + 2) % 3);
                 let base = mesh.positions.len() as u32;
-                for (du, dw) in [(0, 0), (1, 0), (1, 1), (0, 1)] {
-                    let mut g = corner;
-                    g[a] += u64::from(face.sign() > 0);
-                    g[u] += du;
-                    g[w] += dw;
-                    mesh.positions
-                        .push(std::array::from_fn(|k| grid.origin[k] + g[k] as f64 * grid.voxel_size));
+                for g in face.corners(corner, 1.0) {
+                    mesh.positions.push(std::array::from_fn(|k| grid.origin[k] + g[k] * grid.voxel_size));
                 }
                 mesh.triangles.push([base, base + 1, base + 2]);
                 mesh.triangles.push([base, base + 2, base + 3]);
