@@ -173,12 +173,12 @@ pub struct SceneContent<'a> {
 /// the manifest and the directories' entries. Not `syncfs`: that would also
 /// wait for every other writer's dirty pages on the same filesystem (on a
 /// shared machine, seconds for a scene of a few files).
-fn write_durable(dir: &Path, subdirs: &[PathBuf], name: &str, bytes: &[u8]) -> Result<(), StoreError> {
-    let path = dir.join(name);
+fn write_manifest_durably(dir: &Path, packs_dir: &Path, manifest_json: &[u8]) -> Result<(), StoreError> {
+    let path = dir.join("manifest.json");
     let mut f = fs::File::create(&path).map_err(io("create", &path))?;
-    f.write_all(bytes).map_err(io("write", &path))?;
+    f.write_all(manifest_json).map_err(io("write", &path))?;
     f.sync_all().map_err(io("sync", &path))?;
-    for d in subdirs.iter().map(PathBuf::as_path).chain([dir]) {
+    for d in [packs_dir, dir] {
         fs::File::open(d).and_then(|f| f.sync_all()).map_err(io("sync", d))?;
     }
     Ok(())
@@ -559,12 +559,7 @@ impl BlockWriter {
             bounds: self.bounds,
             page_bytes: Some(self.page_bytes),
         };
-        write_durable(
-            &self.tmp,
-            std::slice::from_ref(&self.packs_dir),
-            "manifest.json",
-            &manifest.to_json(),
-        )?;
+        write_manifest_durably(&self.tmp, &self.packs_dir, &manifest.to_json())?;
         let on_published = |id: &str| {
             if let Some(hook) = &self.on_published {
                 (hook.0)(id)

@@ -47,22 +47,11 @@ impl ReadAhead {
                     // The reader is gone.
                     Err(TryRecvError::Disconnected) => return,
                 };
-                buf.resize(BLOCK, 0);
-                let mut n = 0;
-                let read = loop {
-                    match inner.read(&mut buf[n..]) {
-                        Ok(0) => break Ok(()),
-                        Ok(k) => {
-                            n += k;
-                            if n == BLOCK {
-                                break Ok(());
-                            }
-                        }
-                        Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
-                        Err(e) => break Err(e),
-                    }
-                };
-                buf.truncate(n);
+                buf.clear();
+                buf.reserve_exact(BLOCK);
+                // Up to a full block, or the file's end; on an error, what was read is kept.
+                let read = (&mut inner).take(BLOCK as u64).read_to_end(&mut buf).map(drop);
+                let n = buf.len();
                 let last = n == 0 || read.is_err();
                 let sent = match read {
                     // An error after some bytes: the bytes first, then the error.
