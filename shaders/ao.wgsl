@@ -16,6 +16,11 @@
 
 // Opacity 0..1 of grid cell `w` of clipmap level `level` (w inside its region).
 fn clip_cell(level: u32, w: vec3<i32>) -> f32 {
+    // Nothing lies outside the scene grid; its cells are read as empty without
+    // a load (their toroidal slot may hold a cell from the level's other side).
+    if any(w < vec3<i32>(0)) || any(w >= vec3<i32>(i32(clip_grid_cells(level)))) {
+        return 0.0;
+    }
     let n = i32(clipmap.info.y);
     let m = vec3<u32>((w % n + n) % n);
     let un = u32(n);
@@ -28,11 +33,21 @@ fn clip_cell_edge(level: u32) -> f32 {
     return clipmap.info.z * exp2(f32(level));
 }
 
-// Whether all eight cells a trilinear sample at `p` (grid units) reads lie in the level.
+// The scene grid's extent in a level's cells (at least one).
+fn clip_grid_cells(level: u32) -> f32 {
+    return max(ceil(frame.volume.x / clip_cell_edge(level)), 1.0);
+}
+
+// Whether all eight cells a trilinear sample at `p` (grid units) reads are
+// known: each lies in the level or outside the scene grid (empty). A level
+// whose face lies on the grid's face thus holds samples up to that face.
 fn clip_contains(level: u32, p: vec3<f32>) -> bool {
     let q = p / clip_cell_edge(level) - 0.5;
     let o = vec3<f32>(clipmap.origins[level].xyz);
-    return all(q >= o) && all(q < o + clipmap.info.y - 1.0);
+    let n = clipmap.info.y;
+    let lo = select(o, vec3<f32>(-1e30), o <= vec3<f32>(0.0));
+    let hi = select(o + n - 1.0, vec3<f32>(1e30), o + n >= vec3<f32>(clip_grid_cells(level)));
+    return all(q >= lo) && all(q < hi);
 }
 
 // Whether `p` lies `margin` cells inside the level's faces, faces on or

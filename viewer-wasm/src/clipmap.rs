@@ -11,9 +11,12 @@
 //! - **Placement.** Level k's origin is an integer cell coordinate
 //!   ([`ClipmapLayout::origin`]): the eye plus a quarter of the level's extent
 //!   along the view direction, snapped to the level's cells, then clamped so
-//!   the level stays on the scene grid. Addresses are integer grid cells,
-//!   never world coordinates, so a scene moved by 1e6 units is the same
-//!   clipmap.
+//!   the level stays on the scene grid (a level the grid's size is centred
+//!   on it, so it holds all of it). Cells outside the scene grid are empty
+//!   by definition: the tracer reads them as 0 without a load, so a level
+//!   whose face lies on the grid's face holds samples right up to it.
+//!   Addresses are integer grid cells, never world coordinates, so a scene
+//!   moved by 1e6 units is the same clipmap.
 //! - **Storage.** One storage buffer of u32: level k's cells follow level
 //!   k−1's, cell (x, y, z) of the grid at storage slot (x mod N, y mod N,
 //!   z mod N) (toroidal addressing), so when a level moves only the cells
@@ -122,7 +125,10 @@ impl ClipmapLayout {
             let c = centre[a] as f64;
             let c = if c.is_finite() { c.clamp(-4.0 * res, 5.0 * res) } else { res / 2.0 };
             let (lo, hi) = (-1i64, extent_cells + 1 - n);
-            let o = if hi < lo {
+            // A level no larger than the grid plus a cell a side is centred
+            // on it: it then holds the whole grid, where following the eye
+            // would leave a one-cell layer at one face to a coarser level.
+            let o = if hi <= lo + 2 {
                 (lo + hi).div_euclid(2)
             } else {
                 ((c / cell).floor() as i64 - n / 2).clamp(lo, hi)
@@ -745,6 +751,21 @@ mod tests {
                 assert!(o[a] * cell <= 0 && (o[a] + 64) * cell >= 1024, "{eye}: {o:?}");
             }
         }
+    }
+
+    #[test]
+    fn a_level_the_grids_size_is_centred_on_it_wherever_the_eye_is() {
+        // 256 grid units, finest cell 1, 128 cells: level 1 (cells of 2) is the grid exactly.
+        let l = ClipmapLayout::for_scene(256, 1, 128);
+        assert_eq!(l.cell(1) * l.cells, 256);
+        for eye in [Vec3::ZERO, Vec3::splat(255.0), Vec3::new(10.0, 250.0, 128.0), Vec3::splat(-1e6)] {
+            for fwd in [Vec3::X, Vec3::NEG_Y, Vec3::new(1.0, 1.0, -1.0)] {
+                assert_eq!(l.origin(1, eye, fwd, 256), [0; 3], "eye {eye}, forward {fwd}");
+            }
+        }
+        // Control: a level one cell larger than the grid on each side is not
+        // forced to 0 by the rule: level 0 (half the grid) still follows the eye.
+        assert_ne!(l.origin(0, Vec3::ZERO, Vec3::X, 256), l.origin(0, Vec3::splat(255.0), Vec3::X, 256));
     }
 
     #[test]
