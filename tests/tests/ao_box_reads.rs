@@ -18,53 +18,14 @@
 //! (docs/ao-benchmark.md). This file is its own test binary because that
 //! variable is process-wide.
 
-use std::path::Path;
+mod ao_support;
 
-use voxstream::reference::analytic::{self, AnalyticScene, Shape, exact_image};
-use voxstream::render::{RenderOutput, RenderRequest, render_view};
-use voxstream_viewer::ao::AoSettings;
+use ao_support::{RESOLUTION, error_where, render_still, with_ao_shader};
+use voxstream::reference::analytic::{self, Shape};
 
-const WIDTH: u32 = 96;
-const HEIGHT: u32 = 64;
-const RESOLUTION: u32 = 256;
-const QUADRATURE: u32 = 48;
 /// How much box reads must lower the mean |V − exact| at the wall's foot
 /// (0.014 when written: 0.1174 against 0.1315).
 const MIN_GAIN: f64 = 0.007;
-
-fn render(scene_dir: &Path, scene: &AnalyticScene) -> RenderOutput {
-    let ao = AoSettings::default();
-    render_view(&RenderRequest {
-        scene_dir: scene_dir.to_path_buf(),
-        camera: scene.camera,
-        width: WIDTH,
-        height: HEIGHT,
-        ao,
-        max_distance: Some(0.4),
-        timing_runs: 0,
-        ao_frames: ao.temporal_frames,
-    })
-    .unwrap_or_else(|e| panic!("rendering {}: {e:#}", scene.name))
-}
-
-/// (pixels, mean |V − exact|, mean exact V) over the floor pixels whose points
-/// lie within `band` (source units) of the wall's face at `x_face`.
-fn band_error(scene: &AnalyticScene, out: &RenderOutput, x_face: f64, band: f64) -> (usize, f64, f64) {
-    let exact = exact_image(&scene.shapes, out, QUADRATURE);
-    let (mut n, mut err, mut v) = (0usize, 0.0, 0.0);
-    for (((&ao, &e), p), nrm) in out.ao.iter().zip(&exact).zip(&out.position).zip(&out.normal) {
-        if !(ao.is_finite() && e.is_finite() && nrm[1] > 0.9) {
-            continue;
-        }
-        if p[0] >= x_face && p[0] - x_face < band {
-            n += 1;
-            err += (ao as f64 - e as f64).abs();
-            v += e as f64;
-        }
-    }
-    let k = n.max(1) as f64;
-    (n, err / k, v / k)
-}
 
 #[test]
 fn narrow_cones_along_a_wall_do_not_read_it() {
@@ -91,22 +52,18 @@ fn narrow_cones_along_a_wall_do_not_read_it() {
     // The wall's voxels end at the voxel face x = voxel; the band is the next voxel.
     let (x_face, band) = (voxel, voxel);
 
-    let out = render(&dir, &scene);
-    let (pixels, mae, exact_v) = band_error(&scene, &out, x_face, band);
+    // Floor pixels within `band` of the wall's face.
+    let at_foot = |p: &[f64; 3], n: &[f32; 3]| n[1] > 0.9 && p[0] >= x_face && p[0] - x_face < band;
+    let out = render_still(&dir, &scene, Some(0.4));
+    let (pixels, mae, exact_v) = error_where(&scene, &out, at_foot);
 
     // Negative control: trilinear reads for every sample (the tracer before
     // box reads), from a copy of the shipped shader with the rule switched off.
-    let shaders = tempfile::tempdir().unwrap();
     let src = voxstream_viewer::shaders::AO_WGSL;
     let switched = src.replace("clip_trilinear(level, p, lod <= 0.0)", "clip_trilinear(level, p, false)");
     assert_ne!(switched, src, "the box-read rule is no longer where this test switches it off");
-    std::fs::write(shaders.path().join("ao.wgsl"), switched).unwrap();
-    std::fs::write(shaders.path().join("ao_trace.wgsl"), voxstream_viewer::shaders::AO_TRACE_WGSL).unwrap();
-    // SAFETY: this test binary runs this one test; no other thread reads the environment.
-    unsafe { std::env::set_var(voxstream_viewer::shaders::DEV_AO_WGSL_ENV, shaders.path()) };
-    let control = render(&dir, &scene);
-    unsafe { std::env::remove_var(voxstream_viewer::shaders::DEV_AO_WGSL_ENV) };
-    let (_, control_mae, _) = band_error(&scene, &control, x_face, band);
+    let control = with_ao_shader(&switched, || render_still(&dir, &scene, Some(0.4)));
+    let (_, control_mae, _) = error_where(&scene, &control, at_foot);
 
     println!(
         "wall foot: {pixels} px within {band:.4} of the wall's voxels, exact V {exact_v:.3}; mean |V − exact| box reads {mae:.4}, trilinear (control) {control_mae:.4}"

@@ -1,0 +1,65 @@
+//! What the AO tests that check one shader rule against exact values share:
+//! a still view at the default setting, the error over a chosen set of
+//! pixels, and a render with a modified copy of the shipped AO shader (the
+//! rule's negative control, loaded through `VOXSTREAM_DEV_AO_WGSL`, which is
+//! process-wide: each such test is its own test binary).
+
+use std::path::Path;
+
+use voxstream::reference::analytic::{AnalyticScene, exact_image};
+use voxstream::render::{RenderOutput, RenderRequest, render_view};
+use voxstream_viewer::ao::AoSettings;
+
+pub const WIDTH: u32 = 96;
+pub const HEIGHT: u32 = 64;
+pub const RESOLUTION: u32 = 256;
+const QUADRATURE: u32 = 48;
+
+/// The default setting as the viewer shows a still view: its jittered frames
+/// accumulated. `max_distance`: R in source units (default: the render's own).
+pub fn render_still(scene_dir: &Path, scene: &AnalyticScene, max_distance: Option<f64>) -> RenderOutput {
+    let ao = AoSettings::default();
+    render_view(&RenderRequest {
+        scene_dir: scene_dir.to_path_buf(),
+        camera: scene.camera,
+        width: WIDTH,
+        height: HEIGHT,
+        ao,
+        max_distance,
+        timing_runs: 0,
+        ao_frames: ao.temporal_frames,
+    })
+    .unwrap_or_else(|e| panic!("rendering {}: {e:#}", scene.name))
+}
+
+/// (pixels, mean |V − exact|, mean exact V) over the surface pixels whose
+/// position (source units) and normal `keep` accepts.
+pub fn error_where(
+    scene: &AnalyticScene,
+    out: &RenderOutput,
+    keep: impl Fn(&[f64; 3], &[f32; 3]) -> bool,
+) -> (usize, f64, f64) {
+    let exact = exact_image(&scene.shapes, out, QUADRATURE);
+    let (mut n, mut err, mut v) = (0usize, 0.0, 0.0);
+    for (((&ao, &e), p), nrm) in out.ao.iter().zip(&exact).zip(&out.position).zip(&out.normal) {
+        if ao.is_finite() && e.is_finite() && keep(p, nrm) {
+            n += 1;
+            err += (ao as f64 - e as f64).abs();
+            v += e as f64;
+        }
+    }
+    let k = n.max(1) as f64;
+    (n, err / k, v / k)
+}
+
+/// Runs `f` with `ao_wgsl` in place of the shipped shaders/ao.wgsl.
+pub fn with_ao_shader<T>(ao_wgsl: &str, f: impl FnOnce() -> T) -> T {
+    let shaders = tempfile::tempdir().unwrap();
+    std::fs::write(shaders.path().join("ao.wgsl"), ao_wgsl).unwrap();
+    std::fs::write(shaders.path().join("ao_trace.wgsl"), voxstream_viewer::shaders::AO_TRACE_WGSL).unwrap();
+    // SAFETY: each test binary using this runs one test; no other thread reads the environment.
+    unsafe { std::env::set_var(voxstream_viewer::shaders::DEV_AO_WGSL_ENV, shaders.path()) };
+    let out = f();
+    unsafe { std::env::remove_var(voxstream_viewer::shaders::DEV_AO_WGSL_ENV) };
+    out
+}
