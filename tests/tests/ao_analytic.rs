@@ -18,15 +18,15 @@
 
 use std::path::Path;
 
+mod ao_support;
+
+use ao_support::{HEIGHT, QUADRATURE, RESOLUTION, WIDTH, render_with as render};
+
 use voxstream::pipeline::aofield::AoFieldOptions;
 use voxstream::reference::analytic::{self, AnalyticScene, ExactError, Shape, exact_error, exact_image};
-use voxstream::render::{RenderOutput, RenderRequest, render_view};
+use voxstream::render::RenderOutput;
 use voxstream_viewer::ao::{AoMode, AoSettings};
 
-const WIDTH: u32 = 96;
-const HEIGHT: u32 = 64;
-const RESOLUTION: u32 = 256;
-const QUADRATURE: u32 = 48;
 const GOAL_MAE: f64 = 0.03;
 
 /// The bound each scene is held to: the goal, except where the default
@@ -36,31 +36,6 @@ fn bound(scene: &str) -> f64 {
         "parallel_plates" => 0.10,
         _ => GOAL_MAE,
     }
-}
-
-fn render(
-    scene_dir: &Path,
-    scene: &AnalyticScene,
-    ao: AoSettings,
-    max_distance: Option<f64>,
-) -> RenderOutput {
-    let req = RenderRequest {
-        scene_dir: scene_dir.to_path_buf(),
-        camera: scene.camera,
-        width: WIDTH,
-        height: HEIGHT,
-        ao,
-        max_distance,
-        timing_runs: 0,
-        // The setting as the viewer shows a still view: its frames accumulated.
-        ao_frames: ao.temporal_frames,
-    };
-    render_view(&req).unwrap_or_else(|e| {
-        panic!(
-            "rendering {}: {e:#}\n(native rendering needs Vulkan: scripts/setup.sh installs mesa-vulkan-drivers)",
-            scene.name
-        )
-    })
 }
 
 fn error_against_exact(scene: &AnalyticScene, out: &RenderOutput) -> ExactError {

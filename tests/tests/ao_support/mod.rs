@@ -1,8 +1,10 @@
-//! What the AO tests that check one shader rule against exact values share:
-//! a still view at the default setting, the error over a chosen set of
-//! pixels, and a render with a modified copy of the shipped AO shader (the
+//! What the AO tests on analytic scenes share: a still view at a setting,
+//! the error against exact values over a chosen set of pixels, and a render with a modified copy of the shipped AO shader (the
 //! rule's negative control, loaded through `VOXSTREAM_DEV_AO_WGSL`, which is
 //! process-wide: each such test is its own test binary).
+
+// Each test binary that includes this module uses only part of it.
+#![allow(dead_code)]
 
 use std::path::Path;
 
@@ -13,12 +15,16 @@ use voxstream_viewer::ao::AoSettings;
 pub const WIDTH: u32 = 96;
 pub const HEIGHT: u32 = 64;
 pub const RESOLUTION: u32 = 256;
-const QUADRATURE: u32 = 48;
+pub const QUADRATURE: u32 = 48;
 
-/// The default setting as the viewer shows a still view: its jittered frames
-/// accumulated. `max_distance`: R in source units (default: the render's own).
-pub fn render_still(scene_dir: &Path, scene: &AnalyticScene, max_distance: Option<f64>) -> RenderOutput {
-    let ao = AoSettings::default();
+/// `ao` as the viewer shows a still view: its jittered frames accumulated.
+/// `max_distance`: R in source units (default: the render's own).
+pub fn render_with(
+    scene_dir: &Path,
+    scene: &AnalyticScene,
+    ao: AoSettings,
+    max_distance: Option<f64>,
+) -> RenderOutput {
     render_view(&RenderRequest {
         scene_dir: scene_dir.to_path_buf(),
         camera: scene.camera,
@@ -29,7 +35,17 @@ pub fn render_still(scene_dir: &Path, scene: &AnalyticScene, max_distance: Optio
         timing_runs: 0,
         ao_frames: ao.temporal_frames,
     })
-    .unwrap_or_else(|e| panic!("rendering {}: {e:#}", scene.name))
+    .unwrap_or_else(|e| {
+        panic!(
+            "rendering {}: {e:#}\n(native rendering needs Vulkan: scripts/setup.sh installs mesa-vulkan-drivers)",
+            scene.name
+        )
+    })
+}
+
+/// The default setting, as [`render_with`].
+pub fn render_still(scene_dir: &Path, scene: &AnalyticScene, max_distance: Option<f64>) -> RenderOutput {
+    render_with(scene_dir, scene, AoSettings::default(), max_distance)
 }
 
 /// (pixels, mean |V − exact|, mean exact V) over the surface pixels whose
