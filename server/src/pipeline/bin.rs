@@ -31,10 +31,10 @@
 //! index: 8 bytes a segment here plus the store's location table, counted by
 //! [`Bins::index_bytes`].
 
-use std::collections::HashMap;
 use std::path::Path;
 
 use rayon::prelude::*;
+use rustc_hash::FxHashMap;
 use voxstream_format::{BlockKey, GridFrame};
 
 use crate::pipeline::progress::{ProgressSink, Stage};
@@ -358,7 +358,7 @@ struct Binner {
     store: ChunkStore,
     /// Buffers in first-hit order, found through a map.
     buffers: Vec<BinBuffer>,
-    lookup: HashMap<u64, usize>,
+    lookup: FxHashMap<u64, usize>,
     buffered: usize,
     buffer_limit: usize,
     index: Vec<u64>,
@@ -422,7 +422,7 @@ impl Binner {
         }
         self.drain()?;
         self.buffers = Vec::new();
-        self.lookup = HashMap::new();
+        self.lookup = FxHashMap::default();
         self.buffered = 0;
         Ok(())
     }
@@ -505,7 +505,7 @@ impl Binner {
 fn group_chunk(layout: RecordLayout, raw: &[u8], frame: &GridFrame) -> Placed {
     let rec = layout.size();
     let mut blocks: Vec<(u64, Vec<u8>, Bounds)> = Vec::new();
-    let mut lookup: HashMap<u64, usize> = HashMap::new();
+    let mut lookup: FxHashMap<u64, usize> = FxHashMap::default();
     let mut last: Option<(u64, usize)> = None;
     let (mut triangles, mut skipped, mut records) = (0u64, 0u64, 0usize);
     for record in raw.chunks_exact(rec) {
@@ -566,7 +566,7 @@ pub fn bin_triangles(
         layout,
         store: ChunkStore::new(spill_path, resident),
         buffers: Vec::new(),
-        lookup: HashMap::new(),
+        lookup: FxHashMap::default(),
         buffered: 0,
         buffer_limit,
         index: Vec::new(),

@@ -65,19 +65,27 @@ impl RecordLayout {
     }
 
     /// Appends one record.
+    #[inline]
     pub fn encode(self, out: &mut Vec<u8>, tri: &[[f64; 3]; 3], color: [f32; 3]) {
+        // Built on the stack and appended once: one capacity check a record, not one a value.
+        let mut rec = [0u8; 84];
+        let mut at = 0;
         for c in tri.as_flattened() {
             if self.f64_positions {
-                out.extend_from_slice(&c.to_le_bytes());
+                rec[at..at + 8].copy_from_slice(&c.to_le_bytes());
+                at += 8;
             } else {
-                out.extend_from_slice(&(*c as f32).to_le_bytes());
+                rec[at..at + 4].copy_from_slice(&(*c as f32).to_le_bytes());
+                at += 4;
             }
         }
         if self.color {
             for c in color {
-                out.extend_from_slice(&c.to_le_bytes());
+                rec[at..at + 4].copy_from_slice(&c.to_le_bytes());
+                at += 4;
             }
         }
+        out.extend_from_slice(&rec[..at]);
     }
 
     /// Decodes one record of exactly [`Self::size`] bytes.

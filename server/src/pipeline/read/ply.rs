@@ -975,6 +975,46 @@ impl AsciiTriangles {
     }
 
     fn decode(self, line: &str) -> Option<[u32; 3]> {
+        self.decode_digits(line).or_else(|| self.decode_tokens(line))
+    }
+
+    /// The common line, digits and blanks only, in one pass over its bytes;
+    /// `None` for any other, which [`Self::decode_tokens`] then takes. Every
+    /// line accepted here is one that [`Self::decode_tokens`] decodes to the
+    /// same indices: its tokens are PLY numbers, the count parses as 3 and
+    /// each index fits the list's item type.
+    fn decode_digits(self, line: &str) -> Option<[u32; 3]> {
+        let body = line_body(line).as_bytes();
+        let mut values = [0u64; 4];
+        let (mut k, mut i) = (0usize, 0usize);
+        while i < body.len() {
+            match body[i] {
+                b' ' | b'\t' => i += 1,
+                b'0'..=b'9' => {
+                    let start = i;
+                    let mut v = 0u64;
+                    while i < body.len() && body[i].is_ascii_digit() {
+                        // Longer tokens (leading zeros, overflow) take the general path.
+                        if i - start == 10 {
+                            return None;
+                        }
+                        v = v * 10 + u64::from(body[i] - b'0');
+                        i += 1;
+                    }
+                    if let Some(slot) = values.get_mut(k) {
+                        *slot = v;
+                    }
+                    k += 1;
+                }
+                _ => return None,
+            }
+        }
+        let max = if self.signed { i32::MAX as u64 } else { u32::MAX as u64 };
+        (k >= 4 && values[0] == 3 && values[1..].iter().all(|&v| v <= max))
+            .then(|| [values[1] as u32, values[2] as u32, values[3] as u32])
+    }
+
+    fn decode_tokens(self, line: &str) -> Option<[u32; 3]> {
         let mut tokens = line_body(line).split([' ', '\t']).filter(|t| !t.is_empty());
         let mut out = [0u32; 3];
         let mut k = 0usize;
@@ -1974,6 +2014,41 @@ element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0
         let mut r = Reader::new(std::io::BufReader::new(text.as_bytes()));
         let b = Parser::<Skipped>::new().read_header(&mut r).unwrap();
         assert!(AsciiVertices::of(&h.elements["vertex"], b.encoding).is_none());
+    }
+
+    #[test]
+    fn digit_triangles_agree_with_the_token_path() {
+        let lines = [
+            "3 1 2 3\n",
+            "3 1 2 3\r\n",
+            "3\t10 20\t30  \n",
+            "  3 0 0 0",
+            "03 1 2 3\n",
+            "3 0001 2 3\n",
+            "3 4294967295 0 1\n",
+            "3 4294967296 0 1\n",
+            "3 2147483647 0 1\n",
+            "3 2147483648 0 1\n",
+            "3 9999999999 0 1\n",
+            "3 99999999999 0 1\n",
+            "3 1 2 3 4 5\n",
+            "3 1 2\n",
+            "4 1 2 3 4\n",
+            "3 1 2 3\r\r\n",
+            "3 1 2 3x\n",
+            "3 -1 2 3\n",
+            "\n",
+        ];
+        for signed in [true, false] {
+            let t = AsciiTriangles { signed };
+            for line in lines {
+                if let Some(got) = t.decode_digits(line) {
+                    assert_eq!(Some(got), t.decode_tokens(line), "{line:?} signed {signed}");
+                }
+                assert_eq!(t.decode(line), t.decode_tokens(line), "{line:?} signed {signed}");
+            }
+            assert_eq!(t.decode_digits("3\t10 20\t30  \n"), Some([10, 20, 30]));
+        }
     }
 
     /// A random ASCII PLY (spanning several batches, polygons among the
