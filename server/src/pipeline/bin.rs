@@ -31,16 +31,18 @@
 //! index: 8 bytes a segment here plus the store's location table, counted by
 //! [`Bins::index_bytes`].
 
-use std::collections::HashMap;
 use std::path::Path;
 
 use rayon::prelude::*;
+use rustc_hash::FxHashMap;
 use voxstream_format::{BlockKey, GridFrame};
 
 use crate::pipeline::progress::{ProgressSink, Stage};
 use crate::pipeline::pyramid::{LodBlock, LodVoxel, block_coord, block_morton};
 use crate::pipeline::read::{IngestError, TriangleSink};
-use crate::pipeline::stream::{Bounds, ChunkStore, HEADER_LEN, MAX_CHUNK_TRIANGLES, RecordLayout};
+use crate::pipeline::stream::{
+    Bounds, ChunkStore, HEADER_LEN, MAX_CHUNK_TRIANGLES, RecordLayout, framed_records,
+};
 use crate::pipeline::voxelize::{
     EdgeHistogram, Topology, block_range, to_grid, to_grid_unchecked, valid_triangle, with_block_voxelizer,
 };
@@ -102,11 +104,13 @@ pub struct StreamSink<'a> {
     pub skipped: u64,
     /// Edge lengths of the valid triangles, for `--resolution auto`.
     pub edges: EdgeHistogram,
-    raw: Vec<u8>,
+    /// Encoded records not yet in a chunk, in order: each piece's bytes from
+    /// its offset on (only the first may be partly taken).
+    queue: Vec<(Vec<u8>, usize)>,
+    /// Bytes in `queue`.
+    queued: usize,
     /// Single triangles gathered into a batch.
     gathered: Vec<SourceTriangle>,
-    /// Full chunks waiting to be encoded together.
-    pending: Vec<Vec<u8>>,
     begun: bool,
     on_tick: &'a mut dyn FnMut() -> Result<(), IngestError>,
 }
@@ -120,42 +124,62 @@ impl<'a> StreamSink<'a> {
             triangles: 0,
             skipped: 0,
             edges: EdgeHistogram::default(),
-            raw: Vec::new(),
+            queue: Vec::new(),
+            queued: 0,
             gathered: Vec::new(),
-            pending: Vec::new(),
             begun: false,
             on_tick,
         }
     }
 
-    /// Queues the current chunk; every [`PENDING_CHUNKS`] (and at the end) they
-    /// get their bounds and are encoded together, on all cores.
+    /// Cuts the queued records into chunks (with `last`, the partial one
+    /// too), each copied together, measured and encoded on all cores, and
+    /// stores them in order.
     fn flush(&mut self, last: bool) -> Result<(), IngestError> {
-        if !self.raw.is_empty() {
-            let raw = std::mem::replace(
-                &mut self.raw,
-                Vec::with_capacity(MAX_CHUNK_TRIANGLES * self.layout.size()),
-            );
-            self.pending.push(raw);
+        let layout = self.layout;
+        let chunk_bytes = MAX_CHUNK_TRIANGLES * layout.size();
+        let count = if last { self.queued.div_ceil(chunk_bytes) } else { self.queued / chunk_bytes };
+        // Each chunk's slices of the queue: (piece, range).
+        let mut plans: Vec<Vec<(usize, std::ops::Range<usize>)>> = Vec::with_capacity(count);
+        let (mut piece, mut at) = (0, self.queue.first().map_or(0, |q| q.1));
+        for _ in 0..count {
+            let mut need = chunk_bytes.min(self.queued);
+            self.queued -= need;
+            let mut plan = Vec::new();
+            while need > 0 {
+                let len = self.queue[piece].0.len();
+                let take = (len - at).min(need);
+                plan.push((piece, at..at + take));
+                (at, need) = (at + take, need - take);
+                if at == len {
+                    (piece, at) = (piece + 1, 0);
+                }
+            }
+            plans.push(plan);
         }
-        if self.pending.len() >= PENDING_CHUNKS || (last && !self.pending.is_empty()) {
-            let layout = self.layout;
+        if count > 0 {
+            let queue = &self.queue;
             // From the records: they hold the source values exactly (f32 only for f32 sources).
-            let items: Vec<(Vec<u8>, Bounds)> = std::mem::take(&mut self.pending)
+            let items: Vec<(Vec<u8>, Bounds)> = plans
                 .into_par_iter()
-                .map(|raw| {
-                    let mut b = Bounds::EMPTY;
-                    for r in raw.chunks_exact(layout.size()) {
-                        b.add_triangle(&layout.decode(r).0);
+                .map(|plan| {
+                    let mut framed = framed_records(chunk_bytes);
+                    for (p, range) in plan {
+                        framed.extend_from_slice(&queue[p].0[range]);
                     }
-                    (raw, b)
+                    let b = records_bounds(layout, &framed[HEADER_LEN..]);
+                    (framed, b)
                 })
                 .collect();
+            self.queue.drain(..piece);
+            if let Some(first) = self.queue.first_mut() {
+                first.1 = at;
+            }
             for (_, b) in &items {
                 self.bounds.union(b);
             }
             self.store
-                .push_many(layout, &items)
+                .push_many(layout, items)
                 .map_err(|e| IngestError::Invalid(format!("temporary triangle stream: {e}")))?;
         }
         (self.on_tick)()
@@ -184,17 +208,15 @@ impl<'a> StreamSink<'a> {
             let gathered = std::mem::take(&mut self.gathered);
             self.push_batch(&gathered)?;
         }
-        let chunk_bytes = MAX_CHUNK_TRIANGLES * self.layout.size();
+        let pending_bytes = PENDING_CHUNKS * MAX_CHUNK_TRIANGLES * self.layout.size();
         for EncodedPiece { bytes, bins, valid, invalid } in pieces {
             self.edges.count(&bins);
             self.triangles += valid;
             self.skipped += invalid;
-            let mut at = 0;
-            while at < bytes.len() {
-                let take = (chunk_bytes - self.raw.len()).min(bytes.len() - at);
-                self.raw.extend_from_slice(&bytes[at..at + take]);
-                at += take;
-                if self.raw.len() == chunk_bytes {
+            if !bytes.is_empty() {
+                self.queued += bytes.len();
+                self.queue.push((bytes, 0));
+                if self.queued >= pending_bytes {
                     self.flush(false)?;
                 }
             }
@@ -217,7 +239,6 @@ impl TriangleSink for StreamSink<'_> {
         }
         self.begun = true;
         self.layout = layout;
-        self.raw.reserve(MAX_CHUNK_TRIANGLES * layout.size());
         Ok(())
     }
 
@@ -337,7 +358,7 @@ struct Binner {
     store: ChunkStore,
     /// Buffers in first-hit order, found through a map.
     buffers: Vec<BinBuffer>,
-    lookup: HashMap<u64, usize>,
+    lookup: FxHashMap<u64, usize>,
     buffered: usize,
     buffer_limit: usize,
     index: Vec<u64>,
@@ -375,9 +396,16 @@ impl Binner {
     }
 
     fn drain(&mut self) -> Result<(), BuildError> {
-        let items: Vec<(Vec<u8>, Bounds)> =
-            self.pending.iter_mut().map(|(_, r, b)| (std::mem::take(r), *b)).collect();
-        let ids = self.store.push_many(self.layout, &items).map_err(temp_err)?;
+        let items: Vec<(Vec<u8>, Bounds)> = self
+            .pending
+            .par_iter_mut()
+            .map(|(_, r, b)| {
+                let mut framed = framed_records(r.len());
+                framed.extend_from_slice(&std::mem::take(r));
+                (framed, *b)
+            })
+            .collect();
+        let ids = self.store.push_many(self.layout, items).map_err(temp_err)?;
         for ((m, _, _), id) in self.pending.drain(..).zip(ids) {
             if id as u64 >= 1 << SEGMENT_BITS {
                 return Err(BuildError::Temp(format!("more than 2^{SEGMENT_BITS} bin segments")));
@@ -394,7 +422,7 @@ impl Binner {
         }
         self.drain()?;
         self.buffers = Vec::new();
-        self.lookup = HashMap::new();
+        self.lookup = FxHashMap::default();
         self.buffered = 0;
         Ok(())
     }
@@ -474,10 +502,10 @@ impl Binner {
 }
 
 /// Groups one stream chunk's records by block (on a worker thread).
-fn group_chunk(layout: RecordLayout, raw: Vec<u8>, frame: &GridFrame) -> Placed {
+fn group_chunk(layout: RecordLayout, raw: &[u8], frame: &GridFrame) -> Placed {
     let rec = layout.size();
     let mut blocks: Vec<(u64, Vec<u8>, Bounds)> = Vec::new();
-    let mut lookup: HashMap<u64, usize> = HashMap::new();
+    let mut lookup: FxHashMap<u64, usize> = FxHashMap::default();
     let mut last: Option<(u64, usize)> = None;
     let (mut triangles, mut skipped, mut records) = (0u64, 0u64, 0usize);
     for record in raw.chunks_exact(rec) {
@@ -491,7 +519,7 @@ fn group_chunk(layout: RecordLayout, raw: Vec<u8>, frame: &GridFrame) -> Placed 
             .saturating_mul((bhi[2] - blo[2] + 1) as usize);
         records = records.saturating_add(copies);
         if records > LOCAL_RECORDS {
-            return Placed::Raw(raw);
+            return Placed::Raw(raw.to_vec());
         }
         for bz in blo[2]..=bhi[2] {
             for by in blo[1]..=bhi[1] {
@@ -538,7 +566,7 @@ pub fn bin_triangles(
         layout,
         store: ChunkStore::new(spill_path, resident),
         buffers: Vec::new(),
-        lookup: HashMap::new(),
+        lookup: FxHashMap::default(),
         buffered: 0,
         buffer_limit,
         index: Vec::new(),
@@ -549,10 +577,7 @@ pub fn bin_triangles(
     let group = (group_bytes / 2 / BIN_CHUNK_BYTES).min(BIN_GROUP_PER_THREAD * rayon::current_num_threads());
     let read_group = |ids: std::ops::Range<usize>| -> Result<Vec<Placed>, BuildError> {
         ids.into_par_iter()
-            .map(|id| {
-                let (_, raw) = stream.read(id).map_err(temp_err)?;
-                Ok(group_chunk(layout, raw, frame))
-            })
+            .map(|id| stream.with_records(id, |_, raw| Ok(group_chunk(layout, raw, frame))).map_err(temp_err))
             .collect()
     };
     let total = stream.len();
@@ -605,14 +630,19 @@ pub fn voxelize_bin(
     let rec = bins.layout.size();
     with_block_voxelizer(|vox| -> Result<_, BuildError> {
         for &entry in index {
-            let (_, raw) = bins.store.read((entry & ((1 << SEGMENT_BITS) - 1)) as usize).map_err(temp_err)?;
-            for record in raw.chunks_exact(rec) {
-                let (tri, color) = bins.layout.decode(record);
-                // Valid: pass 2 binned only triangles that `to_grid` accepted,
-                // and the same arithmetic gives the same grid triangle here.
-                let g = to_grid_unchecked(tri, frame);
-                vox.add(key, &g, bins.layout.color.then_some(color), res, topology);
-            }
+            let segment = (entry & ((1 << SEGMENT_BITS) - 1)) as usize;
+            bins.store
+                .with_records(segment, |_, raw| {
+                    for record in raw.chunks_exact(rec) {
+                        let (tri, color) = bins.layout.decode(record);
+                        // Valid: pass 2 binned only triangles that `to_grid` accepted,
+                        // and the same arithmetic gives the same grid triangle here.
+                        let g = to_grid_unchecked(tri, frame);
+                        vox.add(key, &g, bins.layout.color.then_some(color), res, topology);
+                    }
+                    Ok(())
+                })
+                .map_err(temp_err)?;
         }
         let voxels = vox.finish_map(|voxel| LodVoxel { voxel, solid: 1, error: 0.0 });
         Ok((!voxels.is_empty()).then_some(LodBlock { key, voxels }))

@@ -450,6 +450,11 @@ struct ElementReader<R: BufRead> {
     /// The ASCII lines of one batch, and where each ends.
     text: Vec<u8>,
     ends: Vec<usize>,
+    /// The next batch's lines, read while this one is parsed: its first
+    /// element, its count and how the read ended (an error is the next batch's).
+    ahead: Option<(usize, usize, Result<(), IngestError>)>,
+    ahead_text: Vec<u8>,
+    ahead_ends: Vec<usize>,
 }
 
 /// Longest ASCII element line accepted (a face of ~100k vertices).
@@ -457,7 +462,7 @@ const MAX_LINE: u64 = 1 << 20;
 /// Elements read per batch; ASCII batches are parsed in parallel.
 const BATCH: usize = 1 << 14;
 
-impl<R: BufRead> ElementReader<R> {
+impl<R: BufRead + Send> ElementReader<R> {
     /// Reads elements `start..start + n` into `out` (cleared first), in order.
     /// ASCII lines are gathered first and parsed on all cores: ply-rs-bw's
     /// `read_ascii_element` is a pure function of one line.
@@ -515,19 +520,39 @@ impl<R: BufRead> ElementReader<R> {
     /// last bytes); one longer than 1 MiB is an error, as is the file ending
     /// before the `n`th line. UTF-8 is checked by [`Self::parse_lines`].
     fn read_lines(&mut self, def: &ElementDef, start: usize, n: usize) -> Result<(), IngestError> {
+        if let Some((first, count, read)) = self.ahead.take() {
+            if (first, count) != (start, n) {
+                // The batch read ahead is always the next one asked for.
+                return Err(parse_err(format!("{} {start}: lines read out of order", def.name)));
+            }
+            std::mem::swap(&mut self.text, &mut self.ahead_text);
+            std::mem::swap(&mut self.ends, &mut self.ahead_ends);
+            return read;
+        }
+        Self::read_lines_into(&mut self.reader, def, start, n, &mut self.text, &mut self.ends)
+    }
+
+    /// [`Self::read_lines`] into the given buffers.
+    fn read_lines_into(
+        reader: &mut Reader<R>,
+        def: &ElementDef,
+        start: usize,
+        n: usize,
+        text: &mut Vec<u8>,
+        ends: &mut Vec<usize>,
+    ) -> Result<(), IngestError> {
         let too_long = |i: usize| parse_err(format!("{} {i}: line longer than 1 MiB", def.name));
-        self.text.clear();
-        self.ends.clear();
+        text.clear();
+        ends.clear();
         let mut line_start = 0usize;
-        while self.ends.len() < n {
-            let i = start + self.ends.len();
-            let buf =
-                self.reader.get_mut().fill_buf().map_err(|e| parse_err(format!("{} {i}: {e}", def.name)))?;
+        while ends.len() < n {
+            let i = start + ends.len();
+            let buf = reader.get_mut().fill_buf().map_err(|e| parse_err(format!("{} {i}: {e}", def.name)))?;
             if buf.is_empty() {
-                if self.text.len() > line_start {
+                if text.len() > line_start {
                     // The file's last line, without a break.
-                    line_start = self.text.len();
-                    self.ends.push(line_start);
+                    line_start = text.len();
+                    ends.push(line_start);
                     continue;
                 }
                 return Err(parse_err(format!(
@@ -535,24 +560,24 @@ impl<R: BufRead> ElementReader<R> {
                     def.name, def.count
                 )));
             }
-            let base = self.text.len();
+            let base = text.len();
             let mut used = buf.len();
             for nl in memchr::memchr_iter(b'\n', buf) {
                 let end = base + nl + 1;
                 if end - line_start > MAX_LINE as usize {
-                    return Err(too_long(start + self.ends.len()));
+                    return Err(too_long(start + ends.len()));
                 }
-                self.ends.push(end);
+                ends.push(end);
                 line_start = end;
-                if self.ends.len() == n {
+                if ends.len() == n {
                     used = nl + 1;
                     break;
                 }
             }
-            self.text.extend_from_slice(&buf[..used]);
-            self.reader.get_mut().consume(used);
-            if self.text.len() - line_start >= MAX_LINE as usize {
-                return Err(too_long(start + self.ends.len()));
+            text.extend_from_slice(&buf[..used]);
+            reader.get_mut().consume(used);
+            if text.len() - line_start >= MAX_LINE as usize {
+                return Err(too_long(start + ends.len()));
             }
         }
         Ok(())
@@ -560,26 +585,40 @@ impl<R: BufRead> ElementReader<R> {
 
     /// Parses the lines [`Self::read_lines`] read on all cores, in order: `f`
     /// takes each line (checked to be UTF-8, as `read_line` checks it) and
-    /// its element's index.
+    /// its element's index. Meanwhile the next batch of the same element
+    /// (elements are read in batches of [`BATCH`]) is read ahead, so the
+    /// reader's thread does not split lines while the others wait.
     fn parse_lines<T: Send>(
-        &self,
+        &mut self,
         def: &ElementDef,
         start: usize,
         f: impl Fn(&str, usize) -> Result<T, IngestError> + Sync + Send,
     ) -> Result<Vec<T>, IngestError> {
         use rayon::prelude::*;
         let (text, ends) = (&self.text, &self.ends);
-        (0..ends.len())
-            .into_par_iter()
-            .with_min_len(256)
-            .map(|k| {
-                let bytes = &text[if k == 0 { 0 } else { ends[k - 1] }..ends[k]];
-                let line = std::str::from_utf8(bytes).map_err(|_| {
-                    parse_err(format!("{} {}: stream did not contain valid UTF-8", def.name, start + k))
-                })?;
-                f(line, start + k)
-            })
-            .collect()
+        let parse = || {
+            (0..ends.len())
+                .into_par_iter()
+                .with_min_len(256)
+                .map(|k| {
+                    let bytes = &text[if k == 0 { 0 } else { ends[k - 1] }..ends[k]];
+                    let line = std::str::from_utf8(bytes).map_err(|_| {
+                        parse_err(format!("{} {}: stream did not contain valid UTF-8", def.name, start + k))
+                    })?;
+                    f(line, start + k)
+                })
+                .collect()
+        };
+        let next = start + ends.len();
+        let next_n = BATCH.min(def.count.saturating_sub(next));
+        if next_n == 0 {
+            return parse();
+        }
+        let (reader, ahead_text, ahead_ends) = (&mut self.reader, &mut self.ahead_text, &mut self.ahead_ends);
+        let (read, parsed) =
+            rayon::join(|| Self::read_lines_into(reader, def, next, next_n, ahead_text, ahead_ends), parse);
+        self.ahead = Some((next, next_n, read));
+        parsed
     }
 
     /// Reads ASCII faces `start..start + n` into `out`, in order: triangles
@@ -975,6 +1014,46 @@ impl AsciiTriangles {
     }
 
     fn decode(self, line: &str) -> Option<[u32; 3]> {
+        self.decode_digits(line).or_else(|| self.decode_tokens(line))
+    }
+
+    /// The common line, digits and blanks only, in one pass over its bytes;
+    /// `None` for any other, which [`Self::decode_tokens`] then takes. Every
+    /// line accepted here is one that [`Self::decode_tokens`] decodes to the
+    /// same indices: its tokens are PLY numbers, the count parses as 3 and
+    /// each index fits the list's item type.
+    fn decode_digits(self, line: &str) -> Option<[u32; 3]> {
+        let body = line_body(line).as_bytes();
+        let mut values = [0u64; 4];
+        let (mut k, mut i) = (0usize, 0usize);
+        while i < body.len() {
+            match body[i] {
+                b' ' | b'\t' => i += 1,
+                b'0'..=b'9' => {
+                    let start = i;
+                    let mut v = 0u64;
+                    while i < body.len() && body[i].is_ascii_digit() {
+                        // Longer tokens (leading zeros, overflow) take the general path.
+                        if i - start == 10 {
+                            return None;
+                        }
+                        v = v * 10 + u64::from(body[i] - b'0');
+                        i += 1;
+                    }
+                    if let Some(slot) = values.get_mut(k) {
+                        *slot = v;
+                    }
+                    k += 1;
+                }
+                _ => return None,
+            }
+        }
+        let max = if self.signed { i32::MAX as u64 } else { u32::MAX as u64 };
+        (k >= 4 && values[0] == 3 && values[1..].iter().all(|&v| v <= max))
+            .then(|| [values[1] as u32, values[2] as u32, values[3] as u32])
+    }
+
+    fn decode_tokens(self, line: &str) -> Option<[u32; 3]> {
         let mut tokens = line_body(line).split([' ', '\t']).filter(|t| !t.is_empty());
         let mut out = [0u32; 3];
         let mut k = 0usize;
@@ -1338,7 +1417,7 @@ fn exact_in_f32(t: &PropertyType) -> bool {
     )
 }
 
-fn read_vertices<R: BufRead>(
+fn read_vertices<R: BufRead + Send>(
     input: &mut ElementReader<R>,
     def: &ElementDef,
     sink: &mut dyn TriangleSink,
@@ -1547,7 +1626,7 @@ impl FaceBatch<'_> {
 }
 
 /// Streams a PLY's triangles into `sink`. `len` is the whole input's size.
-pub(super) fn stream<R: BufRead>(
+pub(super) fn stream<R: BufRead + Send>(
     input: R,
     len: u64,
     sink: &mut dyn TriangleSink,
@@ -1588,6 +1667,9 @@ pub(super) fn stream<R: BufRead>(
         line: String::new(),
         text: Vec::new(),
         ends: Vec::new(),
+        ahead: None,
+        ahead_text: Vec::new(),
+        ahead_ends: Vec::new(),
     };
     let mut table: Option<Table> = None;
     // Faces that come before the vertices (rare): their fans are held until the vertices are read.
@@ -1974,6 +2056,41 @@ element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0
         let mut r = Reader::new(std::io::BufReader::new(text.as_bytes()));
         let b = Parser::<Skipped>::new().read_header(&mut r).unwrap();
         assert!(AsciiVertices::of(&h.elements["vertex"], b.encoding).is_none());
+    }
+
+    #[test]
+    fn digit_triangles_agree_with_the_token_path() {
+        let lines = [
+            "3 1 2 3\n",
+            "3 1 2 3\r\n",
+            "3\t10 20\t30  \n",
+            "  3 0 0 0",
+            "03 1 2 3\n",
+            "3 0001 2 3\n",
+            "3 4294967295 0 1\n",
+            "3 4294967296 0 1\n",
+            "3 2147483647 0 1\n",
+            "3 2147483648 0 1\n",
+            "3 9999999999 0 1\n",
+            "3 99999999999 0 1\n",
+            "3 1 2 3 4 5\n",
+            "3 1 2\n",
+            "4 1 2 3 4\n",
+            "3 1 2 3\r\r\n",
+            "3 1 2 3x\n",
+            "3 -1 2 3\n",
+            "\n",
+        ];
+        for signed in [true, false] {
+            let t = AsciiTriangles { signed };
+            for line in lines {
+                if let Some(got) = t.decode_digits(line) {
+                    assert_eq!(Some(got), t.decode_tokens(line), "{line:?} signed {signed}");
+                }
+                assert_eq!(t.decode(line), t.decode_tokens(line), "{line:?} signed {signed}");
+            }
+            assert_eq!(t.decode_digits("3\t10 20\t30  \n"), Some([10, 20, 30]));
+        }
     }
 
     /// A random ASCII PLY (spanning several batches, polygons among the
