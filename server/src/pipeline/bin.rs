@@ -40,9 +40,7 @@ use voxstream_format::{BlockKey, GridFrame};
 use crate::pipeline::progress::{ProgressSink, Stage};
 use crate::pipeline::pyramid::{LodBlock, LodVoxel, block_coord, block_morton};
 use crate::pipeline::read::{IngestError, TriangleSink};
-use crate::pipeline::stream::{
-    Bounds, ChunkStore, HEADER_LEN, MAX_CHUNK_TRIANGLES, RecordLayout, framed_records,
-};
+use crate::pipeline::stream::{Bounds, ChunkStore, HEADER_LEN, MAX_CHUNK_TRIANGLES, RecordLayout};
 use crate::pipeline::voxelize::{
     EdgeHistogram, Topology, block_range, to_grid, to_grid_unchecked, valid_triangle, with_block_voxelizer,
 };
@@ -104,13 +102,11 @@ pub struct StreamSink<'a> {
     pub skipped: u64,
     /// Edge lengths of the valid triangles, for `--resolution auto`.
     pub edges: EdgeHistogram,
-    /// Encoded records not yet in a chunk, in order: each piece's bytes from
-    /// its offset on (only the first may be partly taken).
-    queue: Vec<(Vec<u8>, usize)>,
-    /// Bytes in `queue`.
-    queued: usize,
+    raw: Vec<u8>,
     /// Single triangles gathered into a batch.
     gathered: Vec<SourceTriangle>,
+    /// Full chunks waiting to be encoded together.
+    pending: Vec<Vec<u8>>,
     begun: bool,
     on_tick: &'a mut dyn FnMut() -> Result<(), IngestError>,
 }
@@ -124,62 +120,42 @@ impl<'a> StreamSink<'a> {
             triangles: 0,
             skipped: 0,
             edges: EdgeHistogram::default(),
-            queue: Vec::new(),
-            queued: 0,
+            raw: Vec::new(),
             gathered: Vec::new(),
+            pending: Vec::new(),
             begun: false,
             on_tick,
         }
     }
 
-    /// Cuts the queued records into chunks (with `last`, the partial one
-    /// too), each copied together, measured and encoded on all cores, and
-    /// stores them in order.
+    /// Queues the current chunk; every [`PENDING_CHUNKS`] (and at the end) they
+    /// get their bounds and are encoded together, on all cores.
     fn flush(&mut self, last: bool) -> Result<(), IngestError> {
-        let layout = self.layout;
-        let chunk_bytes = MAX_CHUNK_TRIANGLES * layout.size();
-        let count = if last { self.queued.div_ceil(chunk_bytes) } else { self.queued / chunk_bytes };
-        // Each chunk's slices of the queue: (piece, range).
-        let mut plans: Vec<Vec<(usize, std::ops::Range<usize>)>> = Vec::with_capacity(count);
-        let (mut piece, mut at) = (0, self.queue.first().map_or(0, |q| q.1));
-        for _ in 0..count {
-            let mut need = chunk_bytes.min(self.queued);
-            self.queued -= need;
-            let mut plan = Vec::new();
-            while need > 0 {
-                let len = self.queue[piece].0.len();
-                let take = (len - at).min(need);
-                plan.push((piece, at..at + take));
-                (at, need) = (at + take, need - take);
-                if at == len {
-                    (piece, at) = (piece + 1, 0);
-                }
-            }
-            plans.push(plan);
+        if !self.raw.is_empty() {
+            let raw = std::mem::replace(
+                &mut self.raw,
+                Vec::with_capacity(MAX_CHUNK_TRIANGLES * self.layout.size()),
+            );
+            self.pending.push(raw);
         }
-        if count > 0 {
-            let queue = &self.queue;
+        if self.pending.len() >= PENDING_CHUNKS || (last && !self.pending.is_empty()) {
+            let layout = self.layout;
             // From the records: they hold the source values exactly (f32 only for f32 sources).
-            let items: Vec<(Vec<u8>, Bounds)> = plans
+            let items: Vec<(Vec<u8>, Bounds)> = std::mem::take(&mut self.pending)
                 .into_par_iter()
-                .map(|plan| {
-                    let mut framed = framed_records(chunk_bytes);
-                    for (p, range) in plan {
-                        framed.extend_from_slice(&queue[p].0[range]);
+                .map(|raw| {
+                    let mut b = Bounds::EMPTY;
+                    for r in raw.chunks_exact(layout.size()) {
+                        b.add_triangle(&layout.decode(r).0);
                     }
-                    let b = records_bounds(layout, &framed[HEADER_LEN..]);
-                    (framed, b)
+                    (raw, b)
                 })
                 .collect();
-            self.queue.drain(..piece);
-            if let Some(first) = self.queue.first_mut() {
-                first.1 = at;
-            }
             for (_, b) in &items {
                 self.bounds.union(b);
             }
             self.store
-                .push_many(layout, items)
+                .push_many(layout, &items)
                 .map_err(|e| IngestError::Invalid(format!("temporary triangle stream: {e}")))?;
         }
         (self.on_tick)()
@@ -208,15 +184,17 @@ impl<'a> StreamSink<'a> {
             let gathered = std::mem::take(&mut self.gathered);
             self.push_batch(&gathered)?;
         }
-        let pending_bytes = PENDING_CHUNKS * MAX_CHUNK_TRIANGLES * self.layout.size();
+        let chunk_bytes = MAX_CHUNK_TRIANGLES * self.layout.size();
         for EncodedPiece { bytes, bins, valid, invalid } in pieces {
             self.edges.count(&bins);
             self.triangles += valid;
             self.skipped += invalid;
-            if !bytes.is_empty() {
-                self.queued += bytes.len();
-                self.queue.push((bytes, 0));
-                if self.queued >= pending_bytes {
+            let mut at = 0;
+            while at < bytes.len() {
+                let take = (chunk_bytes - self.raw.len()).min(bytes.len() - at);
+                self.raw.extend_from_slice(&bytes[at..at + take]);
+                at += take;
+                if self.raw.len() == chunk_bytes {
                     self.flush(false)?;
                 }
             }
@@ -239,6 +217,7 @@ impl TriangleSink for StreamSink<'_> {
         }
         self.begun = true;
         self.layout = layout;
+        self.raw.reserve(MAX_CHUNK_TRIANGLES * layout.size());
         Ok(())
     }
 
@@ -396,16 +375,9 @@ impl Binner {
     }
 
     fn drain(&mut self) -> Result<(), BuildError> {
-        let items: Vec<(Vec<u8>, Bounds)> = self
-            .pending
-            .par_iter_mut()
-            .map(|(_, r, b)| {
-                let mut framed = framed_records(r.len());
-                framed.extend_from_slice(&std::mem::take(r));
-                (framed, *b)
-            })
-            .collect();
-        let ids = self.store.push_many(self.layout, items).map_err(temp_err)?;
+        let items: Vec<(Vec<u8>, Bounds)> =
+            self.pending.iter_mut().map(|(_, r, b)| (std::mem::take(r), *b)).collect();
+        let ids = self.store.push_many(self.layout, &items).map_err(temp_err)?;
         for ((m, _, _), id) in self.pending.drain(..).zip(ids) {
             if id as u64 >= 1 << SEGMENT_BITS {
                 return Err(BuildError::Temp(format!("more than 2^{SEGMENT_BITS} bin segments")));
@@ -502,7 +474,7 @@ impl Binner {
 }
 
 /// Groups one stream chunk's records by block (on a worker thread).
-fn group_chunk(layout: RecordLayout, raw: &[u8], frame: &GridFrame) -> Placed {
+fn group_chunk(layout: RecordLayout, raw: Vec<u8>, frame: &GridFrame) -> Placed {
     let rec = layout.size();
     let mut blocks: Vec<(u64, Vec<u8>, Bounds)> = Vec::new();
     let mut lookup: FxHashMap<u64, usize> = FxHashMap::default();
@@ -519,7 +491,7 @@ fn group_chunk(layout: RecordLayout, raw: &[u8], frame: &GridFrame) -> Placed {
             .saturating_mul((bhi[2] - blo[2] + 1) as usize);
         records = records.saturating_add(copies);
         if records > LOCAL_RECORDS {
-            return Placed::Raw(raw.to_vec());
+            return Placed::Raw(raw);
         }
         for bz in blo[2]..=bhi[2] {
             for by in blo[1]..=bhi[1] {
@@ -577,7 +549,10 @@ pub fn bin_triangles(
     let group = (group_bytes / 2 / BIN_CHUNK_BYTES).min(BIN_GROUP_PER_THREAD * rayon::current_num_threads());
     let read_group = |ids: std::ops::Range<usize>| -> Result<Vec<Placed>, BuildError> {
         ids.into_par_iter()
-            .map(|id| stream.with_records(id, |_, raw| Ok(group_chunk(layout, raw, frame))).map_err(temp_err))
+            .map(|id| {
+                let (_, raw) = stream.read(id).map_err(temp_err)?;
+                Ok(group_chunk(layout, raw, frame))
+            })
             .collect()
     };
     let total = stream.len();
@@ -630,19 +605,14 @@ pub fn voxelize_bin(
     let rec = bins.layout.size();
     with_block_voxelizer(|vox| -> Result<_, BuildError> {
         for &entry in index {
-            let segment = (entry & ((1 << SEGMENT_BITS) - 1)) as usize;
-            bins.store
-                .with_records(segment, |_, raw| {
-                    for record in raw.chunks_exact(rec) {
-                        let (tri, color) = bins.layout.decode(record);
-                        // Valid: pass 2 binned only triangles that `to_grid` accepted,
-                        // and the same arithmetic gives the same grid triangle here.
-                        let g = to_grid_unchecked(tri, frame);
-                        vox.add(key, &g, bins.layout.color.then_some(color), res, topology);
-                    }
-                    Ok(())
-                })
-                .map_err(temp_err)?;
+            let (_, raw) = bins.store.read((entry & ((1 << SEGMENT_BITS) - 1)) as usize).map_err(temp_err)?;
+            for record in raw.chunks_exact(rec) {
+                let (tri, color) = bins.layout.decode(record);
+                // Valid: pass 2 binned only triangles that `to_grid` accepted,
+                // and the same arithmetic gives the same grid triangle here.
+                let g = to_grid_unchecked(tri, frame);
+                vox.add(key, &g, bins.layout.color.then_some(color), res, topology);
+            }
         }
         let voxels = vox.finish_map(|voxel| LodVoxel { voxel, solid: 1, error: 0.0 });
         Ok((!voxels.is_empty()).then_some(LodBlock { key, voxels }))

@@ -29,7 +29,7 @@
 //! the header's count, which is capped by [`MAX_CHUNK_TRIANGLES`].
 
 use std::fs::File;
-use std::io;
+use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 
 /// Triangles per chunk at most (and per bin segment).
@@ -166,49 +166,22 @@ pub enum ChunkError {
 /// Encodes `raw` (whole records of `layout`) as one chunk; with `compress`,
 /// as lz4 when that saves bytes.
 pub fn encode_chunk(layout: RecordLayout, raw: &[u8], bounds: &Bounds, compress: bool) -> Vec<u8> {
-    let mut framed = Vec::with_capacity(HEADER_LEN + raw.len());
-    framed.resize(HEADER_LEN, 0);
-    framed.extend_from_slice(raw);
-    seal_chunk(layout, framed, bounds, compress)
-}
-
-/// A buffer for [`seal_chunk`]: room for the header, then records appended by the caller.
-pub fn framed_records(capacity: usize) -> Vec<u8> {
-    let mut framed = Vec::with_capacity(HEADER_LEN + capacity);
-    framed.resize(HEADER_LEN, 0);
-    framed
-}
-
-/// [`encode_chunk`] of `framed` (a [`framed_records`] buffer): a raw chunk
-/// is the buffer itself, its header written in place, so records are not copied again.
-pub fn seal_chunk(layout: RecordLayout, mut framed: Vec<u8>, bounds: &Bounds, compress: bool) -> Vec<u8> {
-    let raw_len = framed.len() - HEADER_LEN;
-    let triangles = raw_len / layout.size();
-    debug_assert!(raw_len.is_multiple_of(layout.size()) && triangles <= MAX_CHUNK_TRIANGLES);
-    let mut out = framed_records(0);
-    if compress {
-        out.resize(HEADER_LEN + lz4_flex::block::get_maximum_output_size(raw_len), 0);
-        // Cannot fail: the output has the maximum size.
-        let packed = lz4_flex::block::compress_into(&framed[HEADER_LEN..], &mut out[HEADER_LEN..])
-            .expect("lz4 output sized to its maximum");
-        out.truncate(HEADER_LEN + packed);
+    let triangles = raw.len() / layout.size();
+    debug_assert!(raw.len().is_multiple_of(layout.size()) && triangles <= MAX_CHUNK_TRIANGLES);
+    let packed = if compress { lz4_flex::block::compress(raw) } else { Vec::new() };
+    let (codec, payload) =
+        if compress && packed.len() < raw.len() { (CODEC_LZ4, &packed[..]) } else { (CODEC_RAW, raw) };
+    let mut out = Vec::with_capacity(HEADER_LEN + payload.len());
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&[layout.flags(), codec, 0, 0]);
+    for n in [triangles, raw.len(), payload.len()] {
+        out.extend_from_slice(&(n as u32).to_le_bytes());
     }
-    let (codec, mut chunk) = if compress && out.len() < framed.len() {
-        (CODEC_LZ4, out)
-    } else {
-        (CODEC_RAW, std::mem::take(&mut framed))
-    };
-    let mut h = [0u8; HEADER_LEN];
-    h[..4].copy_from_slice(MAGIC);
-    h[4..8].copy_from_slice(&[layout.flags(), codec, 0, 0]);
-    for (k, n) in [triangles, raw_len, chunk.len() - HEADER_LEN].into_iter().enumerate() {
-        h[8 + 4 * k..12 + 4 * k].copy_from_slice(&(n as u32).to_le_bytes());
+    for c in bounds.min.iter().chain(&bounds.max) {
+        out.extend_from_slice(&c.to_le_bytes());
     }
-    for (k, c) in bounds.min.iter().chain(&bounds.max).enumerate() {
-        h[20 + 8 * k..28 + 8 * k].copy_from_slice(&c.to_le_bytes());
-    }
-    chunk[..HEADER_LEN].copy_from_slice(&h);
-    chunk
+    out.extend_from_slice(payload);
+    out
 }
 
 pub fn decode_header(bytes: &[u8]) -> Result<ChunkHeader, ChunkError> {
@@ -238,22 +211,13 @@ pub fn decode_header(bytes: &[u8]) -> Result<ChunkHeader, ChunkError> {
 
 /// Decodes a whole chunk into its header and raw records.
 pub fn decode_chunk(bytes: &[u8]) -> Result<(ChunkHeader, Vec<u8>), ChunkError> {
-    decode_chunk_with(bytes, |h, raw| Ok((*h, raw.to_vec())))
-}
-
-/// Calls `f` with a chunk's header and raw records: a raw chunk's own
-/// bytes, an lz4 one's decompressed.
-pub fn decode_chunk_with<T>(
-    bytes: &[u8],
-    f: impl FnOnce(&ChunkHeader, &[u8]) -> Result<T, ChunkError>,
-) -> Result<T, ChunkError> {
     let header = decode_header(bytes)?;
     let payload = &bytes[HEADER_LEN..];
     if payload.len() != header.stored_len as usize {
         return Err(ChunkError::Damaged("payload length differs from the header".into()));
     }
-    match header.codec {
-        CODEC_RAW => f(&header, payload),
+    let raw = match header.codec {
+        CODEC_RAW => payload.to_vec(),
         _ => {
             // The output size is the header's raw length, itself capped by the triangle count.
             let mut raw = vec![0u8; header.raw_len as usize];
@@ -262,9 +226,10 @@ pub fn decode_chunk_with<T>(
             if n != raw.len() {
                 return Err(ChunkError::Damaged("short lz4 payload".into()));
             }
-            f(&header, &raw)
+            raw
         }
-    }
+    };
+    Ok((header, raw))
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -317,67 +282,42 @@ impl ChunkStore {
         self.push(encode_chunk(layout, raw, bounds, !resident))
     }
 
-    /// [`Self::push_records`] for many chunks, each a [`framed_records`]
-    /// buffer: encoded (spilled ones compressed) and written on all cores; ids
-    /// are assigned and chunks placed in order, as if pushed one by one.
+    /// [`Self::push_records`] for many chunks, compressing the spilled ones on
+    /// all cores; ids are assigned in order, as if pushed one by one.
     pub fn push_many(
         &mut self,
         layout: RecordLayout,
-        items: Vec<(Vec<u8>, Bounds)>,
+        items: &[(Vec<u8>, Bounds)],
     ) -> Result<Vec<usize>, ChunkError> {
         use rayon::prelude::*;
         let mut resident = self.resident_bytes;
         let compress: Vec<bool> = items
             .iter()
-            .map(|(framed, _)| {
-                let fits = resident + framed.len() <= self.resident_limit;
+            .map(|(raw, _)| {
+                let fits = resident + HEADER_LEN + raw.len() <= self.resident_limit;
                 if fits {
-                    resident += framed.len();
+                    resident += HEADER_LEN + raw.len();
                 }
                 !fits
             })
             .collect();
         let chunks: Vec<Vec<u8>> = items
-            .into_par_iter()
+            .par_iter()
             .zip(compress)
-            .map(|((framed, bounds), compress)| seal_chunk(layout, framed, &bounds, compress))
+            .map(|((raw, bounds), compress)| encode_chunk(layout, raw, bounds, compress))
             .collect();
-        let mut ids = Vec::with_capacity(chunks.len());
-        let mut writes = Vec::new();
-        for chunk in chunks {
-            ids.push(self.chunks.len());
-            if let Some(chunk) = self.keep_resident(chunk) {
-                let offset = self.spill_len;
-                self.chunks.push(Location::Disk { offset, len: chunk.len() as u32 });
-                self.spill_len += chunk.len() as u64;
-                writes.push((offset, chunk));
-            }
-        }
-        if !writes.is_empty() {
-            let file = self.spill_file()?;
-            // Positional: the file's bytes are the same as from writes in order.
-            writes
-                .par_iter()
-                .try_for_each(|(offset, chunk)| write_all_at(file, chunk, *offset))
-                .map_err(self.io("write"))?;
-        }
-        Ok(ids)
+        chunks.into_iter().map(|c| self.push(c)).collect()
     }
 
-    /// Keeps `chunk` in memory if it fits (its id is the next), else hands it back.
-    fn keep_resident(&mut self, mut chunk: Vec<u8>) -> Option<Vec<u8>> {
-        if self.resident_bytes + chunk.len() > self.resident_limit {
-            return Some(chunk);
+    /// Stores an encoded chunk and returns its id (ids count up from 0).
+    pub fn push(&mut self, chunk: Vec<u8>) -> Result<usize, ChunkError> {
+        let id = self.chunks.len();
+        if self.resident_bytes + chunk.len() <= self.resident_limit {
+            self.resident_bytes += chunk.len();
+            self.chunks.push(Location::Memory(self.resident.len()));
+            self.resident.push(chunk);
+            return Ok(id);
         }
-        // A compressed chunk may still have its uncompressed capacity.
-        chunk.shrink_to_fit();
-        self.resident_bytes += chunk.len();
-        self.chunks.push(Location::Memory(self.resident.len()));
-        self.resident.push(chunk);
-        None
-    }
-
-    fn spill_file(&mut self) -> Result<&File, ChunkError> {
         if self.spill.is_none() {
             let f = File::options()
                 .read(true)
@@ -387,17 +327,12 @@ impl ChunkStore {
                 .map_err(self.io("create"))?;
             self.spill = Some(f);
         }
-        Ok(self.spill.as_ref().expect("opened above"))
-    }
-
-    /// Stores an encoded chunk and returns its id (ids count up from 0).
-    pub fn push(&mut self, chunk: Vec<u8>) -> Result<usize, ChunkError> {
-        let id = self.chunks.len();
-        let Some(chunk) = self.keep_resident(chunk) else {
-            return Ok(id);
-        };
-        let offset = self.spill_len;
-        write_all_at(self.spill_file()?, &chunk, offset).map_err(self.io("write"))?;
+        let mut f = self.spill.as_ref().expect("opened above");
+        f.write_all(&chunk).map_err(|source| ChunkError::Io {
+            action: "write",
+            path: self.spill_path.clone(),
+            source,
+        })?;
         self.chunks.push(Location::Disk { offset: self.spill_len, len: chunk.len() as u32 });
         self.spill_len += chunk.len() as u64;
         Ok(id)
@@ -444,41 +379,11 @@ impl ChunkStore {
     pub fn read(&self, id: usize) -> Result<(ChunkHeader, Vec<u8>), ChunkError> {
         self.with_chunk(id, decode_chunk)
     }
-
-    /// Calls `f` with chunk `id`'s header and raw records (a resident raw
-    /// chunk's are borrowed, not copied).
-    pub fn with_records<T>(
-        &self,
-        id: usize,
-        f: impl FnOnce(&ChunkHeader, &[u8]) -> Result<T, ChunkError>,
-    ) -> Result<T, ChunkError> {
-        self.with_chunk(id, |bytes| decode_chunk_with(bytes, f))
-    }
 }
 
 #[cfg(unix)]
 fn read_exact_at(file: &File, buf: &mut [u8], offset: u64) -> io::Result<()> {
     std::os::unix::fs::FileExt::read_exact_at(file, buf, offset)
-}
-
-#[cfg(unix)]
-fn write_all_at(file: &File, buf: &[u8], offset: u64) -> io::Result<()> {
-    std::os::unix::fs::FileExt::write_all_at(file, buf, offset)
-}
-
-#[cfg(windows)]
-fn write_all_at(file: &File, mut buf: &[u8], mut offset: u64) -> io::Result<()> {
-    use std::os::windows::fs::FileExt;
-    while !buf.is_empty() {
-        match file.seek_write(buf, offset)? {
-            0 => return Err(io::ErrorKind::WriteZero.into()),
-            n => {
-                buf = &buf[n..];
-                offset += n as u64;
-            }
-        }
-    }
-    Ok(())
 }
 
 #[cfg(windows)]
