@@ -429,6 +429,15 @@ pub(crate) fn block_range(g: &[[f64; 3]; 3], res: i64) -> ([u32; 3], [u32; 3]) {
     (lo.map(|v| (v / BLOCK_SIZE as i64) as u32), hi.map(|v| (v / BLOCK_SIZE as i64) as u32))
 }
 
+/// The part of the voxel box `[lo, hi]` (closed) inside the 64³ block whose
+/// first voxel is `base`.
+fn clip_to_block(lo: [i64; 3], hi: [i64; 3], base: [i64; 3]) -> ([i64; 3], [i64; 3]) {
+    (
+        std::array::from_fn(|a| lo[a].max(base[a])),
+        std::array::from_fn(|a| hi[a].min(base[a] + BLOCK_SIZE as i64 - 1)),
+    )
+}
+
 /// Calls `f` with the coordinate of every 64³ block a grid triangle's bounds overlap.
 fn for_each_block(g: &[[f64; 3]; 3], res: i64, mut f: impl FnMut([u32; 3])) {
     let (blo, bhi) = block_range(g, res);
@@ -617,8 +626,7 @@ impl BlockVoxelizer {
             }
         }
         let (full_lo, full_hi) = voxel_range(tri, res);
-        let lo: [i64; 3] = std::array::from_fn(|a| full_lo[a].max(base[a]));
-        let hi: [i64; 3] = std::array::from_fn(|a| full_hi[a].min(base[a] + BLOCK_SIZE as i64 - 1));
+        let (lo, hi) = clip_to_block(full_lo, full_hi, base);
         // The triangle's whole bounds (not the block's part) lie inside one
         // voxel, or one row of voxels, open in the other two axes: it is
         // connected and spans the row from end to end, so it touches every
@@ -839,18 +847,9 @@ pub fn for_each_touched_voxel(
         return; // the triangle's bounds miss the block
     }
     let sat = TriangleSat::new(tri, lo);
-    let w = (0..3).max_by(|&a, &b| n[a].abs().total_cmp(&n[b].abs())).unwrap_or(2);
-    let (u, v) = ((w + 1) % 3, (w + 2) % 3);
-    // The plane as w = a - b·u - c·v; over a column's closed square [cu, cu+1] × [cv, cv+1]
-    // it spans [base - max(b,0) - max(c,0), base - min(b,0) - min(c,0)], base at the corner.
-    let a = dot(n, tri[0]) / n[w];
-    let (b, c) = (n[u] / n[w], n[v] / n[w]);
-    let (lo_off, hi_off) = (b.max(0.0) + c.max(0.0), b.min(0.0) + c.min(0.0));
-    // Voxel cw's cube spans [cw, cw+1] in w, so it can meet the plane iff
-    // cw ∈ [ceil(wmin) - 1, floor(wmax)], i.e. [floor(wmin - slack), floor(wmax + slack)]:
-    // the slack also covers rounding and the SAT's grown cube (≤ 3e-9 voxels).
-    // The SAT then decides every voxel in the slab.
-    const SLACK: f64 = 1e-7;
+    let plane = PlaneSlab::new(tri, n);
+    let [u, v, w] = plane.axes;
+    let slab = |cu: i64, cv: i64| plane.range(cu, cv, lo[w], hi[w]);
     // The SAT's edge axes cross(unit_a, edge) have no a component, so each
     // tests a point of one coordinate plane: a = w the column (u, v), a = u
     // the pair (v, w), a = v the pair (u, w). Each such test passes on an
@@ -858,10 +857,6 @@ pub fn for_each_touched_voxel(
     // per column; the plane normal is left for each column's slab.
     let column = [w, 3 + w, 6 + w];
     if (0..3).all(|a| hi[a] - lo[a] < SMALL as i64) {
-        let slab = |cu: i64, cv: i64| {
-            let base = a - b * cu as f64 - c * cv as f64;
-            (fast_floor(base - lo_off - SLACK).max(lo[w]), fast_floor(base - hi_off + SLACK).min(hi[w]))
-        };
         let hits = sat.small_box_hits([u, v, w], lo, hi, slab);
         for_each_bit(hits, |bit| {
             let mut p = [0i64; 3];
@@ -889,19 +884,11 @@ pub fn for_each_touched_voxel(
         }
         for cv in lo[v]..=hi[v] {
             let mv = centre(cv, v);
-            // `&`, not `&&` or `all`: the tests are cheap and their outcomes
-            // unpredictable, so evaluating all beats branching on each.
-            let in_column = column.iter().fold(true, |ok, &k| {
-                let d = sat.axes[k][u] * mu + sat.axes[k][v] * mv;
-                ok & (d >= sat.lo[k]) & (d <= sat.hi[k])
-            });
-            if !in_column {
+            if !sat.column_passes(column, u, v, mu, mv) {
                 continue;
             }
             let (v_first, v_last) = by_v[(cv - lo[v]) as usize];
-            let base = a - b * cu as f64 - c * cv as f64;
-            let w0 = fast_floor(base - lo_off - SLACK).max(lo[w]);
-            let w1 = fast_floor(base - hi_off + SLACK).min(hi[w]);
+            let (w0, w1) = slab(cu, cv);
             // In `lo[w]`-relative indices, where both intervals live.
             let mut first = ((w0 - lo[w]).max(0) as usize).max(u_first).max(v_first);
             let mut last = ((w1 - lo[w]).min(len_w as i64 - 1)).max(-1);
@@ -910,10 +897,7 @@ pub fn for_each_touched_voxel(
             }
             last = (last as usize).min(u_last).min(v_last) as i64;
             let part = sat.axes[k][u] * mu + sat.axes[k][v] * mv;
-            let touches = |j: usize| {
-                let d = part + sat.axes[k][w] * (j as f64 + 0.5);
-                (d >= sat.lo[k]) & (d <= sat.hi[k])
-            };
+            let touches = |j: usize| sat.passes(k, part + sat.axes[k][w] * (j as f64 + 0.5));
             // The normal's `d` is monotone in cw too: only the ends need finding.
             while first as i64 <= last && !touches(first) {
                 first += 1;
@@ -931,6 +915,49 @@ pub fn for_each_touched_voxel(
                 }
             }
         }
+    }
+}
+
+/// A triangle's plane over the columns along its dominant normal axis: the
+/// voxels of a column it can meet, which the SAT then decides one by one.
+struct PlaneSlab {
+    /// `[u, v, w]`: w the normal's dominant axis, u and v the next two cyclically.
+    axes: [usize; 3],
+    /// The plane as w = a - b·u - c·v.
+    a: f64,
+    b: f64,
+    c: f64,
+    /// Over a column's closed square [cu, cu+1] × [cv, cv+1] the plane spans
+    /// [base - lo_off, base - hi_off], base its w at the corner (cu, cv).
+    lo_off: f64,
+    hi_off: f64,
+}
+
+impl PlaneSlab {
+    fn new(tri: &[[f64; 3]; 3], n: [f64; 3]) -> Self {
+        let w = (0..3).max_by(|&a, &b| n[a].abs().total_cmp(&n[b].abs())).unwrap_or(2);
+        let (u, v) = ((w + 1) % 3, (w + 2) % 3);
+        let (b, c) = (n[u] / n[w], n[v] / n[w]);
+        Self {
+            axes: [u, v, w],
+            a: dot(n, tri[0]) / n[w],
+            b,
+            c,
+            lo_off: b.max(0.0) + c.max(0.0),
+            hi_off: b.min(0.0) + c.min(0.0),
+        }
+    }
+
+    /// The closed range of cw, clamped to `[lo_w, hi_w]`, whose voxels in
+    /// column (cu, cv) the plane can meet (empty when first > last).
+    #[inline]
+    fn range(&self, cu: i64, cv: i64, lo_w: i64, hi_w: i64) -> (i64, i64) {
+        // Voxel cw's cube spans [cw, cw+1] in w, so it can meet the plane iff
+        // cw ∈ [ceil(wmin) - 1, floor(wmax)], i.e. [floor(wmin - slack), floor(wmax + slack)]:
+        // the slack also covers rounding and the SAT's grown cube (≤ 3e-9 voxels).
+        const SLACK: f64 = 1e-7;
+        let base = self.a - self.b * cu as f64 - self.c * cv as f64;
+        (fast_floor(base - self.lo_off - SLACK).max(lo_w), fast_floor(base - self.hi_off + SLACK).min(hi_w))
     }
 }
 
@@ -1025,6 +1052,28 @@ impl TriangleSat {
         Self { origin, axes, lo, hi }
     }
 
+    /// Whether `d`, a point's projection on axis `k`, lies in the axis's interval.
+    /// `&`, not `&&`: the tests are cheap and their outcomes unpredictable, so
+    /// evaluating both (and, in the callers, every axis) beats branching on each.
+    #[inline]
+    fn passes(&self, k: usize, d: f64) -> bool {
+        (d >= self.lo[k]) & (d <= self.hi[k])
+    }
+
+    /// Whether the column (centres `mu`, `mv`) passes the three edge axes
+    /// `column`, which have no component along the column.
+    #[inline]
+    fn column_passes(&self, column: [usize; 3], u: usize, v: usize, mu: f64, mv: f64) -> bool {
+        column.iter().fold(true, |ok, &k| ok & self.passes(k, self.axes[k][u] * mu + self.axes[k][v] * mv))
+    }
+
+    /// Whether centre `mw` along `w` passes the three edge axes `ks`, given
+    /// `part`, each axis's product with the point's other coordinate.
+    #[inline]
+    fn edge_axes_pass(&self, ks: [usize; 3], part: [f64; 3], w: usize, mw: f64) -> bool {
+        (0..3).fold(true, |ok, i| ok & self.passes(ks[i], part[i] + self.axes[ks[i]][w] * mw))
+    }
+
     /// [`for_each_touched_voxel`]'s voxels for a box `[lo, hi]` (the
     /// SAT's origin) under [`SMALL`] voxels an edge, as bits
     /// `(SMALL·iu + iv)·SMALL + iw` of the `lo`-relative indices along
@@ -1046,13 +1095,7 @@ impl TriangleSat {
         let plane_bits = |ks: [usize; 3], a: usize, m: f64| {
             let part = ks.map(|k| self.axes[k][a] * m);
             (0..SMALL).fold(0u64, |bits, j| {
-                let mw = j as f64 + 0.5;
-                let ok = (0..3).fold(true, |ok, i| {
-                    let k = ks[i];
-                    let d = part[i] + self.axes[k][w] * mw;
-                    ok & (d >= self.lo[k]) & (d <= self.hi[k])
-                });
-                bits | (u64::from(ok) << j)
+                bits | (u64::from(self.edge_axes_pass(ks, part, w, j as f64 + 0.5)) << j)
             })
         };
         let mut by_v = [0u64; SMALL];
@@ -1067,18 +1110,14 @@ impl TriangleSat {
             let by_u = plane_bits([v, 3 + v, 6 + v], u, mu) & ((1 << nw) - 1);
             for (iv, &by_v) in by_v.iter().enumerate().take(nv) {
                 let mv = iv as f64 + 0.5;
-                let in_column = column.iter().fold(true, |ok, &k| {
-                    let d = self.axes[k][u] * mu + self.axes[k][v] * mv;
-                    ok & (d >= self.lo[k]) & (d <= self.hi[k])
-                });
+                let in_column = self.column_passes(column, u, v, mu, mv);
                 let (w0, w1) = slab(cu, lo[v] + iv as i64);
                 // [w0, w1] as bits of lo[w]-relative indices: w0 ≥ lo[w], w1 ≤ hi[w].
                 let below = (1u64 << (w0 - lo[w]).min(SMALL as i64)) - 1;
                 let through = (1u64 << (w1 - lo[w] + 1).clamp(0, SMALL as i64)) - 1;
                 let part = self.axes[k][u] * mu + self.axes[k][v] * mv;
                 let normal = (0..SMALL).fold(0u64, |bits, j| {
-                    let d = part + self.axes[k][w] * (j as f64 + 0.5);
-                    bits | (u64::from((d >= self.lo[k]) & (d <= self.hi[k])) << j)
+                    bits | (u64::from(self.passes(k, part + self.axes[k][w] * (j as f64 + 0.5))) << j)
                 });
                 let bits = by_u & by_v & through & !below & normal & 0u64.wrapping_sub(u64::from(in_column));
                 hits |= bits << ((SMALL * iu + iv) * SMALL);
@@ -1097,14 +1136,7 @@ impl TriangleSat {
     #[inline]
     fn w_interval(&self, ks: [usize; 3], a: usize, w: usize, m: f64, len: usize) -> (usize, usize) {
         let part = ks.map(|k| self.axes[k][a] * m);
-        let passes = |j: usize| {
-            let mw = j as f64 + 0.5;
-            (0..3).fold(true, |ok, i| {
-                let k = ks[i];
-                let d = part[i] + self.axes[k][w] * mw;
-                ok & (d >= self.lo[k]) & (d <= self.hi[k])
-            })
-        };
+        let passes = |j: usize| self.edge_axes_pass(ks, part, w, j as f64 + 0.5);
         let mut first = 0;
         while first < len && !passes(first) {
             first += 1;
@@ -1215,18 +1247,9 @@ mod tests {
         mut hit: impl FnMut([i64; 3]),
     ) {
         let sat = reference_sat(tri, lo);
-        let w = (0..3).max_by(|&a, &b| n[a].abs().total_cmp(&n[b].abs())).unwrap_or(2);
-        let (u, v) = ((w + 1) % 3, (w + 2) % 3);
-        // The plane as w = a - b·u - c·v; over a column's closed square [cu, cu+1] × [cv, cv+1]
-        // it spans [base - max(b,0) - max(c,0), base - min(b,0) - min(c,0)], base at the corner.
-        let a = dot(n, tri[0]) / n[w];
-        let (b, c) = (n[u] / n[w], n[v] / n[w]);
-        let (lo_off, hi_off) = (b.max(0.0) + c.max(0.0), b.min(0.0) + c.min(0.0));
-        // Voxel cw's cube spans [cw, cw+1] in w, so it can meet the plane iff
-        // cw ∈ [ceil(wmin) - 1, floor(wmax)], i.e. [floor(wmin - slack), floor(wmax + slack)]:
-        // the slack also covers rounding and the SAT's grown cube (≤ 3e-9 voxels).
-        // The SAT then decides every voxel in the slab.
-        const SLACK: f64 = 1e-7;
+        // The plane's slab is not what the factoring changed: both sweeps share it.
+        let plane = PlaneSlab::new(tri, n);
+        let [u, v, w] = plane.axes;
         // SAT axes cross(unit_w, edge) (k = 3·edge + w) have no w component: their
         // test is the same for a whole column, so it runs once per column. The
         // other axes cost one multiply-add per voxel on top of the column's part.
@@ -1253,9 +1276,7 @@ mod tests {
                     continue;
                 }
                 let part = voxel_axes.map(|k| sat.axes[k][u] * mu + sat.axes[k][v] * mv);
-                let base = a - b * cu as f64 - c * cv as f64;
-                let w0 = fast_floor(base - lo_off - SLACK).max(lo[w]);
-                let w1 = fast_floor(base - hi_off + SLACK).min(hi[w]);
+                let (w0, w1) = plane.range(cu, cv, lo[w], hi[w]);
                 let touches = |cw: i64| {
                     let mw = centre(cw, w);
                     (0..7).fold(true, |ok, i| {
@@ -1289,26 +1310,26 @@ mod tests {
         }
     }
 
-    /// Both sweeps' voxels for `tri` in every block its bounds overlap; false on the first difference.
+    /// Calls `f` with the triangle's voxel box clipped to each block its bounds
+    /// overlap, as `BlockVoxelizer::add` clips it.
+    fn for_block_box(tri: &[[f64; 3]; 3], res: i64, mut f: impl FnMut([i64; 3], [i64; 3])) {
+        let (full_lo, full_hi) = voxel_range(tri, res);
+        for_each_block(tri, res, |b| {
+            let (lo, hi) = clip_to_block(full_lo, full_hi, b.map(|c| c as i64 * BLOCK_SIZE as i64));
+            f(lo, hi);
+        });
+    }
+
+    /// Both sweeps' voxels for `tri` in every block its bounds overlap; false on any difference.
     fn sweeps_agree(tri: &[[f64; 3]; 3], res: i64) -> bool {
         let n = cross(sub(tri[1], tri[0]), sub(tri[2], tri[0]));
-        let (full_lo, full_hi) = voxel_range(tri, res);
-        let (blo, bhi) = block_range(tri, res);
         let mut ok = true;
-        for bz in blo[2]..=bhi[2] {
-            for by in blo[1]..=bhi[1] {
-                for bx in blo[0]..=bhi[0] {
-                    let base = [bx, by, bz].map(|c| c as i64 * BLOCK_SIZE as i64);
-                    let lo: [i64; 3] = std::array::from_fn(|a| full_lo[a].max(base[a]));
-                    let hi: [i64; 3] =
-                        std::array::from_fn(|a| full_hi[a].min(base[a] + BLOCK_SIZE as i64 - 1));
-                    let (mut got, mut want) = (Vec::new(), Vec::new());
-                    for_each_touched_voxel(tri, n, lo, hi, Topology::Conservative, |p| got.push(p));
-                    reference_sweep(tri, n, lo, hi, Topology::Conservative, |p| want.push(p));
-                    ok &= got == want;
-                }
-            }
-        }
+        for_block_box(tri, res, |lo, hi| {
+            let (mut got, mut want) = (Vec::new(), Vec::new());
+            for_each_touched_voxel(tri, n, lo, hi, Topology::Conservative, |p| got.push(p));
+            reference_sweep(tri, n, lo, hi, Topology::Conservative, |p| want.push(p));
+            ok &= got == want;
+        });
         ok
     }
 
@@ -1354,19 +1375,7 @@ mod tests {
         for t in 0..mesh.triangles.len() {
             if let Some(g) = to_grid(mesh.triangle(t), frame) {
                 let n = cross(sub(g[1], g[0]), sub(g[2], g[0]));
-                let (full_lo, full_hi) = voxel_range(&g, res);
-                let (blo, bhi) = block_range(&g, res);
-                for bz in blo[2]..=bhi[2] {
-                    for by in blo[1]..=bhi[1] {
-                        for bx in blo[0]..=bhi[0] {
-                            let base = [bx, by, bz].map(|c| c as i64 * BLOCK_SIZE as i64);
-                            let lo: [i64; 3] = std::array::from_fn(|a| full_lo[a].max(base[a]));
-                            let hi: [i64; 3] =
-                                std::array::from_fn(|a| full_hi[a].min(base[a] + BLOCK_SIZE as i64 - 1));
-                            jobs.push((g, n, lo, hi));
-                        }
-                    }
-                }
+                for_block_box(&g, res, |lo, hi| jobs.push((g, n, lo, hi)));
             }
         }
         let (mut new, mut old) = (std::time::Duration::ZERO, std::time::Duration::ZERO);
