@@ -51,7 +51,10 @@ pub struct RecordLayout {
 }
 
 impl RecordLayout {
-    pub fn size(self) -> usize {
+    /// The largest record: f64 coordinates and a colour.
+    const MAX_SIZE: usize = Self { f64_positions: true, color: true }.size();
+
+    pub const fn size(self) -> usize {
         (if self.f64_positions { 72 } else { 36 }) + if self.color { 12 } else { 0 }
     }
 
@@ -68,7 +71,7 @@ impl RecordLayout {
     #[inline]
     pub fn encode(self, out: &mut Vec<u8>, tri: &[[f64; 3]; 3], color: [f32; 3]) {
         // Built on the stack and appended once: one capacity check a record, not one a value.
-        let mut rec = [0u8; 84];
+        let mut rec = [0u8; Self::MAX_SIZE];
         let mut at = 0;
         for c in tri.as_flattened() {
             if self.f64_positions {
