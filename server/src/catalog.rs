@@ -388,6 +388,21 @@ impl Catalog {
         self.scenes.read().expect("catalog lock").get(id).cloned()
     }
 
+    /// Whether this catalog still serves `scene` as it was when a request took it: the same
+    /// entry, and for a local store the same manifest in its folder. A read that failed on a
+    /// scene no longer served lost a race with a delete, rename or rebuild: the answer is the
+    /// scene's absence (404), not a damaged store (500).
+    pub fn still_serves(&self, scene: &Arc<LoadedScene>) -> bool {
+        let same_entry = self.get(&scene.stored.id).is_some_and(|s| Arc::ptr_eq(&s, scene));
+        same_entry
+            && scene.stored.local_dir().is_none_or(|dir| {
+                fs::read(dir.join("manifest.json"))
+                    .ok()
+                    .and_then(|bytes| Manifest::from_json(&bytes).ok())
+                    .is_some_and(|m| m == scene.stored.manifest)
+            })
+    }
+
     pub fn contains(&self, id: &str) -> bool {
         self.scenes.read().expect("catalog lock").contains_key(id)
             || matches!(&self.scenes_at, SceneStore::Local(dir) if dir.join(id).exists())
@@ -461,13 +476,15 @@ impl Catalog {
         }
         let dir = self.store.join(id);
         let trash = self.store.join(format!(".trash-{id}-{}", nanos()));
-        fs::rename(&dir, &trash).map_err(|source| CatalogError::Io {
-            action: "delete",
-            path: dir,
-            source,
-        })?;
+        // Unlisted before its files move, so a read that fails on them finds the scene gone.
+        let listed = self.scenes.write().expect("catalog lock").remove(id);
+        if let Err(source) = fs::rename(&dir, &trash) {
+            if let Some(scene) = listed {
+                self.scenes.write().expect("catalog lock").insert(id.to_string(), scene);
+            }
+            return Err(CatalogError::Io { action: "delete", path: dir, source });
+        }
         sync_dir(&self.store);
-        self.scenes.write().expect("catalog lock").remove(id);
         if let Err(e) = fs::remove_dir_all(&trash) {
             tracing::warn!(path = %trash.display(), error = %e, "deleted scene's files remain; removed on next start");
         }

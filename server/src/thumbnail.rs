@@ -342,20 +342,27 @@ pub async fn get_thumbnail(
     let level = thumbnail_level(&scene.stored.manifest, MAX_VOXELS);
     scene.stored.load_down_to(level).await.map_err(|e| {
         tracing::error!(error = %e, "thumbnail failed");
-        match e {
-            crate::store::StoreError::Gone { .. } => ApiError::not_found(e.to_string()),
-            e => ApiError::internal(e.to_string()),
-        }
+        state.read_failed(
+            &scene,
+            match e {
+                crate::store::StoreError::Gone { .. } => ApiError::not_found(e.to_string()),
+                e => ApiError::internal(e.to_string()),
+            },
+        )
     })?;
-    let png = tokio::task::spawn_blocking(move || thumbnail_png(&scene))
+    let drawn = scene.clone();
+    let png = tokio::task::spawn_blocking(move || thumbnail_png(&drawn))
         .await
         .map_err(|e| ApiError::internal(e.to_string()))?
         .map_err(|e| {
             tracing::error!(error = %e, "thumbnail failed");
-            match e {
-                ThumbnailError::Empty(_) => ApiError::not_found(e.to_string()),
-                ThumbnailError::Block { .. } => ApiError::internal(e.to_string()),
-            }
+            state.read_failed(
+                &scene,
+                match e {
+                    ThumbnailError::Empty(_) => ApiError::not_found(e.to_string()),
+                    ThumbnailError::Block { .. } => ApiError::internal(e.to_string()),
+                },
+            )
         })?;
     Ok((
         [

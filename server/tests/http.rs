@@ -1308,3 +1308,99 @@ async fn embedded_viewer_is_served_without_web() {
     let e = json_error(http.post(format!("{base}/index.html")).send().await.unwrap(), 405).await;
     assert!(e.contains("read-only"), "{e}");
 }
+
+/// Fails if a read that loses a race with a delete or rename answers 500 (the scene's files went
+/// with it: that is a 404, "fetch again"), or if a read of a scene that is still served but
+/// damaged stops being a 500.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn reads_racing_a_delete_or_rename_are_404_never_500() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let opts = BuildOptions { resolution: Resolution::Explicit(256), ..Default::default() };
+    build_scene(&koala(), &store, &opts).unwrap();
+    let on_disk = assert_scene_complete(&store, "koala");
+    let s = start_with(config(&store)).await;
+    let base = s.base.clone();
+    let c = http();
+
+    // The entry a request took stops being served when the scene is renamed or deleted under it.
+    let taken = s.state.catalog.get("koala").unwrap();
+    assert!(s.state.catalog.still_serves(&taken));
+    let resp =
+        auth(c.patch(format!("{base}/api/scenes/koala"))).body(r#"{"id": "gum"}"#).send().await.unwrap();
+    assert_eq!(resp.status(), 200);
+    assert!(!s.state.catalog.still_serves(&taken), "renamed away: the old entry is not served");
+    let renamed = s.state.catalog.get("gum").unwrap();
+    assert!(s.state.catalog.still_serves(&renamed));
+    let resp =
+        auth(c.patch(format!("{base}/api/scenes/gum"))).body(r#"{"id": "koala"}"#).send().await.unwrap();
+    assert_eq!(resp.status(), 200);
+
+    // Many reads of blocks and the thumbnail while the scene is deleted: each is a 200 or a JSON 404.
+    let urls: Vec<String> = on_disk
+        .blocks
+        .iter()
+        .map(|e| format!("{base}/api/scenes/koala/blocks/{}.{}", e.key, e.hash))
+        .chain([format!("{base}/api/scenes/koala/thumbnail.png")])
+        .collect();
+    let deleted = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let mut readers = Vec::new();
+    for start in 0..4 {
+        let (urls, deleted, c) = (urls.clone(), deleted.clone(), c.clone());
+        readers.push(tokio::spawn(async move {
+            let (mut ok, mut gone, mut after) = (0, 0, 0);
+            for url in urls.iter().cycle().skip(start * 7) {
+                let resp = c.get(url).send().await.unwrap();
+                match resp.status().as_u16() {
+                    200 => ok += 1,
+                    _ => {
+                        json_error(resp, 404).await;
+                        gone += 1;
+                    }
+                }
+                if deleted.load(std::sync::atomic::Ordering::SeqCst) {
+                    after += 1;
+                    if after > 20 {
+                        break;
+                    }
+                }
+            }
+            (ok, gone)
+        }));
+    }
+    tokio::time::sleep(Duration::from_millis(150)).await;
+    assert_eq!(auth(c.delete(format!("{base}/api/scenes/koala"))).send().await.unwrap().status(), 204);
+    deleted.store(true, std::sync::atomic::Ordering::SeqCst);
+    let (mut ok, mut gone) = (0, 0);
+    for r in readers {
+        let (o, g) = r.await.unwrap();
+        ok += o;
+        gone += g;
+    }
+    assert!(ok > 0 && gone > 0, "reads before and after the delete: {ok} served, {gone} gone");
+
+    // Negative control: a scene still served whose pack is missing is a damaged store, a 500.
+    let opts = BuildOptions { resolution: Resolution::Explicit(128), ..Default::default() };
+    build_scene(&koala(), &store, &opts).unwrap();
+    let loaded = s.state.catalog.refresh("koala").unwrap();
+    assert!(s.state.catalog.still_serves(&loaded));
+    let e = &assert_scene_entries(&store, "koala")[0];
+    let url = format!("{base}/api/scenes/koala/blocks/{}.{}", e.key, e.hash);
+    assert_eq!(c.get(&url).send().await.unwrap().status(), 200, "its pages are read");
+    for pack in std::fs::read_dir(store.join("koala/packs")).unwrap() {
+        std::fs::remove_file(pack.unwrap().path()).unwrap();
+    }
+    let resp = c.get(&url).send().await.unwrap();
+    let message = json_error(resp, 500).await;
+    assert!(message.contains("pack"), "{message}");
+    assert!(s.state.catalog.still_serves(&loaded));
+    // A rebuild published under the same id: the entry taken before it is not the one served.
+    let opts = BuildOptions { resolution: Resolution::Explicit(64), ..Default::default() };
+    build_scene(&koala(), &store, &opts).unwrap();
+    assert!(!s.state.catalog.still_serves(&loaded), "rebuilt under it");
+}
+
+/// The block entries of a scene in a local store, read from its pages.
+fn assert_scene_entries(store: &Path, id: &str) -> Vec<voxstream_format::BlockEntry> {
+    voxstream::store::open_scene(store, id).unwrap().blocks()
+}

@@ -192,6 +192,19 @@ impl AppState {
         validate_id(id).map_err(|e| ApiError::bad_request(e.to_string()))?;
         self.catalog.find(id).await.ok_or_else(|| ApiError::not_found(format!("no scene with id {id:?}")))
     }
+
+    /// `failure` of a read of `scene`, unless the scene was deleted, renamed or rebuilt while the
+    /// request read it: then its files went with it, and the answer is a 404 that says so.
+    pub(crate) fn read_failed(&self, scene: &Arc<LoadedScene>, failure: ApiError) -> ApiError {
+        if failure.status.is_server_error() && !self.catalog.still_serves(scene) {
+            let id = &scene.stored.id;
+            tracing::info!(scene = %id, error = %failure.message, "read lost a race with a delete, rename or rebuild");
+            return ApiError::not_found(format!(
+                "scene {id:?} was deleted, renamed or rebuilt while this request read it; fetch the scene list or manifest again"
+            ));
+        }
+        failure
+    }
 }
 
 /// An error response: a status and a JSON body `{"error": "..."}`.

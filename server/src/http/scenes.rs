@@ -8,6 +8,8 @@
 //! served bytes are checked against the hash, so a URL never serves other
 //! content. lz4 payloads are never compressed again.
 
+use std::sync::Arc;
+
 use axum::body::{Body, Bytes};
 use axum::extract::{Path as UrlPath, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
@@ -181,7 +183,11 @@ fn etag_matches(headers: &HeaderMap, etag: &HeaderValue) -> bool {
 
 /// `key` or `key.hash` → the scene's entry (its hierarchy pages read on the way when needed); a
 /// key or hash the scene lacks is a 404.
-async fn find_block(scene: &LoadedScene, name: &str) -> Result<(BlockEntry, bool), ApiError> {
+async fn find_block(
+    state: &AppState,
+    scene: &Arc<LoadedScene>,
+    name: &str,
+) -> Result<(BlockEntry, bool), ApiError> {
     let (key_text, hash) = match name.split_once('.') {
         Some((k, h)) => (k, Some(h)),
         None => (name, None),
@@ -194,7 +200,7 @@ async fn find_block(scene: &LoadedScene, name: &str) -> Result<(BlockEntry, bool
         .stored
         .entry(&key)
         .await
-        .map_err(|e| store_error(id, e))?
+        .map_err(|e| state.read_failed(scene, store_error(id, e)))?
         .ok_or_else(|| ApiError::not_found(format!("scene {id:?} has no block {key}")))?;
     if let Some(h) = hash
         && h != entry.hash
@@ -251,7 +257,7 @@ pub async fn get_block(
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     let scene = state.scene(&id).await?;
-    let (entry, addressed) = find_block(&scene, &block).await?;
+    let (entry, addressed) = find_block(&state, &scene, &block).await?;
     let etag = HeaderValue::from_str(&format!("\"{}\"", entry.hash))
         .map_err(|_| ApiError::internal(format!("scene {id:?} has a malformed block hash")))?;
     let cache =
@@ -259,7 +265,11 @@ pub async fn get_block(
     if etag_matches(&headers, &etag) {
         return Ok(not_modified(etag, cache));
     }
-    let bytes = scene.stored.read_block_async(&entry).await.map_err(|e| block_error(&scene, &entry, e))?;
+    let bytes = scene
+        .stored
+        .read_block_async(&entry)
+        .await
+        .map_err(|e| state.read_failed(&scene, block_error(&scene, &entry, e)))?;
     state.metrics.blocks_served.inc();
     state.metrics.block_bytes_served.inc_by(bytes.len() as u64);
     Ok(octet_stream(etag, cache, bytes))
@@ -305,8 +315,12 @@ pub async fn get_page(
     }
     let etag = HeaderValue::from_str(&format!("\"{hash}\"")).map_err(|_| malformed())?;
     let cache = HeaderValue::from_static(BLOCK_CACHE_CONTROL);
-    let bytes =
-        scene.stored.read_page(&root, hash).await.map_err(|e| store_error(&id, e))?.ok_or_else(|| {
+    let bytes = scene
+        .stored
+        .read_page(&root, hash)
+        .await
+        .map_err(|e| state.read_failed(&scene, store_error(&id, e)))?
+        .ok_or_else(|| {
             ApiError::not_found(format!(
                 "scene {id:?} has no page {root} with hash {hash:?} (rebuilt? fetch the manifest again)"
             ))
@@ -348,7 +362,7 @@ pub async fn post_batch(
     }
     let mut entries = Vec::with_capacity(request.blocks.len());
     for name in &request.blocks {
-        entries.push(find_block(&scene, name).await?.0);
+        entries.push(find_block(&state, &scene, name).await?.0);
     }
     let total: u64 = entries.iter().map(|e| 4 + e.bytes as u64).sum();
     if total > BATCH_MAX_BYTES {
@@ -361,7 +375,7 @@ pub async fn post_batch(
             BlockReadError::Unreadable { key, .. } | BlockReadError::Changed { key } => *key,
         };
         let entry = entries.iter().find(|x| x.key == key).unwrap_or(&entries[0]);
-        block_error(&scene, entry, e)
+        state.read_failed(&scene, block_error(&scene, entry, e))
     })?;
     let mut body = Vec::with_capacity(total as usize);
     for bytes in &blocks {
