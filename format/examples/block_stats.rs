@@ -128,15 +128,27 @@ fn main() {
     let dir = Path::new(&dir);
     let manifest = Manifest::from_json(&std::fs::read(dir.join("manifest.json")).expect("manifest"))
         .expect("valid manifest");
-    let index = voxstream_format::load_scene_index(&manifest, |r, _| {
-        std::fs::read(dir.join(voxstream_format::hierarchy::page_path(&r.root)))
+    // Pages and blocks live in packs (a range each); scenes of older builds keep them in own files.
+    let read_range = |range: &voxstream_format::PackRange| -> std::io::Result<Vec<u8>> {
+        use std::os::unix::fs::FileExt;
+        let pack = std::fs::File::open(dir.join(voxstream_format::hierarchy::pack_path(&range.pack.hash)))?;
+        let mut bytes = vec![0u8; range.bytes as usize];
+        pack.read_exact_at(&mut bytes, range.offset)?;
+        Ok(bytes)
+    };
+    let index = voxstream_format::load_scene_index(&manifest, |r, range| match range {
+        Some(range) => read_range(&range),
+        None => std::fs::read(dir.join(voxstream_format::hierarchy::page_path(&r.root))),
     })
     .expect("hierarchy pages");
     let mut entries: Vec<_> = index.blocks().collect();
     entries.sort_by_key(|b| b.key);
     let files: Vec<Vec<u8>> = entries
         .iter()
-        .map(|b| std::fs::read(dir.join("blocks").join(format!("{}.vxb", b.key))).expect("block file"))
+        .map(|b| match index.pack_range(&b.key) {
+            Some(range) => read_range(&range).expect("block in its pack"),
+            None => std::fs::read(dir.join("blocks").join(format!("{}.vxb", b.key))).expect("block file"),
+        })
         .collect();
     let blocks: Vec<Block> = files.iter().map(|f| decode_block(f).expect("valid block")).collect();
     let voxels: usize = blocks.iter().map(|b| b.voxels.len()).sum();
@@ -144,12 +156,31 @@ fn main() {
 
     // Column sizes, each column compressed alone.
     let mut columns = ColumnSizes::default();
+    // Per level: a view that stops at coarse levels fetches their mix, not the scene's.
+    let mut by_level: BTreeMap<u8, (usize, usize, usize, ColumnSizes)> = BTreeMap::new();
     let mut raw_bytes = 0;
-    for b in &blocks {
+    for (b, f) in blocks.iter().zip(&files) {
         let c = VoxelColumns::from_block(b);
-        columns += c.column_sizes();
+        let sizes = c.column_sizes();
+        columns += sizes;
+        let level = by_level.entry(b.key.level).or_default();
+        level.0 += 1;
+        level.1 += b.voxels.len();
+        level.2 += f.len();
+        level.3 += sizes;
         raw_bytes += c.payload().len();
     }
+    let level_rows: Vec<serde_json::Value> = by_level
+        .iter()
+        .map(|(level, (n, voxels, bytes, c))| {
+            serde_json::json!({
+                "level": level, "blocks": n, "voxels": voxels, "block_file_bytes": bytes,
+                "bytes_per_voxel": *bytes as f64 / *voxels as f64,
+                "occupancy": c.occupancy, "faces": c.faces, "normals": c.normals,
+                "coverage": c.coverage, "colors": c.colors, "field": c.field,
+            })
+        })
+        .collect();
 
     // Full decode (header checks, lz4, columns, PackedVoxel) as the viewer does it.
     let seconds = time_decode(|| {
@@ -207,6 +238,7 @@ fn main() {
             "colors": columns.colors,
             "headers": blocks.len() * HEADER_LEN,
         },
+        "columns_by_level": level_rows,
         "decode_block": {
             "seconds": seconds,
             "mvoxels_per_s": voxels as f64 / seconds / 1e6,
