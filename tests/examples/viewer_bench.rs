@@ -9,8 +9,8 @@
 //! - converge: bytes fetched, frames and wall time to the first image and to
 //!   a converged view (nothing left to fetch or upload), at 1 px, with
 //!   occlusion culling and without (the savings: bytes and faces drawn).
-//! - `--bytes-only`: the bytes the view needs by frustum and error alone
-//!   (no frames drawn, so fast at any size).
+//! - `--bytes-only`: the bytes the view needs by frustum and error alone, and
+//!   within the default budget (no frames drawn, so fast at any size).
 //! - `--budget-only`: just the budget path.
 //! - budget: a scripted orbit-and-zoom path with a 64 MiB budget: the most
 //!   resident bytes ÷ budget.
@@ -95,39 +95,47 @@ fn main() {
         .unwrap_or((1920, 1080));
     let manifest_bytes = std::fs::metadata(scene.join("manifest.json")).map_or(0, |m| m.len());
     if args.iter().any(|a| a == "--bytes-only") {
-        // Frustum and 1 px error alone, no frames: the bytes the view needs
-        // (blocks wanted, their ancestors, the pages that lead to them).
-        let mut o = Offscreen::open(scene, &RenderOptions::new(w, h)).expect("open scene");
-        o.scene.camera = view(&o, kind);
-        o.load_pages();
-        let coarsest = o.scene.manifest.coarsest_level();
-        let mut needed = std::collections::BTreeSet::new();
-        for k in o.scene.wanted().to_vec() {
-            let mut a = k;
-            while needed.insert(a) && a.level < coarsest {
-                a = a.parent();
+        // No frames: the bytes the view needs (blocks wanted, their ancestors, the pages that
+        // lead to them), by frustum and 1 px error alone ("1px": the budget lifted) and as the
+        // viewer settles within its default GPU budget ("default-budget": blocks whose
+        // refinement would pass it stay coarser, `held_by_budget`).
+        for (limit, budget) in [("1px", Some(u64::MAX / 4)), ("default-budget", None)] {
+            let mut o = Offscreen::open(scene, &RenderOptions::new(w, h)).expect("open scene");
+            if let Some(b) = budget {
+                o.scene.set_budget_bytes(b);
             }
+            o.scene.camera = view(&o, kind);
+            o.load_pages();
+            let coarsest = o.scene.manifest.coarsest_level();
+            let mut needed = std::collections::BTreeSet::new();
+            for k in o.scene.wanted().to_vec() {
+                let mut a = k;
+                while needed.insert(a) && a.level < coarsest {
+                    a = a.parent();
+                }
+            }
+            let held = o.scene.traversal().held_by_budget;
+            let block_bytes: u64 =
+                needed.iter().filter_map(|k| o.scene.index.block(k)).map(|e| e.bytes as u64).sum();
+            let page_bytes = o.scene.index.page_bytes_loaded();
+            // Per level: [blocks, bytes, of them wanted (the rest are ancestors)].
+            let wanted: std::collections::HashSet<_> = o.scene.wanted().iter().copied().collect();
+            let mut levels = std::collections::BTreeMap::<u8, [u64; 3]>::new();
+            for k in &needed {
+                let l = levels.entry(k.level).or_default();
+                l[0] += 1;
+                l[1] += o.scene.index.block(k).map_or(0, |e| e.bytes as u64);
+                l[2] += wanted.contains(k) as u64;
+            }
+            eprintln!("{limit}: levels (level: [blocks, bytes, wanted]): {levels:?}");
+            println!(
+                "{{\"measure\":\"bytes_to_converge\",\"limit\":{limit:?},\"scene\":{:?},\"view\":{kind:?},\"size\":\"{w}x{h}\",\"resolution\":{},\"blocks\":{},\"held_by_budget\":{held},\"block_bytes\":{block_bytes},\"page_bytes\":{page_bytes},\"manifest_bytes\":{manifest_bytes},\"total\":{}}}",
+                scene.display().to_string(),
+                o.scene.manifest.grid.resolution,
+                needed.len(),
+                block_bytes + page_bytes + manifest_bytes
+            );
         }
-        let block_bytes: u64 =
-            needed.iter().filter_map(|k| o.scene.index.block(k)).map(|e| e.bytes as u64).sum();
-        let page_bytes = o.scene.index.page_bytes_loaded();
-        // Per level: [blocks, bytes, of them wanted (the rest are ancestors)].
-        let wanted: std::collections::HashSet<_> = o.scene.wanted().iter().copied().collect();
-        let mut levels = std::collections::BTreeMap::<u8, [u64; 3]>::new();
-        for k in &needed {
-            let l = levels.entry(k.level).or_default();
-            l[0] += 1;
-            l[1] += o.scene.index.block(k).map_or(0, |e| e.bytes as u64);
-            l[2] += wanted.contains(k) as u64;
-        }
-        eprintln!("levels (level: [blocks, bytes, wanted]): {levels:?}");
-        println!(
-            "{{\"measure\":\"bytes_to_converge\",\"scene\":{:?},\"view\":{kind:?},\"size\":\"{w}x{h}\",\"resolution\":{},\"blocks\":{},\"block_bytes\":{block_bytes},\"page_bytes\":{page_bytes},\"manifest_bytes\":{manifest_bytes},\"total\":{}}}",
-            scene.display().to_string(),
-            o.scene.manifest.grid.resolution,
-            needed.len(),
-            block_bytes + page_bytes + manifest_bytes
-        );
         return;
     }
     let budget_only = args.iter().any(|a| a == "--budget-only");

@@ -107,6 +107,32 @@ impl HasVoxel for LodVoxel {
 }
 
 fn mark_faces<V: HasVoxel>(voxels: &mut [V]) {
+    for_each_exposed_mask(voxels, |v, exposed| v.faces = exposed);
+}
+
+/// Keeps, of a coarse voxel's faces (the OR of its children's), those that face an empty voxel
+/// of its own level or the block's boundary (the skirt): the rest lie against an occupied
+/// neighbour's cube, which hides them. The OR holds every kept face (a child either faces the
+/// empty neighbour cell itself or faces an empty octant of its own parent), so the masks become
+/// what the codec predicts from occupancy alone: on coarse levels the face column was a quarter
+/// of a block's bytes, and the hidden faces a share of the faces the viewer expands. A voxel
+/// hidden on every side keeps its OR: it is drawn as before rather than dropped, and its coverage
+/// still reaches the viewer. Level 0's masks are already exact ([`mark_exposed_faces`]).
+pub fn hide_covered_faces(block: &mut LodBlock) {
+    if block.key.level == 0 {
+        return;
+    }
+    for_each_exposed_mask(&mut block.voxels, |v, exposed| {
+        let kept = v.faces & exposed;
+        if kept != 0 {
+            v.faces = kept;
+        }
+    });
+}
+
+/// Calls `set` with each voxel and its exposed-face mask: faces whose neighbour inside the
+/// block is empty (buried voxels count as occupied), and every face on the block's boundary.
+fn for_each_exposed_mask<V: HasVoxel>(voxels: &mut [V], mut set: impl FnMut(&mut BuildVoxel, u8)) {
     let mut occupied = vec![0u64; BLOCK_VOXELS / 64];
     for v in voxels.iter_mut() {
         let m = v.build_voxel().morton;
@@ -136,7 +162,7 @@ fn mark_faces<V: HasVoxel>(voxels: &mut [V]) {
             // Face bits: 2a is the negative side of axis a, 2a + 1 the positive.
             mask |= (below as u8) << (2 * a) | (above as u8) << (2 * a + 1);
         }
-        v.faces = mask;
+        set(v, mask);
     }
 }
 
@@ -342,6 +368,7 @@ impl Pyramid {
 
 /// Drops buried voxels (their part, coverage, is done) and emits the block if any voxel is left.
 fn emit_drawn<E>(mut block: LodBlock, emit: &mut impl FnMut(LodBlock) -> Result<(), E>) -> Result<(), E> {
+    hide_covered_faces(&mut block);
     block.voxels.retain(|v| v.voxel.faces != 0);
     if block.voxels.is_empty() { Ok(()) } else { emit(block) }
 }
@@ -417,7 +444,10 @@ pub fn build_levels(mut level0: Vec<SparseBlock>, resolution: u32) -> Vec<Vec<Lo
     }
     // Buried voxels have done their part (coverage); nothing draws them.
     for level in &mut levels {
-        level.par_iter_mut().for_each(|b| b.voxels.retain(|v| v.voxel.faces != 0));
+        level.par_iter_mut().for_each(|b| {
+            hide_covered_faces(b);
+            b.voxels.retain(|v| v.voxel.faces != 0)
+        });
         level.retain(|b| !b.voxels.is_empty());
     }
     levels
@@ -543,6 +573,57 @@ mod tests {
         assert_eq!(parent.voxels[0].error, 1.0);
         // One child in a corner: the opposite corner octant is √3 away.
         assert!((parent.voxels[1].error - 3f32.sqrt()).abs() < 1e-6);
+    }
+
+    /// Fails if a coarse voxel keeps a face that lies against an occupied neighbour of its own
+    /// level, or loses one that faces an empty neighbour or the block's boundary (a hole), or
+    /// gains a face its children did not have. The control: the children's OR alone, as stored
+    /// before, does hold hidden faces on these blocks.
+    #[test]
+    fn coarse_faces_are_those_facing_empty_voxels_or_the_boundary() {
+        // A ball (solid: buried voxels inside) and a slanted plane, beside random sparse blocks.
+        let ball: Vec<[u32; 3]> = (0..64u32)
+            .flat_map(|z| (0..64u32).flat_map(move |y| (0..64u32).map(move |x| [x, y, z])))
+            .filter(|p| p.iter().map(|&c| (c as f32 - 40.0).powi(2)).sum::<f32>() < 22.0f32.powi(2))
+            .collect();
+        let plane: Vec<[u32; 3]> = (0..64u32)
+            .flat_map(|y| (0..64u32).map(move |x| (x, y)))
+            .filter_map(|(x, y)| {
+                let z = 90 - x as i32 - y as i32;
+                (0..64).contains(&z).then_some([x, y, z as u32])
+            })
+            .collect();
+        let mut level0 =
+            vec![lod_of(BlockKey::new(0, 0, 0, 0), &ball), lod_of(BlockKey::new(0, 1, 0, 0), &plane)];
+        level0.extend(random_level0());
+        let mut hidden_before = 0;
+        for b in level0.iter_mut() {
+            mark_exposed_faces_lod(b);
+        }
+        let mut groups: BTreeMap<BlockKey, Vec<&LodBlock>> = BTreeMap::new();
+        for b in &level0 {
+            groups.entry(b.key.parent()).or_default().push(b);
+        }
+        for (key, children) in groups {
+            let merged = merge_children(key, &children).unwrap();
+            let mut exposed = merged.clone();
+            mark_exposed_faces_lod(&mut exposed);
+            let mut kept = merged.clone();
+            hide_covered_faces(&mut kept);
+            for ((or, e), k) in merged.voxels.iter().zip(&exposed.voxels).zip(&kept.voxels) {
+                let (or, e, k) = (or.voxel.faces, e.voxel.faces, k.voxel.faces);
+                hidden_before += (or & !e).count_ones();
+                assert_eq!(k & !or, 0, "no face the children lacked");
+                if or == 0 {
+                    assert_eq!(k, 0, "buried stays buried");
+                } else if e == 0 {
+                    assert_eq!(k, or, "hidden on every side: kept as it was");
+                } else {
+                    assert_eq!(k, e, "exactly the faces facing empty voxels or the boundary");
+                }
+            }
+        }
+        assert!(hidden_before > 1000, "the children's OR held {hidden_before} hidden faces");
     }
 
     #[test]
