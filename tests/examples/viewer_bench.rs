@@ -115,6 +115,15 @@ fn main() {
                 }
             }
             let held = o.scene.traversal().held_by_budget;
+            // Faces the converged view draws: the wanted blocks' (ancestors are replaced).
+            let faces: u64 = o
+                .scene
+                .wanted()
+                .to_vec()
+                .iter()
+                .filter_map(|k| o.scene.index.block(k))
+                .map(|e| e.faces as u64)
+                .sum();
             let block_bytes: u64 =
                 needed.iter().filter_map(|k| o.scene.index.block(k)).map(|e| e.bytes as u64).sum();
             let page_bytes = o.scene.index.page_bytes_loaded();
@@ -129,7 +138,7 @@ fn main() {
             }
             eprintln!("{limit}: levels (level: [blocks, bytes, wanted]): {levels:?}");
             println!(
-                "{{\"measure\":\"bytes_to_converge\",\"limit\":{limit:?},\"scene\":{:?},\"view\":{kind:?},\"size\":\"{w}x{h}\",\"resolution\":{},\"blocks\":{},\"held_by_budget\":{held},\"block_bytes\":{block_bytes},\"page_bytes\":{page_bytes},\"manifest_bytes\":{manifest_bytes},\"total\":{}}}",
+                "{{\"measure\":\"bytes_to_converge\",\"limit\":{limit:?},\"scene\":{:?},\"view\":{kind:?},\"size\":\"{w}x{h}\",\"resolution\":{},\"blocks\":{},\"held_by_budget\":{held},\"faces_drawn\":{faces},\"block_bytes\":{block_bytes},\"page_bytes\":{page_bytes},\"manifest_bytes\":{manifest_bytes},\"total\":{}}}",
                 scene.display().to_string(),
                 o.scene.manifest.grid.resolution,
                 needed.len(),
