@@ -1343,40 +1343,45 @@ async fn reads_racing_a_delete_or_rename_are_404_never_500() {
         .map(|e| format!("{base}/api/scenes/koala/blocks/{}.{}", e.key, e.hash))
         .chain([format!("{base}/api/scenes/koala/thumbnail.png")])
         .collect();
-    let deleted = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering::SeqCst};
+    let deleted = std::sync::Arc::new(AtomicBool::new(false));
+    let served = std::sync::Arc::new(AtomicUsize::new(0));
     let mut readers = Vec::new();
     for start in 0..4 {
-        let (urls, deleted, c) = (urls.clone(), deleted.clone(), c.clone());
+        let (urls, deleted, served, c) = (urls.clone(), deleted.clone(), served.clone(), c.clone());
         readers.push(tokio::spawn(async move {
-            let (mut ok, mut gone, mut after) = (0, 0, 0);
+            let (mut gone, mut after) = (0, 0);
             for url in urls.iter().cycle().skip(start * 7) {
                 let resp = c.get(url).send().await.unwrap();
                 match resp.status().as_u16() {
-                    200 => ok += 1,
+                    200 => _ = served.fetch_add(1, SeqCst),
                     _ => {
                         json_error(resp, 404).await;
                         gone += 1;
                     }
                 }
-                if deleted.load(std::sync::atomic::Ordering::SeqCst) {
+                if deleted.load(SeqCst) {
                     after += 1;
                     if after > 20 {
                         break;
                     }
                 }
             }
-            (ok, gone)
+            gone
         }));
     }
-    tokio::time::sleep(Duration::from_millis(150)).await;
-    assert_eq!(auth(c.delete(format!("{base}/api/scenes/koala"))).send().await.unwrap().status(), 204);
-    deleted.store(true, std::sync::atomic::Ordering::SeqCst);
-    let (mut ok, mut gone) = (0, 0);
-    for r in readers {
-        let (o, g) = r.await.unwrap();
-        ok += o;
-        gone += g;
+    // Delete while the readers are mid-stream: after some reads were served, however slow the machine.
+    let waited = std::time::Instant::now();
+    while served.load(SeqCst) < 40 && waited.elapsed() < Duration::from_secs(30) {
+        tokio::time::sleep(Duration::from_millis(5)).await;
     }
+    assert_eq!(auth(c.delete(format!("{base}/api/scenes/koala"))).send().await.unwrap().status(), 204);
+    deleted.store(true, SeqCst);
+    let mut gone = 0;
+    for r in readers {
+        gone += r.await.unwrap();
+    }
+    let ok = served.load(SeqCst);
     assert!(ok > 0 && gone > 0, "reads before and after the delete: {ok} served, {gone} gone");
 
     // Negative control: a scene still served whose pack is missing is a damaged store, a 500.
