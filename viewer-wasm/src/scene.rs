@@ -236,6 +236,7 @@ impl Scene {
             max_error_pixels: self.select_params.max_error_pixels,
             max_blocks: self.select_params.max_blocks,
             max_bytes: (self.residency.block_budget() as f64 * WANTED_SHARE_OF_BUDGET) as u64,
+            ..Default::default()
         }
     }
 

@@ -10,22 +10,26 @@ use std::collections::{BinaryHeap, HashMap, HashSet};
 use voxstream_format::{BlockEntry, BlockKey, PageRef, SceneIndex};
 
 use crate::residency::block_gpu_bytes;
-use crate::select::{Candidate, Frustum, ViewParams, entry_bounds, error_pixels};
+use crate::select::{Candidate, Frustum, ViewParams, entry_bounds, error_pixels, lod_error};
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TraverseParams {
-    /// Refine while a block's geometric error projects larger than this many pixels.
+    /// Refine while a block's error ([`lod_error`], or its geometric error when `strict`)
+    /// projects larger than this many pixels.
     pub max_error_pixels: f32,
     /// Stop refining once this many blocks are wanted (bounds CPU work).
     pub max_blocks: usize,
     /// GPU bytes the wanted blocks and their ancestors may take together
     /// (estimated from face counts).
     pub max_bytes: u64,
+    /// Refine by the build's bound alone, uncapped: no drawn point then lies further than the
+    /// threshold from the level-0 voxels, at up to 4× the bytes of a fine build (docs/streaming.md).
+    pub strict: bool,
 }
 
 impl Default for TraverseParams {
     fn default() -> Self {
-        Self { max_error_pixels: 1.0, max_blocks: 16_384, max_bytes: u64::MAX }
+        Self { max_error_pixels: 1.0, max_blocks: 16_384, max_bytes: u64::MAX, strict: false }
     }
 }
 
@@ -71,7 +75,11 @@ pub fn traverse(
     let mut out = Traversal::default();
     let candidate = |entry: &BlockEntry| Candidate {
         key: entry.key,
-        pixels: error_pixels(entry.geometric_error, &entry_bounds(entry), view),
+        pixels: error_pixels(
+            if params.strict { entry.geometric_error } else { lod_error(entry) },
+            &entry_bounds(entry),
+            view,
+        ),
     };
     let bytes_of = |key: &BlockKey| index.block(key).map_or(0, entry_gpu_bytes);
     let mut open: BinaryHeap<Candidate> = BinaryHeap::new();
