@@ -12,12 +12,16 @@
 //! - `--bytes-only`: the bytes the view needs by frustum and error alone, and
 //!   within the default budget (no frames drawn, so fast at any size).
 //! - `--budget-only`: just the budget path.
+//! - `--png <file>`: also save the converged view with occlusion culling.
+//! - `--oracle`: also the most block-level occlusion culling could save on the
+//!   view (the drawn blocks with no pixel on screen, from the G-buffer).
 //! - budget: a scripted orbit-and-zoom path with a 64 MiB budget: the most
 //!   resident bytes ÷ budget.
 
 use std::path::Path;
 use std::time::Instant;
 
+use voxstream_format::BlockKey;
 use voxstream_viewer::OrbitCamera;
 use voxstream_viewer::offscreen::{Offscreen, RenderOptions};
 
@@ -80,6 +84,87 @@ fn stream(offscreen: &mut Offscreen, max_frames: usize) -> Converged {
         budget: s.budget_bytes,
         culled_occlusion: s.culled_occlusion,
     }
+}
+
+fn flag_value<'a>(args: &'a [String], flag: &str) -> Option<&'a str> {
+    args.iter().position(|a| a == flag).and_then(|i| args.get(i + 1)).map(String::as_str)
+}
+
+/// The converged view as drawn, to see what the numbers are about.
+fn save_png(o: &Offscreen, path: &Path, (w, h): (u32, u32)) {
+    let rgba = o.read_pixels().expect("read the frame back");
+    let file = std::io::BufWriter::new(std::fs::File::create(path).expect("create the PNG"));
+    let mut encoder = png::Encoder::new(file, w, h);
+    encoder.set_color(png::ColorType::Rgba);
+    encoder.set_depth(png::BitDepth::Eight);
+    encoder.write_header().and_then(|mut writer| writer.write_image_data(&rgba)).expect("write the PNG");
+}
+
+/// The most any block-level occlusion culling could save on this view: of the
+/// blocks the converged view draws without culling, those with no pixel on
+/// screen (each surface pixel's position is credited to every drawn block whose
+/// bounds, grown by half a voxel, hold it), and the bytes that would then not
+/// be needed: the unseen blocks and the ancestors that only they need.
+fn print_oracle(o: &mut Offscreen, scene: &Path, kind: &str, (w, h): (u32, u32)) {
+    let g = o.render_gbuffer(1).expect("G-buffer");
+    let drawn = o.scene.drawn().to_vec();
+    let bounds: Vec<([f64; 3], [f64; 3])> = drawn
+        .iter()
+        .map(|k| {
+            let (lo, hi) =
+                o.scene.index.block(k).expect("drawn blocks are indexed").bounds.grid_units(k.level);
+            let pad = 0.5 * (1u64 << k.level) as f64;
+            (lo.map(|v| v - pad), hi.map(|v| v + pad))
+        })
+        .collect();
+    let index: std::collections::HashMap<BlockKey, usize> =
+        drawn.iter().enumerate().map(|(i, k)| (*k, i)).collect();
+    let levels: std::collections::BTreeSet<u8> = drawn.iter().map(|k| k.level).collect();
+    let block_size = o.scene.manifest.block_size as f64;
+    let mut seen = vec![false; drawn.len()];
+    for (p, n) in g.position_ao.iter().zip(&g.normal) {
+        if n[3] < 0.5 {
+            continue;
+        }
+        let p = [p[0] as f64, p[1] as f64, p[2] as f64];
+        for &level in &levels {
+            // The blocks of this level within half a voxel of the point.
+            let (side, pad) = (block_size * (1u64 << level) as f64, 0.5 * (1u64 << level) as f64);
+            let range = |a: usize| {
+                ((p[a] - pad) / side).floor().max(0.0) as u32..=((p[a] + pad) / side).floor().max(0.0) as u32
+            };
+            for x in range(0) {
+                for y in range(1) {
+                    for z in range(2) {
+                        let Some(&i) = index.get(&BlockKey { level, x, y, z }) else { continue };
+                        let (lo, hi) = bounds[i];
+                        seen[i] |= (0..3).all(|a| p[a] >= lo[a] && p[a] <= hi[a]);
+                    }
+                }
+            }
+        }
+    }
+    let coarsest = o.scene.manifest.coarsest_level();
+    let needed = |keys: &mut dyn Iterator<Item = BlockKey>| {
+        let mut set = std::collections::BTreeSet::new();
+        for k in keys {
+            let mut a = k;
+            while set.insert(a) && a.level < coarsest {
+                a = a.parent();
+            }
+        }
+        set.iter().filter_map(|k| o.scene.index.block(k)).map(|e| e.bytes as u64).sum::<u64>()
+    };
+    let all = needed(&mut drawn.iter().copied());
+    let visible = needed(&mut drawn.iter().zip(&seen).filter(|(_, s)| **s).map(|(k, _)| *k));
+    println!(
+        "{{\"measure\":\"occlusion_oracle\",\"scene\":{:?},\"view\":{kind:?},\"size\":\"{w}x{h}\",\"blocks_drawn\":{},\
+         \"blocks_seen\":{},\"block_bytes\":{all},\"block_bytes_seen\":{visible},\"most_saved\":{:.3}}}",
+        scene.display().to_string(),
+        drawn.len(),
+        seen.iter().filter(|s| **s).count(),
+        1.0 - visible as f64 / all.max(1) as f64
+    );
 }
 
 fn main() {
@@ -156,6 +241,12 @@ fn main() {
         o.scene.set_max_in_flight(6);
         o.scene.record_bytes_fetched(manifest_bytes);
         let c = stream(&mut o, 400);
+        if let (true, Some(path)) = (occlusion, flag_value(&args, "--png")) {
+            save_png(&o, Path::new(path), (w, h));
+        }
+        if !occlusion && args.iter().any(|a| a == "--oracle") {
+            print_oracle(&mut o, scene, kind, (w, h));
+        }
         println!(
             "{{\"measure\":\"converge\",\"scene\":{:?},\"view\":{kind:?},\"size\":\"{w}x{h}\",\"occlusion\":{occlusion},\
              \"bytes\":{},\"faces\":{},\"blocks\":{},\"frames\":{},\"first_image_ms\":{:.0},\"converged_ms\":{:.0},\

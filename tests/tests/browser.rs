@@ -266,7 +266,12 @@ fn render_and_check(url: &str, out: &Path, scene_dir: &Path, interact: bool) {
     let ms = |k: &str| stats[k].as_f64().unwrap_or(f64::NAN);
     let (task, own, webgpu) = (ms("longestMainTaskMs"), ms("longestOwnTaskMs"), ms("longestWebgpuMs"));
     println!(
-        "main thread: longest task {task:.1} ms, own work {own:.1} ms, longest in WebGPU calls {webgpu:.1} ms"
+        "main thread: longest task {task:.1} ms, own work {own:.1} ms ({}), longest in WebGPU calls {webgpu:.1} ms; \
+         {} of {} tasks over 4 ms of own work; longest traversal {:.1} ms",
+        stats["longestOwnTaskKind"],
+        stats["ownTasksOver4ms"],
+        stats["mainTasks"],
+        ms("longestTraversalMs")
     );
     assert!(own > 0.0 && own <= task && webgpu <= task, "main-thread split out of order: {stats}");
     if interact {

@@ -523,10 +523,11 @@ impl DepthPyramid {
     }
 }
 
-/// A block's test box: its tight bounds grown by one of its voxels, so the
-/// test stays conservative at the block's own surface.
-pub fn proxy_bounds(bounds: &Aabb, key: &BlockKey) -> Aabb {
-    let grow = Vec3::splat((1u64 << key.level) as f32);
+/// A block's test box: its tight bounds grown by one voxel of `drawn_level`,
+/// the level drawn in its place (itself or a coarser stand-in), so the drawn
+/// voxels of the block's own surface never hide it.
+pub fn proxy_bounds(bounds: &Aabb, drawn_level: u8) -> Aabb {
+    let grow = Vec3::splat((1u64 << drawn_level) as f32);
     Aabb { min: bounds.min - grow, max: bounds.max + grow }
 }
 

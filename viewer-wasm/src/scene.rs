@@ -265,6 +265,7 @@ impl Scene {
                 .fixed_view
                 .map_or_else(|| self.camera.focal_pixels(self.viewport.1 as f32), |v| v.focal_pixels),
         };
+        let started = (self.clock)();
         let no_feedback = HashSet::new();
         let occluded = if self.occlusion_culling { &self.hidden } else { &no_feedback };
         self.traversal =
@@ -273,6 +274,7 @@ impl Scene {
         self.stats.culled_occlusion = self.traversal.culled_occlusion;
         self.traversed_for = Some(now);
         self.plan_requests();
+        self.stats.longest_traversal_ms = self.stats.longest_traversal_ms.max((self.clock)() - started);
     }
 
     fn plan_requests(&mut self) {
@@ -677,17 +679,34 @@ impl Scene {
         }
     }
 
-    /// Blocks whose visibility decides refinement: every visited block whose
-    /// error asks for refining (coarsest first, they prune most), but those
-    /// around the eye, which are always visible.
+    /// Blocks whose visibility decides what is fetched: every visited block
+    /// (coarsest first, they prune most), those that meet the error too, but
+    /// those around the eye, which are always visible. Each box is grown by a
+    /// voxel of the level drawn for it last frame: a coarse stand-in's voxels
+    /// stick out of the finer block's bounds by up to one of their edges, and
+    /// must not hide the block they stand in for.
     fn occlusion_tests(&self) -> Vec<(BlockKey, crate::select::Aabb)> {
         let eye = self.eye();
+        let drawn: HashSet<&BlockKey> = self.drawn.iter().collect();
+        let max_level = self.manifest.coarsest_level();
+        // Nothing drawn over it (its region is drawn by finer blocks, or not at all): its own.
+        let drawn_level = |key: &BlockKey| {
+            let mut k = *key;
+            loop {
+                if drawn.contains(&k) {
+                    return k.level;
+                }
+                if k.level >= max_level {
+                    return key.level;
+                }
+                k = k.parent();
+            }
+        };
         let mut tests: Vec<(BlockKey, crate::select::Aabb)> = self
             .traversal
             .priority
-            .iter()
-            .filter(|(_, p)| **p > self.select_params.max_error_pixels)
-            .filter_map(|(k, _)| Some((*k, proxy_bounds(&block_bounds(&self.index, k)?, k))))
+            .keys()
+            .filter_map(|k| Some((*k, proxy_bounds(&block_bounds(&self.index, k)?, drawn_level(k)))))
             .filter(|(_, b)| !contains_eye(b, eye))
             .collect();
         tests.sort_by(|a, b| b.0.level.cmp(&a.0.level).then(a.0.cmp(&b.0)));

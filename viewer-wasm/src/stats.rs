@@ -41,6 +41,13 @@ pub struct Stats {
     pub longest_own_task_ms: f64,
     /// The longest time a task spent inside WebGPU calls.
     pub longest_webgpu_ms: f64,
+    /// What the task of `longest_own_task_ms` was: "frame", "block taken in" or "AO volume taken in".
+    pub longest_own_task_kind: &'static str,
+    /// Main-thread tasks so far, and those whose own work passed 4 ms (the bound).
+    pub main_tasks: u32,
+    pub own_tasks_over_4ms: u32,
+    /// The longest traversal and request plan, in ms: part of a frame's own work.
+    pub longest_traversal_ms: f64,
     /// WebGPU time of the task now running, folded in by `note_main_thread_task`.
     #[serde(skip)]
     pub webgpu_ms_in_task: f64,
@@ -64,10 +71,16 @@ pub struct Stats {
 impl Stats {
     /// A main-thread task ended after `ms`; the WebGPU time noted during it is
     /// split off.
-    pub fn note_main_thread_task(&mut self, ms: f64) {
+    pub fn note_main_thread_task(&mut self, kind: &'static str, ms: f64) {
         let webgpu = std::mem::take(&mut self.webgpu_ms_in_task).min(ms);
+        let own = ms - webgpu;
+        self.main_tasks += 1;
+        self.own_tasks_over_4ms += (own > 4.0) as u32;
+        if own > self.longest_own_task_ms {
+            self.longest_own_task_ms = own;
+            self.longest_own_task_kind = kind;
+        }
         self.longest_main_task_ms = self.longest_main_task_ms.max(ms);
-        self.longest_own_task_ms = self.longest_own_task_ms.max(ms - webgpu);
         self.longest_webgpu_ms = self.longest_webgpu_ms.max(webgpu);
     }
 
@@ -117,7 +130,7 @@ mod tests {
         };
         let v: serde_json::Value = serde_json::to_value(&s).unwrap();
         let keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
-        assert_eq!(keys.len(), 25);
+        assert_eq!(keys.len(), 29);
         for k in [
             "frameMs",
             "blocksDrawn",
@@ -137,6 +150,9 @@ mod tests {
             "aoVolumesFromWorker",
             "aoClipmapUpdates",
             "aoClipmapSplats",
+            "longestOwnTaskKind",
+            "ownTasksOver4ms",
+            "longestTraversalMs",
         ] {
             assert!(keys.contains(&k), "missing {k}");
         }
@@ -146,13 +162,14 @@ mod tests {
     fn webgpu_time_is_split_off_each_task() {
         let mut s = Stats::default();
         s.note_webgpu(30.0);
-        s.note_main_thread_task(33.0);
+        s.note_main_thread_task("frame", 33.0);
         // A task without WebGPU calls: all its own.
-        s.note_main_thread_task(5.0);
+        s.note_main_thread_task("block taken in", 5.0);
         assert_eq!((s.longest_main_task_ms, s.longest_own_task_ms, s.longest_webgpu_ms), (33.0, 5.0, 30.0));
+        assert_eq!((s.longest_own_task_kind, s.main_tasks, s.own_tasks_over_4ms), ("block taken in", 2, 1));
         // Control: the WebGPU time does not leak into the next task.
-        s.note_main_thread_task(6.0);
-        assert_eq!(s.longest_own_task_ms, 6.0);
+        s.note_main_thread_task("frame", 6.0);
+        assert_eq!((s.longest_own_task_ms, s.longest_own_task_kind, s.own_tasks_over_4ms), (6.0, "frame", 2));
     }
 
     #[test]

@@ -45,7 +45,7 @@ pub struct Traversal {
     pub priority: HashMap<BlockKey, f32>,
     /// Children skipped because their bounds leave the frustum.
     pub culled_frustum: u32,
-    /// Blocks not refined because feedback saw none of them.
+    /// Blocks neither refined nor fetched because feedback saw none of them.
     pub culled_occlusion: u32,
     /// Those blocks: wanted only as proxies (tested, drawn if already loaded, never requested).
     pub hidden: Vec<BlockKey>,
@@ -62,8 +62,9 @@ pub fn entry_gpu_bytes(entry: &BlockEntry) -> u64 {
 }
 
 /// Runs the traversal. `occluded` holds blocks the last frames' feedback found
-/// hidden: a hidden block is kept (its draw is the proxy that tells when it
-/// shows again) but not refined, so nothing below it is wanted.
+/// hidden: a hidden block stays in `blocks` (drawn only if already loaded; its
+/// bounds are tested again every frame, which tells when it shows again) but is
+/// neither fetched nor refined, so nothing below it is wanted.
 pub fn traverse(
     index: &SceneIndex,
     root: &BlockKey,
@@ -94,11 +95,14 @@ pub fn traverse(
     let mut done = Vec::new();
     while let Some(c) = open.pop() {
         out.priority.insert(c.key, c.pixels);
-        if c.pixels > params.max_error_pixels {
-            if occluded.contains(&c.key) {
-                out.culled_occlusion += 1;
-                out.hidden.push(c.key);
-            } else if let Some(page) = index.pending_page_for(&c.key) {
+        // A hidden block is neither refined nor fetched, whether or not its error asks for
+        // refining: most bytes lie in the blocks that meet the error, so hidden ones of those
+        // are the largest saving.
+        if occluded.contains(&c.key) {
+            out.culled_occlusion += 1;
+            out.hidden.push(c.key);
+        } else if c.pixels > params.max_error_pixels {
+            if let Some(page) = index.pending_page_for(&c.key) {
                 out.pages.push(page.clone());
             } else if index.block(&c.key).is_some_and(|e| e.child_mask != 0) {
                 let mut children = Vec::new();
@@ -187,5 +191,26 @@ mod tests {
         assert_eq!(below(&t), 0, "nothing below a hidden block is wanted");
         assert!(t.blocks.contains(&hidden), "the hidden block stays as its own proxy");
         assert_eq!(t.culled_occlusion, 1);
+    }
+
+    #[test]
+    fn hidden_blocks_that_meet_the_error_are_not_fetched_either() {
+        let (m, index) = pyramid(512);
+        let cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(512.0));
+        let view = view_of(&cam, 2000.0);
+        let params = TraverseParams::default();
+        let all = traverse(&index, &m.root.key, &view, &params, &HashSet::new());
+        // A block the view wants as it is: its error is met, nothing below it is visited.
+        let leaf = *all
+            .blocks
+            .iter()
+            .find(|k| all.priority[k] <= params.max_error_pixels && k.level < m.root.key.level)
+            .expect("a wanted block that meets the error");
+        // Control: without feedback it is wanted and not hidden.
+        assert!(!all.hidden.contains(&leaf));
+        let t = traverse(&index, &m.root.key, &view, &params, &[leaf].into());
+        assert_eq!(t.hidden, vec![leaf], "a hidden block that meets the error is hidden too");
+        assert!(t.blocks.contains(&leaf), "it stays wanted as its own proxy (drawn if loaded)");
+        assert_eq!(t.blocks.len(), all.blocks.len(), "nothing else changes");
     }
 }

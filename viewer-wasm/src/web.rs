@@ -277,7 +277,7 @@ async fn run() -> Result<(), String> {
             }
             app.scene.insert_worker_result(result.key, result.fetched, result.block);
             app.start_fetches();
-            app.scene.stats.note_main_thread_task(now_ms() - started);
+            app.scene.stats.note_main_thread_task("block taken in", now_ms() - started);
         });
         request_frame();
     }) {
@@ -291,7 +291,7 @@ async fn run() -> Result<(), String> {
         let started = now_ms();
         with_app(|app| {
             app.scene.finish_occupancy_job(&app.renderer, mips);
-            app.scene.stats.note_main_thread_task(now_ms() - started);
+            app.scene.stats.note_main_thread_task("AO volume taken in", now_ms() - started);
         });
         request_frame();
     }) {
@@ -357,7 +357,7 @@ impl App {
     fn frame(&mut self, now: f64) {
         let started = now_ms();
         self.frame_inner(now);
-        self.scene.stats.note_main_thread_task(now_ms() - started);
+        self.scene.stats.note_main_thread_task("frame", now_ms() - started);
     }
 
     fn frame_inner(&mut self, now: f64) {
