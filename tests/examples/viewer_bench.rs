@@ -11,7 +11,7 @@
 //!   occlusion culling and without (the savings: bytes and faces drawn).
 //! - `--bytes-only`: the bytes the view needs by frustum and error alone, and
 //!   within the default budget (no frames drawn, so fast at any size).
-//! - `--budget-only`: just the budget path.
+//! - `--budget-only`: just the budget path; `--culled-only`: no run without culling.
 //! - `--png <file>`: also save the converged view with occlusion culling.
 //! - `--oracle`: also the most block-level occlusion culling could save on the
 //!   view (the drawn blocks with no pixel on screen, from the G-buffer).
@@ -233,7 +233,8 @@ fn main() {
         return;
     }
     let budget_only = args.iter().any(|a| a == "--budget-only");
-    for occlusion in [true, false].into_iter().filter(|_| !budget_only) {
+    let culled_only = args.iter().any(|a| a == "--culled-only");
+    for occlusion in [true, false].into_iter().filter(|o| !budget_only && (*o || !culled_only)) {
         let mut o = Offscreen::open(scene, &RenderOptions::new(w, h)).expect("open scene");
         o.scene.camera = view(&o, kind);
         o.scene.occlusion_culling = occlusion;
@@ -241,6 +242,15 @@ fn main() {
         o.scene.set_max_in_flight(6);
         o.scene.record_bytes_fetched(manifest_bytes);
         let c = stream(&mut o, 400);
+        // Blocks the converged view finds hidden that were fetched all the same (before their
+        // feedback came): what the request order lost.
+        let hidden = o.scene.traversal().hidden.clone();
+        let hidden_fetched: u64 = hidden
+            .iter()
+            .filter(|k| o.scene.is_cached(k))
+            .filter_map(|k| o.scene.index.block(k))
+            .map(|e| e.bytes as u64)
+            .sum();
         if let (true, Some(path)) = (occlusion, flag_value(&args, "--png")) {
             save_png(&o, Path::new(path), (w, h));
         }
@@ -250,7 +260,7 @@ fn main() {
         println!(
             "{{\"measure\":\"converge\",\"scene\":{:?},\"view\":{kind:?},\"size\":\"{w}x{h}\",\"occlusion\":{occlusion},\
              \"bytes\":{},\"faces\":{},\"blocks\":{},\"frames\":{},\"first_image_ms\":{:.0},\"converged_ms\":{:.0},\
-             \"peak_resident\":{},\"budget\":{},\"culled_occlusion\":{},\"adapter\":{:?}}}",
+             \"peak_resident\":{},\"budget\":{},\"culled_occlusion\":{},\"hidden_fetched_bytes\":{hidden_fetched},\"adapter\":{:?}}}",
             scene.display().to_string(),
             c.bytes,
             c.faces,

@@ -25,7 +25,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU8, Ordering};
 
 use glam::{Mat4, Vec3, Vec4};
-use voxstream_format::BlockKey;
+use voxstream_format::{BLOCK_SIZE, Block, BlockKey};
 
 use crate::select::Aabb;
 
@@ -179,7 +179,8 @@ impl DepthReduce {
 pub struct Visibility {
     pub frame: u64,
     pub hidden: HashSet<BlockKey>,
-    pub tested: usize,
+    /// Every block tested in that frame, hidden or not.
+    pub tested: HashSet<BlockKey>,
 }
 
 pub struct Occlusion {
@@ -361,11 +362,14 @@ impl Occlusion {
                             }
                             let depth = DepthPyramid::from_rows(&view, l.texels, l.row_bytes)
                                 .with_pixel_scale(l.scale, r.size);
-                            r.tests
-                                .iter()
-                                .filter(|(_, b)| depth.hides(b, &r.view_proj))
-                                .map(|(k, _)| *k)
-                                .collect()
+                            // A block with several boxes is hidden only if all of them are.
+                            let mut seen = HashSet::new();
+                            for (k, b) in &r.tests {
+                                if !seen.contains(k) && !depth.hides(b, &r.view_proj) {
+                                    seen.insert(*k);
+                                }
+                            }
+                            r.tests.iter().map(|(k, _)| *k).filter(|k| !seen.contains(k)).collect()
                         }
                         Err(_) => HashSet::new(),
                     };
@@ -373,7 +377,8 @@ impl Occlusion {
                     r.state.store(IDLE, Ordering::Release);
                     // A readback taken only for a pick tested nothing: it says nothing about visibility.
                     if !r.tests.is_empty() && newest.as_ref().is_none_or(|v| v.frame < r.frame) {
-                        newest = Some(Visibility { frame: r.frame, hidden, tested: r.tests.len() });
+                        let tested = r.tests.iter().map(|(k, _)| *k).collect();
+                        newest = Some(Visibility { frame: r.frame, hidden, tested });
                     }
                 }
                 FAILED => r.state.store(IDLE, Ordering::Release),
@@ -507,9 +512,9 @@ impl DepthPyramid {
         // Pixels to base texels: the tiles that touch the rectangle.
         let (x0, y0, x1, y1) =
             (x0 / self.scale, y0 / self.scale, x1.div_ceil(self.scale), y1.div_ceil(self.scale));
-        // The mip where the rectangle spans at most about 4 texels a side.
+        // The mip where the rectangle spans at most about 16 texels a side.
         let span = (x1 - x0).max(y1 - y0);
-        let level = (span.div_ceil(4).max(1).ilog2() as usize).min(self.mips.len() - 1);
+        let level = (span.div_ceil(16).max(1).ilog2() as usize).min(self.mips.len() - 1);
         let (mw, mh, d) = &self.mips[level];
         let (mx0, my0) = (x0 >> level, y0 >> level);
         let (mx1, my1) = ((x1 - 1) >> level, (y1 - 1) >> level);
@@ -520,6 +525,64 @@ impl DepthPyramid {
             }
         }
         near > farthest
+    }
+}
+
+/// Cells a side of the split a block's region gets in [`OccupiedCells`]: two
+/// per child octant, so a child's proxy is 2×2×2 cells of its parent.
+const CELLS: u32 = 4;
+
+/// The tight grid-unit bounds of a decoded block's voxels in each cell of a
+/// 4×4×4 split of its region. They give occlusion tests much tighter proxies
+/// than one box around a curved surface (whose box pokes past the silhouettes
+/// in front of it): the block itself is tested as its 8 octants' boxes, a child
+/// not yet loaded as the 8 cells of its octant. Conservative: a parent voxel is
+/// occupied wherever a child voxel is, so the cells hold the child's surface.
+#[derive(Debug, Clone)]
+pub struct OccupiedCells {
+    key: BlockKey,
+    cells: [Option<Aabb>; (CELLS * CELLS * CELLS) as usize],
+}
+
+impl OccupiedCells {
+    pub fn new(block: &Block) -> Self {
+        let key = block.key;
+        let voxel = (1u64 << key.level) as f32;
+        let origin = Vec3::new(key.x as f32, key.y as f32, key.z as f32) * (BLOCK_SIZE as f32 * voxel);
+        let per_cell = BLOCK_SIZE / CELLS;
+        let mut cells = [None; (CELLS * CELLS * CELLS) as usize];
+        for v in &block.voxels {
+            let [x, y, z] = v.local();
+            let cell = (x / per_cell + CELLS * (y / per_cell + CELLS * (z / per_cell))) as usize;
+            let min = origin + Vec3::new(x as f32, y as f32, z as f32) * voxel;
+            let b = Aabb { min, max: min + Vec3::splat(voxel) };
+            let slot: &mut Option<Aabb> = &mut cells[cell];
+            *slot = Some(slot.map_or(b, |c| c.union(&b)));
+        }
+        Self { key, cells }
+    }
+
+    /// Boxes that together hold `key`'s surface: for the block itself its 8
+    /// octants', for one of its children the cells of that child's octant;
+    /// `None` for any other key. Empty octants are left out.
+    pub fn boxes_for(&self, key: &BlockKey) -> Option<Vec<Aabb>> {
+        let cell = |x: u32, y: u32, z: u32| self.cells[(x + CELLS * (y + CELLS * z)) as usize];
+        let mut boxes = Vec::with_capacity(8);
+        if *key == self.key {
+            for o in 0..8u32 {
+                let (ox, oy, oz) = (2 * (o & 1), (o & 2), (o & 4) / 2);
+                let octant = (0..8u32)
+                    .filter_map(|i| cell(ox + (i & 1), oy + (i >> 1 & 1), oz + (i >> 2)))
+                    .reduce(|a, b| a.union(&b));
+                boxes.extend(octant);
+            }
+        } else if key.level + 1 == self.key.level && key.parent() == self.key {
+            let (ox, oy, oz) = (2 * (key.x & 1), 2 * (key.y & 1), 2 * (key.z & 1));
+            boxes.extend((0..8u32).filter_map(|i| cell(ox + (i & 1), oy + (i >> 1 & 1), oz + (i >> 2))));
+        } else {
+            return None;
+        }
+        Some(boxes)
     }
 }
 
@@ -540,6 +603,69 @@ pub fn contains_eye(bounds: &Aabb, eye: Vec3) -> bool {
 mod tests {
     use super::*;
     use crate::camera::OrbitCamera;
+    use voxstream_format::PackedVoxel;
+
+    /// A slanted sheet through a level-1 block and its pyramid child voxels: the
+    /// parent's cells hold every voxel of each child, and are far tighter than
+    /// the child's box.
+    #[test]
+    fn occupied_cells_hold_each_childs_voxels_and_are_tighter_than_its_box() {
+        let parent = BlockKey { level: 1, x: 3, y: 0, z: 2 };
+        let on_sheet = |x: u32, y: u32, z: u32| x.abs_diff(y) <= 1 && z < 64;
+        // Child voxels (level 0, 128³ over the parent's region), and the parent's OR of them.
+        let mut children: std::collections::HashMap<BlockKey, Vec<[u32; 3]>> = Default::default();
+        let mut parent_voxels = std::collections::BTreeSet::new();
+        for z in 0..128u32 {
+            for y in 0..128u32 {
+                for x in 0..128u32 {
+                    if on_sheet(x, y, z) {
+                        let child = BlockKey {
+                            level: 0,
+                            x: 2 * parent.x + x / 64,
+                            y: 2 * parent.y + y / 64,
+                            z: 2 * parent.z + z / 64,
+                        };
+                        children.entry(child).or_default().push([x % 64, y % 64, z % 64]);
+                        parent_voxels.insert([x / 2, y / 2, z / 2]);
+                    }
+                }
+            }
+        }
+        let block = Block {
+            key: parent,
+            voxels: parent_voxels.iter().map(|&l| PackedVoxel::new(l, 0x3f, 0)).collect(),
+        };
+        let cells = OccupiedCells::new(&block);
+        assert!(children.len() >= 2);
+        for (child, voxels) in &children {
+            let boxes = cells.boxes_for(child).expect("a child of the block");
+            let origin = Vec3::new(child.x as f32, child.y as f32, child.z as f32) * 64.0;
+            for v in voxels {
+                let (lo, hi) = (
+                    origin + Vec3::new(v[0] as f32, v[1] as f32, v[2] as f32),
+                    origin + Vec3::new(v[0] as f32 + 1.0, v[1] as f32 + 1.0, v[2] as f32 + 1.0),
+                );
+                assert!(
+                    boxes.iter().any(|b| b.min.cmple(lo).all() && b.max.cmpge(hi).all()),
+                    "{child:?} voxel {v:?} lies outside its proxies"
+                );
+            }
+            if child.x % 2 != child.y % 2 {
+                continue; // a child the sheet only grazes at an edge
+            }
+            // The diagonal sheet fills its box poorly; the cells leave most of it out.
+            let volume = |b: &Aabb| (b.max - b.min).element_product();
+            let whole = boxes.iter().copied().reduce(|a, b| a.union(&b)).unwrap();
+            let cells_volume: f32 = boxes.iter().map(volume).sum();
+            assert!(cells_volume < 0.6 * volume(&whole), "{child:?}: {cells_volume} of {}", volume(&whole));
+        }
+        // The block itself: its octants hold all its voxels too.
+        let own = cells.boxes_for(&parent).unwrap();
+        assert!(!own.is_empty() && own.len() <= 8);
+        // Control: keys that are neither the block nor a child get no proxies.
+        assert!(cells.boxes_for(&BlockKey { level: 0, x: 0, y: 0, z: 0 }).is_none());
+        assert!(cells.boxes_for(&BlockKey { level: 2, x: 1, y: 0, z: 1 }).is_none());
+    }
 
     #[test]
     fn a_picked_pixel_unprojects_onto_the_drawn_surface_and_the_clear_depth_onto_nothing() {

@@ -22,7 +22,7 @@ use crate::crossfade::{Crossfade, Fade};
 use crate::decode::decode_fetched;
 use crate::expand::{GpuBlock, UPLOAD_BYTES_PER_FRAME, UploadBatch, upload_buffer};
 use crate::fetch::FetchError;
-use crate::occlusion::{Occlusion, contains_eye, occlusion_gpu_bytes, proxy_bounds};
+use crate::occlusion::{Occlusion, OccupiedCells, contains_eye, occlusion_gpu_bytes, proxy_bounds};
 use crate::render::{FADE_BUFFER_BYTES, FrameParams, Renderer};
 use crate::request::{DEFAULT_MAX_IN_FLIGHT, Request, RequestQueue};
 use crate::residency::{DEFAULT_BUDGET_BYTES, Residency, block_gpu_bytes};
@@ -90,6 +90,8 @@ pub struct Scene {
     empty: HashSet<BlockKey>,
     /// Decoded blocks on the CPU, with the frame they were last needed.
     decoded: HashMap<BlockKey, (Block, u64)>,
+    /// Occlusion proxies of the decoded blocks, kept and dropped with them.
+    cells: HashMap<BlockKey, OccupiedCells>,
     decoded_bytes: u64,
     failed: HashMap<BlockKey, String>,
     upload: Option<wgpu::Buffer>,
@@ -97,6 +99,9 @@ pub struct Scene {
     /// Bumped whenever `hidden` changes (the traversal depends on it).
     hidden_generation: u64,
     feedback_changed_frame: u64,
+    /// The frame of the newest feedback, and the blocks it tested.
+    feedback_frame: u64,
+    tested: HashSet<BlockKey>,
     /// Blocks the newest feedback found hidden.
     hidden: HashSet<BlockKey>,
     drawn: Vec<BlockKey>,
@@ -115,6 +120,10 @@ pub struct Scene {
     /// thread's tasks in the stats (the page sets `performance.now`).
     pub clock: fn() -> f64,
 }
+
+/// Frames without feedback after which blocks are fetched untested (the
+/// readback failed or lags): occlusion culling must never stop streaming.
+const FEEDBACK_STALLED_FRAMES: u64 = 4;
 
 /// A clock that never moves: natively nobody reads the main-thread split.
 fn no_clock() -> f64 {
@@ -143,12 +152,15 @@ impl Scene {
             gpu: HashMap::new(),
             empty: HashSet::new(),
             decoded: HashMap::new(),
+            cells: HashMap::new(),
             decoded_bytes: 0,
             failed: HashMap::new(),
             upload: None,
             occlusion: None,
             hidden_generation: 0,
             feedback_changed_frame: 0,
+            feedback_frame: 0,
+            tested: HashSet::new(),
             hidden: HashSet::new(),
             drawn: Vec::new(),
             occupancy_for: None,
@@ -293,7 +305,8 @@ impl Scene {
     }
 
     /// What must be loaded, with its projected error: the wanted blocks but
-    /// the hidden ones, and all their ancestors (stand-ins while they load).
+    /// the hidden ones and those awaiting their first test, and all their
+    /// ancestors (stand-ins while they load).
     fn needed(&self) -> HashMap<BlockKey, f32> {
         let hidden: HashSet<&BlockKey> = self.traversal.hidden.iter().collect();
         let max_level = self.manifest.coarsest_level();
@@ -304,7 +317,7 @@ impl Scene {
                 if needed.contains_key(&k) {
                     break;
                 }
-                if self.index.block(&k).is_some() {
+                if self.index.block(&k).is_some() && (self.is_ready(&k) || !self.awaits_test(&k)) {
                     needed.insert(k, self.traversal.priority.get(&k).copied().unwrap_or(f32::INFINITY));
                 }
                 if k.level >= max_level {
@@ -437,6 +450,7 @@ impl Scene {
             return;
         }
         self.decoded_bytes += std::mem::size_of_val(block.voxels.as_slice()) as u64;
+        self.cells.insert(key, OccupiedCells::new(&block));
         if let Some((old, _)) = self.decoded.insert(key, (block, self.frame_counter)) {
             self.decoded_bytes -= std::mem::size_of_val(old.voxels.as_slice()) as u64;
         }
@@ -558,6 +572,7 @@ impl Scene {
     pub fn needs_another_frame(&mut self) -> bool {
         self.has_pending_uploads()
             || self.frame_counter <= self.feedback_changed_frame + 2
+            || self.any_awaiting_test()
             || self.occlusion.as_ref().is_some_and(Occlusion::pick_pending)
             || self.crossfade.is_active()
     }
@@ -590,6 +605,7 @@ impl Scene {
     pub fn is_settled(&mut self) -> bool {
         self.update_traversal();
         self.requests.in_flight() == 0
+            && !self.any_awaiting_test()
             && self.needed().keys().all(|k| self.is_ready(k) || self.failed.contains_key(k))
             && self.traversal.pages.iter().all(|p| self.failed_pages.contains_key(&p.root))
     }
@@ -702,13 +718,27 @@ impl Scene {
                 k = k.parent();
             }
         };
-        let mut tests: Vec<(BlockKey, crate::select::Aabb)> = self
-            .traversal
-            .priority
-            .keys()
-            .filter_map(|k| Some((*k, proxy_bounds(&block_bounds(&self.index, k)?, drawn_level(k)))))
-            .filter(|(_, b)| !contains_eye(b, eye))
-            .collect();
+        let mut tests: Vec<(BlockKey, crate::select::Aabb)> = Vec::new();
+        for k in self.traversal.priority.keys() {
+            let Some(tight) = block_bounds(&self.index, k) else { continue };
+            let grown = |b: &crate::select::Aabb| proxy_bounds(b, drawn_level(k));
+            if contains_eye(&grown(&tight), eye) {
+                // Always visible (the box crosses the near plane), and thereby tested.
+                tests.push((*k, grown(&tight)));
+                continue;
+            }
+            // The tightest boxes the loaded data gives: the block's own cells, else its parent's.
+            let cells = self
+                .cells
+                .get(k)
+                .or_else(|| (k.level < max_level).then(|| k.parent()).and_then(|p| self.cells.get(&p)));
+            match cells.and_then(|c| c.boxes_for(k)).filter(|b| !b.is_empty()) {
+                Some(boxes) => {
+                    tests.extend(boxes.iter().filter_map(|b| b.intersection(&tight)).map(|b| (*k, grown(&b))))
+                }
+                None => tests.push((*k, grown(&tight))),
+            }
+        }
         tests.sort_by(|a, b| b.0.level.cmp(&a.0.level).then(a.0.cmp(&b.0)));
         tests
     }
@@ -720,11 +750,34 @@ impl Scene {
             return;
         };
         self.take_pick_answer();
+        self.feedback_frame = v.frame;
+        let newly_tested = v.tested != self.tested;
+        self.tested = v.tested;
         if v.hidden != self.hidden {
             self.hidden = v.hidden;
             self.hidden_generation += 1;
             self.feedback_changed_frame = self.frame_counter;
+        } else if newly_tested {
+            // Blocks that waited for their first test may go out now.
+            self.plan_requests();
         }
+    }
+
+    /// Whether `key` waits for its first occlusion test before it is fetched:
+    /// a block newly reached by the traversal is tested against the next
+    /// frames' depth first, so a hidden one is never fetched. The root never
+    /// waits, nor does anything while the feedback has stalled for a few frames.
+    fn awaits_test(&self, key: &BlockKey) -> bool {
+        self.occlusion_culling
+            && *key != self.manifest.root.key
+            && !self.tested.contains(key)
+            && self.feedback_frame + FEEDBACK_STALLED_FRAMES >= self.frame_counter
+    }
+
+    /// Whether a wanted block waits for its first test (another frame brings it).
+    fn any_awaiting_test(&self) -> bool {
+        let hidden: HashSet<&BlockKey> = self.traversal.hidden.iter().collect();
+        self.traversal.blocks.iter().any(|k| !hidden.contains(k) && !self.is_ready(k) && self.awaits_test(k))
     }
 
     fn take_pick_answer(&mut self) {
@@ -790,6 +843,7 @@ impl Scene {
             if self.decoded_bytes <= DECODED_CACHE_BYTES {
                 break;
             }
+            self.cells.remove(&key);
             if let Some((b, _)) = self.decoded.remove(&key) {
                 self.decoded_bytes -= std::mem::size_of_val(b.voxels.as_slice()) as u64;
             }

@@ -63,6 +63,12 @@ impl Aabb {
         d.length()
     }
 
+    /// The common part, if the boxes overlap (touching counts).
+    pub fn intersection(&self, other: &Aabb) -> Option<Aabb> {
+        let b = Aabb { min: self.min.max(other.min), max: self.max.min(other.max) };
+        b.min.cmple(b.max).all().then_some(b)
+    }
+
     pub fn union(&self, other: &Aabb) -> Aabb {
         Aabb { min: self.min.min(other.min), max: self.max.max(other.max) }
     }
