@@ -267,11 +267,12 @@ fn render_and_check(url: &str, out: &Path, scene_dir: &Path, interact: bool) {
     let (task, own, webgpu) = (ms("longestMainTaskMs"), ms("longestOwnTaskMs"), ms("longestWebgpuMs"));
     println!(
         "main thread: longest task {task:.1} ms, own work {own:.1} ms ({}), longest in WebGPU calls {webgpu:.1} ms; \
-         {} of {} tasks over 4 ms of own work; longest traversal {:.1} ms",
+         {} of {} tasks over 4 ms of own work; longest traversal {:.1} ms; longest frame steps (ms) {}",
         stats["longestOwnTaskKind"],
         stats["ownTasksOver4ms"],
         stats["mainTasks"],
-        ms("longestTraversalMs")
+        ms("longestTraversalMs"),
+        stats["longestPhasesMs"]
     );
     assert!(own > 0.0 && own <= task && webgpu <= task, "main-thread split out of order: {stats}");
     if interact {

@@ -179,8 +179,7 @@ impl DepthReduce {
 pub struct Visibility {
     pub frame: u64,
     pub hidden: HashSet<BlockKey>,
-    /// Every block tested in that frame, hidden or not.
-    pub tested: HashSet<BlockKey>,
+    pub tested: usize,
 }
 
 pub struct Occlusion {
@@ -377,8 +376,7 @@ impl Occlusion {
                     r.state.store(IDLE, Ordering::Release);
                     // A readback taken only for a pick tested nothing: it says nothing about visibility.
                     if !r.tests.is_empty() && newest.as_ref().is_none_or(|v| v.frame < r.frame) {
-                        let tested = r.tests.iter().map(|(k, _)| *k).collect();
-                        newest = Some(Visibility { frame: r.frame, hidden, tested });
+                        newest = Some(Visibility { frame: r.frame, hidden, tested: r.tests.len() });
                     }
                 }
                 FAILED => r.state.store(IDLE, Ordering::Release),

@@ -99,9 +99,6 @@ pub struct Scene {
     /// Bumped whenever `hidden` changes (the traversal depends on it).
     hidden_generation: u64,
     feedback_changed_frame: u64,
-    /// The frame of the newest feedback, and the blocks it tested.
-    feedback_frame: u64,
-    tested: HashSet<BlockKey>,
     /// Blocks the newest feedback found hidden.
     hidden: HashSet<BlockKey>,
     drawn: Vec<BlockKey>,
@@ -120,10 +117,6 @@ pub struct Scene {
     /// thread's tasks in the stats (the page sets `performance.now`).
     pub clock: fn() -> f64,
 }
-
-/// Frames without feedback after which blocks are fetched untested (the
-/// readback failed or lags): occlusion culling must never stop streaming.
-const FEEDBACK_STALLED_FRAMES: u64 = 4;
 
 /// A clock that never moves: natively nobody reads the main-thread split.
 fn no_clock() -> f64 {
@@ -159,8 +152,6 @@ impl Scene {
             occlusion: None,
             hidden_generation: 0,
             feedback_changed_frame: 0,
-            feedback_frame: 0,
-            tested: HashSet::new(),
             hidden: HashSet::new(),
             drawn: Vec::new(),
             occupancy_for: None,
@@ -305,8 +296,7 @@ impl Scene {
     }
 
     /// What must be loaded, with its projected error: the wanted blocks but
-    /// the hidden ones and those awaiting their first test, and all their
-    /// ancestors (stand-ins while they load).
+    /// the hidden ones, and all their ancestors (stand-ins while they load).
     fn needed(&self) -> HashMap<BlockKey, f32> {
         let hidden: HashSet<&BlockKey> = self.traversal.hidden.iter().collect();
         let max_level = self.manifest.coarsest_level();
@@ -317,7 +307,7 @@ impl Scene {
                 if needed.contains_key(&k) {
                     break;
                 }
-                if self.index.block(&k).is_some() && (self.is_ready(&k) || !self.awaits_test(&k)) {
+                if self.index.block(&k).is_some() {
                     needed.insert(k, self.traversal.priority.get(&k).copied().unwrap_or(f32::INFINITY));
                 }
                 if k.level >= max_level {
@@ -572,7 +562,6 @@ impl Scene {
     pub fn needs_another_frame(&mut self) -> bool {
         self.has_pending_uploads()
             || self.frame_counter <= self.feedback_changed_frame + 2
-            || self.any_awaiting_test()
             || self.occlusion.as_ref().is_some_and(Occlusion::pick_pending)
             || self.crossfade.is_active()
     }
@@ -605,7 +594,6 @@ impl Scene {
     pub fn is_settled(&mut self) -> bool {
         self.update_traversal();
         self.requests.in_flight() == 0
-            && !self.any_awaiting_test()
             && self.needed().keys().all(|k| self.is_ready(k) || self.failed.contains_key(k))
             && self.traversal.pages.iter().all(|p| self.failed_pages.contains_key(&p.root))
     }
@@ -632,16 +620,21 @@ impl Scene {
     /// submits it. `now_ms` paces occupancy rebuilds while streaming.
     pub fn draw(&mut self, renderer: &mut Renderer, target: &wgpu::TextureView, now_ms: f64) -> DrawnFrame {
         self.frame_counter += 1;
+        let mut step = (self.clock)();
         self.take_feedback();
+        self.stats.note_phase("feedback", &mut step, (self.clock)());
         self.upload(renderer);
+        self.stats.note_phase("upload", &mut step, (self.clock)());
         let settled = self.is_settled();
         let max_level = self.manifest.coarsest_level();
         let drawn =
             resolve_draw_set_in(self.select_params.refinement, &self.drawable_wanted(), max_level, |k| {
                 self.is_ready(k)
             });
+        self.stats.note_phase("draw set", &mut step, (self.clock)());
 
         self.update_occupancy(renderer, &drawn, settled, now_ms);
+        self.stats.note_phase("AO occupancy", &mut step, (self.clock)());
 
         let gpu = &self.gpu;
         let draw_list = self.crossfade.update(&drawn, max_level, now_ms, |k| gpu.contains_key(k));
@@ -667,7 +660,9 @@ impl Scene {
             grid_resolution: self.manifest.grid.resolution as f32,
             ao_strength: self.ao_strength,
         };
+        self.stats.note_phase("draw list", &mut step, (self.clock)());
         let tests = if self.occlusion_culling { self.occlusion_tests() } else { Vec::new() };
+        self.stats.note_phase("occlusion tests", &mut step, (self.clock)());
         let webgpu_from = (self.clock)();
         let mut encoder =
             renderer.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
@@ -684,9 +679,11 @@ impl Scene {
         self.stats.blocks_drawn = drawn.len() as u32;
         self.stats.faces_drawn = faces;
         self.drawn = drawn.clone();
+        self.stats.note_phase("encode", &mut step, (self.clock)());
         self.enforce_budget();
         self.trim_decoded();
         self.note_residency();
+        self.stats.note_phase("budget", &mut step, (self.clock)());
         // The picture is complete once the AO volume the worker builds is in it too.
         DrawnFrame {
             view_proj: params.view_proj,
@@ -723,8 +720,6 @@ impl Scene {
             let Some(tight) = block_bounds(&self.index, k) else { continue };
             let grown = |b: &crate::select::Aabb| proxy_bounds(b, drawn_level(k));
             if contains_eye(&grown(&tight), eye) {
-                // Always visible (the box crosses the near plane), and thereby tested.
-                tests.push((*k, grown(&tight)));
                 continue;
             }
             // The tightest boxes the loaded data gives: the block's own cells, else its parent's.
@@ -750,34 +745,11 @@ impl Scene {
             return;
         };
         self.take_pick_answer();
-        self.feedback_frame = v.frame;
-        let newly_tested = v.tested != self.tested;
-        self.tested = v.tested;
         if v.hidden != self.hidden {
             self.hidden = v.hidden;
             self.hidden_generation += 1;
             self.feedback_changed_frame = self.frame_counter;
-        } else if newly_tested {
-            // Blocks that waited for their first test may go out now.
-            self.plan_requests();
         }
-    }
-
-    /// Whether `key` waits for its first occlusion test before it is fetched:
-    /// a block newly reached by the traversal is tested against the next
-    /// frames' depth first, so a hidden one is never fetched. The root never
-    /// waits, nor does anything while the feedback has stalled for a few frames.
-    fn awaits_test(&self, key: &BlockKey) -> bool {
-        self.occlusion_culling
-            && *key != self.manifest.root.key
-            && !self.tested.contains(key)
-            && self.feedback_frame + FEEDBACK_STALLED_FRAMES >= self.frame_counter
-    }
-
-    /// Whether a wanted block waits for its first test (another frame brings it).
-    fn any_awaiting_test(&self) -> bool {
-        let hidden: HashSet<&BlockKey> = self.traversal.hidden.iter().collect();
-        self.traversal.blocks.iter().any(|k| !hidden.contains(k) && !self.is_ready(k) && self.awaits_test(k))
     }
 
     fn take_pick_answer(&mut self) {

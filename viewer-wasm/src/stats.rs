@@ -48,6 +48,8 @@ pub struct Stats {
     pub own_tasks_over_4ms: u32,
     /// The longest traversal and request plan, in ms: part of a frame's own work.
     pub longest_traversal_ms: f64,
+    /// The longest time each step of a frame took (WebGPU calls included), in ms.
+    pub longest_phases_ms: std::collections::BTreeMap<&'static str, f64>,
     /// WebGPU time of the task now running, folded in by `note_main_thread_task`.
     #[serde(skip)]
     pub webgpu_ms_in_task: f64,
@@ -82,6 +84,13 @@ impl Stats {
         }
         self.longest_main_task_ms = self.longest_main_task_ms.max(ms);
         self.longest_webgpu_ms = self.longest_webgpu_ms.max(webgpu);
+    }
+
+    /// The step `name` of a frame ended at `now`; `since` was its start and becomes `now`.
+    pub fn note_phase(&mut self, name: &'static str, since: &mut f64, now: f64) {
+        let longest = self.longest_phases_ms.entry(name).or_insert(0.0);
+        *longest = longest.max(now - *since);
+        *since = now;
     }
 
     /// `ms` of the running task went to WebGPU calls.
@@ -130,7 +139,7 @@ mod tests {
         };
         let v: serde_json::Value = serde_json::to_value(&s).unwrap();
         let keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
-        assert_eq!(keys.len(), 29);
+        assert_eq!(keys.len(), 30);
         for k in [
             "frameMs",
             "blocksDrawn",
@@ -153,6 +162,7 @@ mod tests {
             "longestOwnTaskKind",
             "ownTasksOver4ms",
             "longestTraversalMs",
+            "longestPhasesMs",
         ] {
             assert!(keys.contains(&k), "missing {k}");
         }

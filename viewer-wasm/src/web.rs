@@ -361,8 +361,10 @@ impl App {
     }
 
     fn frame_inner(&mut self, now: f64) {
+        let mut step = now_ms();
         self.resize_if_needed();
         self.start_fetches();
+        self.scene.stats.note_phase("fetches", &mut step, now_ms());
 
         let webgpu_from = now_ms();
         let surface_texture = self.surface.get_current_texture();
@@ -407,6 +409,7 @@ impl App {
             // settling, or the AO of a still view is still accumulating frames.
             REDRAW_AFTER_FLIGHT.with(|r| r.set(true));
         }
+        let mut step = now_ms();
         self.last_view_proj = frame.view_proj.to_cols_array();
         self.frames += 1;
         let frame_number = self.frames;
@@ -422,6 +425,7 @@ impl App {
             }
         });
         self.show_stats();
+        self.scene.stats.note_phase("stats line", &mut step, now_ms());
     }
 
     fn frame_done(&mut self, frame_number: u64, started: f64, complete: bool) {
