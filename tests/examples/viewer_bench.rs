@@ -86,6 +86,22 @@ fn stream(offscreen: &mut Offscreen, max_frames: usize) -> Converged {
     }
 }
 
+/// `keys` and all their ancestors up to the `coarsest` level: what a view must
+/// fetch to draw them (ancestors stand in while finer blocks load).
+fn with_ancestors(
+    keys: impl IntoIterator<Item = BlockKey>,
+    coarsest: u8,
+) -> std::collections::BTreeSet<BlockKey> {
+    let mut set = std::collections::BTreeSet::new();
+    for k in keys {
+        let mut a = k;
+        while set.insert(a) && a.level < coarsest {
+            a = a.parent();
+        }
+    }
+    set
+}
+
 fn flag_value<'a>(args: &'a [String], flag: &str) -> Option<&'a str> {
     args.iter().position(|a| a == flag).and_then(|i| args.get(i + 1)).map(String::as_str)
 }
@@ -145,18 +161,12 @@ fn print_oracle(o: &mut Offscreen, scene: &Path, kind: &str, (w, h): (u32, u32))
         }
     }
     let coarsest = o.scene.manifest.coarsest_level();
-    let needed = |keys: &mut dyn Iterator<Item = BlockKey>| {
-        let mut set = std::collections::BTreeSet::new();
-        for k in keys {
-            let mut a = k;
-            while set.insert(a) && a.level < coarsest {
-                a = a.parent();
-            }
-        }
-        set.iter().filter_map(|k| o.scene.index.block(k)).map(|e| e.bytes as u64).sum::<u64>()
+    let bytes = |keys: std::collections::BTreeSet<BlockKey>| {
+        keys.iter().filter_map(|k| o.scene.index.block(k)).map(|e| e.bytes as u64).sum::<u64>()
     };
-    let all = needed(&mut drawn.iter().copied());
-    let visible = needed(&mut drawn.iter().zip(&seen).filter(|(_, s)| **s).map(|(k, _)| *k));
+    let all = bytes(with_ancestors(drawn.iter().copied(), coarsest));
+    let visible =
+        bytes(with_ancestors(drawn.iter().zip(&seen).filter(|(_, s)| **s).map(|(k, _)| *k), coarsest));
     println!(
         "{{\"measure\":\"occlusion_oracle\",\"scene\":{:?},\"view\":{kind:?},\"size\":\"{w}x{h}\",\"blocks_drawn\":{},\
          \"blocks_seen\":{},\"block_bytes\":{all},\"block_bytes_seen\":{visible},\"most_saved\":{:.3}}}",
@@ -191,14 +201,7 @@ fn main() {
             }
             o.scene.camera = view(&o, kind);
             o.load_pages();
-            let coarsest = o.scene.manifest.coarsest_level();
-            let mut needed = std::collections::BTreeSet::new();
-            for k in o.scene.wanted().to_vec() {
-                let mut a = k;
-                while needed.insert(a) && a.level < coarsest {
-                    a = a.parent();
-                }
-            }
+            let needed = with_ancestors(o.scene.wanted().to_vec(), o.scene.manifest.coarsest_level());
             let held = o.scene.traversal().held_by_budget;
             // Faces the converged view draws: the wanted blocks' (ancestors are replaced).
             let faces: u64 = o

@@ -362,13 +362,13 @@ impl Occlusion {
                             let depth = DepthPyramid::from_rows(&view, l.texels, l.row_bytes)
                                 .with_pixel_scale(l.scale, r.size);
                             // A block with several boxes is hidden only if all of them are.
-                            let mut seen = HashSet::new();
+                            let mut visible = HashSet::new();
                             for (k, b) in &r.tests {
-                                if !seen.contains(k) && !depth.hides(b, &r.view_proj) {
-                                    seen.insert(*k);
+                                if !visible.contains(k) && !depth.hides(b, &r.view_proj) {
+                                    visible.insert(*k);
                                 }
                             }
-                            r.tests.iter().map(|(k, _)| *k).filter(|k| !seen.contains(k)).collect()
+                            r.tests.iter().map(|(k, _)| *k).filter(|k| !visible.contains(k)).collect()
                         }
                         Err(_) => HashSet::new(),
                     };

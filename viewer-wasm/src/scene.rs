@@ -718,7 +718,8 @@ impl Scene {
         let mut tests: Vec<(BlockKey, crate::select::Aabb)> = Vec::new();
         for k in self.traversal.priority.keys() {
             let Some(tight) = block_bounds(&self.index, k) else { continue };
-            let grown = |b: &crate::select::Aabb| proxy_bounds(b, drawn_level(k));
+            let level = drawn_level(k);
+            let grown = |b: &crate::select::Aabb| proxy_bounds(b, level);
             if contains_eye(&grown(&tight), eye) {
                 continue;
             }

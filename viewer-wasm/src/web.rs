@@ -409,7 +409,6 @@ impl App {
             // settling, or the AO of a still view is still accumulating frames.
             REDRAW_AFTER_FLIGHT.with(|r| r.set(true));
         }
-        let mut step = now_ms();
         self.last_view_proj = frame.view_proj.to_cols_array();
         self.frames += 1;
         let frame_number = self.frames;
@@ -424,6 +423,7 @@ impl App {
                 request_frame();
             }
         });
+        let mut step = now_ms();
         self.show_stats();
         self.scene.stats.note_phase("stats line", &mut step, now_ms());
     }
