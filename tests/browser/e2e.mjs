@@ -12,6 +12,11 @@
 // Environment:
 //   VOXSTREAM_CHROMIUM        browser binary (default /usr/bin/chromium)
 //   VOXSTREAM_E2E_TIMEOUT_MS  how long to wait for dataset.ready (default 240000; SwiftShader is slow)
+//   VOXSTREAM_E2E_CPU_PROFILE  write the page's V8 CPU profile (load to ready) to this .cpuprofile
+//                              file, for DevTools or scripts/cpuprofile-summary.py
+//   VOXSTREAM_E2E_TRACE        write the page's trace (load to ready; devtools.timeline, with each
+//                              main-thread task's wall and thread time) to this .json file, for
+//                              DevTools or scripts/trace-tasks.py
 
 import { mkdirSync, rmSync, writeFileSync } from 'node:fs';
 import { join } from 'node:path';
@@ -48,6 +53,30 @@ try {
   });
   page.on('crash', () => console.log(`[crash ${since()}] page crashed`));
 
+  const cpuProfile = process.env.VOXSTREAM_E2E_CPU_PROFILE;
+  let profiler = null;
+  if (cpuProfile) {
+    profiler = await context.newCDPSession(page);
+    await profiler.send('Profiler.enable');
+    await profiler.send('Profiler.setSamplingInterval', { interval: 100 });
+    await profiler.send('Profiler.start');
+  }
+  const tracePath = process.env.VOXSTREAM_E2E_TRACE;
+  let tracer = null;
+  const traceEvents = [];
+  let traceDone = null;
+  if (tracePath) {
+    tracer = await context.newCDPSession(page);
+    tracer.on('Tracing.dataCollected', (e) => traceEvents.push(...e.value));
+    traceDone = new Promise((resolve) => tracer.once('Tracing.tracingComplete', resolve));
+    await tracer.send('Tracing.start', {
+      transferMode: 'ReportEvents',
+      traceConfig: {
+        includedCategories: ['devtools.timeline', 'disabled-by-default-devtools.timeline', 'toplevel', 'v8.execute'],
+        excludedCategories: ['*'],
+      },
+    });
+  }
   console.log(`[e2e ${since()}] opening ${url}`);
   await page.goto(url, { waitUntil: 'load', timeout: 60000 });
   const gpu = await page.evaluate(async () => {
@@ -77,6 +106,17 @@ try {
     throw new Error(`page never became ready within ${readyTimeoutMs / 1000}s: ${JSON.stringify(state)} (${e.message.split('\n')[0]})`);
   }
   console.log(`[e2e ${since()}] page ready`);
+  if (profiler) {
+    const { profile } = await profiler.send('Profiler.stop');
+    writeFileSync(cpuProfile, JSON.stringify(profile));
+    console.log(`[e2e ${since()}] wrote the CPU profile to ${cpuProfile}`);
+  }
+  if (tracer) {
+    await tracer.send('Tracing.end');
+    await traceDone;
+    writeFileSync(tracePath, JSON.stringify({ traceEvents }));
+    console.log(`[e2e ${since()}] wrote ${traceEvents.length} trace events to ${tracePath}`);
+  }
 
   const snapshot = () =>
     page.evaluate(() => {

@@ -3,7 +3,9 @@
 //! the manifest (its voxel count and content hash), so a misrouted or stale
 //! response, or the wrong slice of a pack, can never be drawn in the wrong place.
 
-use voxstream_format::{Block, BlockEntry, BlockKey, CodecError, decode_block};
+use voxstream_format::{Block, BlockEntry, BlockKey, CodecError, PackedVoxel, decode_block};
+
+use crate::occlusion::OccupiedCells;
 
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
 pub enum DecodeError {
@@ -54,6 +56,73 @@ pub fn decode_checked(
     Ok(block)
 }
 
+/// A decoded block with what the main thread needs from its voxels, worked
+/// out where it was decoded (a worker, in the browser): the faces it expands
+/// to and its occupied cells. The main thread then never walks the voxels.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DecodedBlock {
+    pub block: Block,
+    pub faces: u32,
+    pub cells: OccupiedCells,
+}
+
+impl DecodedBlock {
+    /// Bytes after the voxels in a worker's answer: the cells, then the face count (u32 LE).
+    pub const TRAILER_BYTES: usize = OccupiedCells::BYTES + 4;
+
+    pub fn new(block: Block) -> Self {
+        Self { faces: block.face_count(), cells: OccupiedCells::new(&block), block }
+    }
+
+    /// A worker's answer: the voxels as PackedVoxel bytes, then [`Self::TRAILER_BYTES`].
+    pub fn to_message(&self) -> Vec<u8> {
+        let voxels: &[u8] = bytemuck::cast_slice(&self.block.voxels);
+        let mut out = Vec::with_capacity(voxels.len() + Self::TRAILER_BYTES);
+        out.extend_from_slice(voxels);
+        out.extend_from_slice(&self.cells.to_bytes());
+        out.extend_from_slice(&self.faces.to_le_bytes());
+        out
+    }
+
+    /// Splits an answer of `len` bytes into voxel bytes and trailer; an error names what is wrong.
+    pub fn message_voxels(key: BlockKey, len: usize) -> Result<usize, String> {
+        let voxel_bytes = len.checked_sub(Self::TRAILER_BYTES).ok_or_else(|| {
+            format!(
+                "block {key}: the worker's answer has {len} bytes, under the {} of its trailer",
+                Self::TRAILER_BYTES
+            )
+        })?;
+        if voxel_bytes % size_of::<PackedVoxel>() != 0 {
+            return Err(format!(
+                "block {key}: the worker's answer has {voxel_bytes} voxel bytes, not whole voxels"
+            ));
+        }
+        Ok(voxel_bytes / size_of::<PackedVoxel>())
+    }
+
+    /// The block from its voxels and the answer's trailer ([`Self::to_message`]).
+    pub fn from_message(block: Block, trailer: &[u8]) -> Result<Self, String> {
+        let key = block.key;
+        let bad = || format!("block {key}: the worker's answer has a malformed trailer");
+        if trailer.len() != Self::TRAILER_BYTES {
+            return Err(bad());
+        }
+        let (cells, faces) = trailer.split_at(OccupiedCells::BYTES);
+        let cells = OccupiedCells::from_bytes(key, cells).ok_or_else(bad)?;
+        let faces = u32::from_le_bytes(faces.try_into().map_err(|_| bad())?);
+        Ok(Self { block, faces, cells })
+    }
+
+    /// [`Self::from_message`] from the whole answer held in `bytes` (native tests).
+    pub fn from_message_bytes(key: BlockKey, bytes: &[u8]) -> Result<Self, String> {
+        let n = Self::message_voxels(key, bytes.len())?;
+        let (voxels, trailer) = bytes.split_at(n * size_of::<PackedVoxel>());
+        let voxels =
+            voxels.chunks_exact(size_of::<PackedVoxel>()).map(bytemuck::pod_read_unaligned).collect();
+        Self::from_message(Block { key, voxels }, trailer)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -101,5 +170,24 @@ mod tests {
         ));
         let err = decode_fetched(block.key, None, b"<html>not found</html>").unwrap_err();
         assert!(err.to_string().contains("1-0-1-0"), "{err}");
+    }
+
+    /// What a worker sends is what the main thread would have computed itself.
+    #[test]
+    fn a_workers_answer_carries_the_blocks_faces_and_cells() {
+        let key = BlockKey::new(1, 0, 1, 0);
+        let voxels = (0..40u32).map(|i| PackedVoxel::new([i, 63 - i, i / 2], 0b10_0101, 0)).collect();
+        let decoded = DecodedBlock::new(Block { key, voxels });
+        assert_eq!(decoded.faces, 40 * 3);
+        let message = decoded.to_message();
+        assert_eq!(message.len(), 40 * 12 + DecodedBlock::TRAILER_BYTES);
+        assert_eq!(DecodedBlock::from_message_bytes(key, &message), Ok(decoded.clone()));
+        // Control: a cut or padded answer is an error that names the block, never a panic.
+        for bad in [&message[..message.len() - 1], &message[..10]] {
+            let err = DecodedBlock::from_message_bytes(key, bad).unwrap_err();
+            assert!(err.contains("1-0-1-0"), "{err}");
+        }
+        let other = DecodedBlock::new(Block { key, voxels: vec![PackedVoxel::new([5, 5, 5], 1, 0)] });
+        assert_ne!(DecodedBlock::from_message_bytes(key, &other.to_message()), Ok(decoded));
     }
 }

@@ -126,7 +126,7 @@ impl Expander {
         &self,
         device: &wgpu::Device,
         encoder: &mut wgpu::CommandEncoder,
-        batch: UploadBatch,
+        batch: &mut UploadBatch,
         draw_layout: &wgpu::BindGroupLayout,
         upload: &wgpu::Buffer,
     ) -> Vec<GpuBlock> {
@@ -136,9 +136,9 @@ impl Expander {
             let tail = item.offset + item.voxel_bytes;
             encoder.copy_buffer_to_buffer(upload, tail, &item.buffers.draw_args, 0, 16);
             encoder.copy_buffer_to_buffer(upload, tail + 16, &item.buffers.uniform, 0, 16);
-            let label = format!("expand {}", item.key);
+            // Static labels: a formatted one a block costs an allocation and a JS string.
             groups.push(device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some(&label),
+                label: Some("expand block"),
                 layout: &self.layout,
                 entries: &[
                     wgpu::BindGroupEntry {
@@ -166,12 +166,13 @@ impl Expander {
                 pass.dispatch_workgroups(voxels.div_ceil(WORKGROUP_SIZE), 1, 1);
             }
         }
+        batch.bytes.clear();
         batch
             .items
-            .into_iter()
+            .drain(..)
             .map(|item| {
                 let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-                    label: Some(&format!("block {}", item.key)),
+                    label: Some("block draw"),
                     layout: draw_layout,
                     entries: &[
                         wgpu::BindGroupEntry {
@@ -203,6 +204,47 @@ fn face_binding(buffers: &BlockBuffers, faces: u32) -> wgpu::BindingResource<'_>
 /// Bytes of the upload buffer, and so the per-frame upload cap. A block holds
 /// at most 64³ voxels of 12 bytes (3 MiB), so any single block fits.
 pub const UPLOAD_BYTES_PER_FRAME: u64 = 4 << 20;
+/// The least a paced frame may upload (a block larger than the cap still goes alone).
+pub const UPLOAD_PACE_MIN_BYTES: u64 = 64 << 10;
+
+/// Sizes each frame's upload to a main-thread time budget: the cap is the
+/// bytes the budget buys at the cost per byte measured on the frames before
+/// (packing, the staging write and encoding the expansion, all on the main
+/// thread). A fast device gets the whole upload buffer a frame; a slow one (a
+/// CPU WebGPU) uploads less a frame and takes more frames, never stalling
+/// the page for longer than the budget.
+#[derive(Debug, Clone)]
+pub struct UploadPacer {
+    budget_ms: f64,
+    /// Measured cost, smoothed over frames (ms per MiB).
+    ms_per_mib: f64,
+}
+
+impl UploadPacer {
+    /// The cost assumed before the first measurement: a 1 GB/s copy path, twice over.
+    const FIRST_GUESS_MS_PER_MIB: f64 = 2.0;
+
+    pub fn new(budget_ms: f64) -> Self {
+        Self { budget_ms, ms_per_mib: Self::FIRST_GUESS_MS_PER_MIB }
+    }
+
+    /// Bytes the next frame may upload, within [`UPLOAD_PACE_MIN_BYTES`, `UPLOAD_BYTES_PER_FRAME`].
+    pub fn cap_bytes(&self) -> u64 {
+        let bytes = self.budget_ms / self.ms_per_mib * (1u64 << 20) as f64;
+        (bytes as u64).clamp(UPLOAD_PACE_MIN_BYTES, UPLOAD_BYTES_PER_FRAME)
+    }
+
+    /// Records that uploading `bytes` took `ms` of main thread. Small uploads
+    /// are mostly fixed costs and say little about the cost per byte.
+    pub fn record(&mut self, bytes: u64, ms: f64) {
+        if bytes < UPLOAD_PACE_MIN_BYTES || !ms.is_finite() || ms < 0.0 {
+            return;
+        }
+        let sample = ms / (bytes as f64 / (1u64 << 20) as f64);
+        self.ms_per_mib = 0.5 * self.ms_per_mib + 0.5 * sample;
+    }
+}
+
 /// Storage-buffer binding offsets must be multiples of this (WebGPU's default limit).
 const UPLOAD_ALIGN: u64 = 256;
 
@@ -215,7 +257,9 @@ struct UploadItem {
 }
 
 /// One frame's uploads: every block's voxels, draw args and uniform packed
-/// into one CPU buffer, written to the GPU with one `write_buffer`.
+/// into one CPU buffer, written to the GPU with one `write_buffer`. Kept from
+/// frame to frame ([`Expander::expand_batch`] empties it): its buffer is
+/// allocated once, so packing a frame is a copy, never a reallocation.
 #[derive(Default)]
 pub struct UploadBatch {
     bytes: Vec<u8>,
@@ -223,6 +267,12 @@ pub struct UploadBatch {
 }
 
 impl UploadBatch {
+    /// An empty batch whose buffer already holds a whole frame's upload (so the
+    /// first frame that uploads does not grow the wasm heap either).
+    pub fn new() -> Self {
+        Self { bytes: Vec::with_capacity(UPLOAD_BYTES_PER_FRAME as usize), items: Vec::new() }
+    }
+
     /// Bytes `block` takes in a batch (with alignment).
     pub fn bytes_for(block: &Block) -> u64 {
         (std::mem::size_of_val(block.voxels.as_slice()) as u64 + 32).next_multiple_of(UPLOAD_ALIGN)
@@ -240,13 +290,14 @@ impl UploadBatch {
         self.bytes.len() as u64
     }
 
-    /// Whether `block` still fits under the per-frame cap.
-    pub fn fits(&self, block: &Block) -> bool {
-        self.byte_len() + Self::bytes_for(block) <= UPLOAD_BYTES_PER_FRAME
+    /// Whether `block` still fits under a frame's cap of `cap` bytes: the
+    /// first block always does (any block fits the upload buffer).
+    pub fn fits(&self, block: &Block, cap: u64) -> bool {
+        self.bytes.is_empty() || self.byte_len() + Self::bytes_for(block) <= cap.min(UPLOAD_BYTES_PER_FRAME)
     }
 
-    /// Adds `block` (which must have faces) to be expanded into `buffers`.
-    pub fn push(&mut self, block: &Block, buffers: BlockBuffers) {
+    /// Adds `block`, which expands to `faces` > 0 faces, to be expanded into `buffers`.
+    pub fn push(&mut self, block: &Block, faces: u32, buffers: BlockBuffers) {
         let offset = self.bytes.len() as u64;
         let voxels: &[u8] = bytemuck::cast_slice(&block.voxels);
         self.bytes.extend_from_slice(voxels);
@@ -261,7 +312,7 @@ impl UploadBatch {
         self.bytes.resize(self.bytes.len().next_multiple_of(UPLOAD_ALIGN as usize), 0);
         self.items.push(UploadItem {
             key: block.key,
-            faces: block.face_count(),
+            faces,
             offset,
             voxel_bytes: voxels.len() as u64,
             buffers,
@@ -289,6 +340,50 @@ pub fn upload_buffer(device: &wgpu::Device) -> wgpu::Buffer {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_pacer_fits_a_frames_upload_to_its_time_budget() {
+        let mut pacer = UploadPacer::new(2.0);
+        let first = pacer.cap_bytes();
+        assert_eq!(first, 1 << 20, "2 ms at the first guess of 2 ms/MiB");
+        // A slow device: 1 MiB took 8 ms. The cap shrinks towards the 2 ms that buy 256 KiB.
+        for _ in 0..8 {
+            let cap = pacer.cap_bytes();
+            pacer.record(cap, 8.0 * cap as f64 / (1u64 << 20) as f64);
+        }
+        let slow = pacer.cap_bytes();
+        assert!((250 << 10..=260 << 10).contains(&slow), "{slow}");
+        // A fast device: the whole upload buffer, never more.
+        for _ in 0..8 {
+            pacer.record(1 << 20, 0.05);
+        }
+        assert_eq!(pacer.cap_bytes(), UPLOAD_BYTES_PER_FRAME);
+        // Control: tiny or broken samples change nothing; a stall still leaves the floor.
+        let before = pacer.cap_bytes();
+        pacer.record(4096, 50.0);
+        pacer.record(1 << 20, f64::NAN);
+        assert_eq!(pacer.cap_bytes(), before);
+        for _ in 0..8 {
+            pacer.record(1 << 20, 1e6);
+        }
+        assert_eq!(pacer.cap_bytes(), UPLOAD_PACE_MIN_BYTES);
+    }
+
+    #[test]
+    fn the_first_block_always_fits_a_batch() {
+        let key = BlockKey::new(0, 0, 0, 0);
+        let big = Block { key, voxels: vec![PackedVoxel::new([1, 1, 1], 1, 0); 100_000] };
+        let mut batch = UploadBatch::default();
+        assert!(batch.fits(&big, UPLOAD_PACE_MIN_BYTES), "alone, a block larger than the cap goes");
+        // As after pushing it (the buffers need a device; the cap only reads the bytes).
+        batch.bytes.resize(UploadBatch::bytes_for(&big) as usize, 0);
+        let small = Block { key, voxels: vec![PackedVoxel::new([1, 1, 1], 1, 0)] };
+        assert!(
+            !batch.fits(&small, UPLOAD_PACE_MIN_BYTES),
+            "control: a second block waits for the next frame"
+        );
+        assert!(batch.fits(&small, UPLOAD_BYTES_PER_FRAME));
+    }
 
     #[test]
     fn block_uniform_places_blocks_in_grid_units() {

@@ -536,7 +536,7 @@ const CELLS: u32 = 4;
 /// in front of it): the block itself is tested as its 8 octants' boxes, a child
 /// not yet loaded as the 8 cells of its octant. Conservative: a parent voxel is
 /// occupied wherever a child voxel is, so the cells hold the child's surface.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct OccupiedCells {
     key: BlockKey,
     cells: [Option<Aabb>; (CELLS * CELLS * CELLS) as usize],
@@ -558,6 +558,38 @@ impl OccupiedCells {
             *slot = Some(slot.map_or(b, |c| c.union(&b)));
         }
         Self { key, cells }
+    }
+
+    /// Bytes of [`OccupiedCells::to_bytes`]: each cell's min and max as f32 LE.
+    pub const BYTES: usize = (CELLS * CELLS * CELLS) as usize * 6 * 4;
+
+    /// The cells as bytes (an empty cell as NaNs), for a worker to send.
+    pub fn to_bytes(&self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(Self::BYTES);
+        for cell in &self.cells {
+            let (min, max) = cell.map_or((Vec3::NAN, Vec3::NAN), |b| (b.min, b.max));
+            for v in min.to_array().into_iter().chain(max.to_array()) {
+                out.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        out
+    }
+
+    /// The cells of block `key` from [`OccupiedCells::to_bytes`]; `None` unless exactly
+    /// [`OccupiedCells::BYTES`] bytes.
+    pub fn from_bytes(key: BlockKey, bytes: &[u8]) -> Option<Self> {
+        if bytes.len() != Self::BYTES {
+            return None;
+        }
+        let mut cells = [None; (CELLS * CELLS * CELLS) as usize];
+        for (cell, b) in cells.iter_mut().zip(bytes.chunks_exact(24)) {
+            let f: [f32; 6] =
+                std::array::from_fn(|i| f32::from_le_bytes(b[4 * i..4 * i + 4].try_into().unwrap()));
+            if !f[0].is_nan() {
+                *cell = Some(Aabb { min: Vec3::new(f[0], f[1], f[2]), max: Vec3::new(f[3], f[4], f[5]) });
+            }
+        }
+        Some(Self { key, cells })
     }
 
     /// Boxes that together hold `key`'s surface: for the block itself its 8

@@ -19,8 +19,8 @@ use crate::ao::{AoStructure, OccupancyVolume, encode_sources};
 use crate::camera::OrbitCamera;
 use crate::clipmap::{CLIP_CELLS, ClipmapLayout, view_forward};
 use crate::crossfade::{Crossfade, Fade};
-use crate::decode::decode_fetched;
-use crate::expand::{GpuBlock, UPLOAD_BYTES_PER_FRAME, UploadBatch, upload_buffer};
+use crate::decode::{DecodedBlock, decode_fetched};
+use crate::expand::{GpuBlock, UPLOAD_BYTES_PER_FRAME, UploadBatch, UploadPacer, upload_buffer};
 use crate::fetch::FetchError;
 use crate::occlusion::{Occlusion, OccupiedCells, contains_eye, occlusion_gpu_bytes, proxy_bounds};
 use crate::render::{FADE_BUFFER_BYTES, FrameParams, Renderer};
@@ -65,6 +65,14 @@ pub struct DrawnFrame {
 /// The state the traversal was computed for.
 type TraversedFor = (OrbitCamera, (u32, u32), usize, SelectParams, u64, usize, u64, Option<FixedView>);
 
+/// A decoded block kept on the CPU: its voxels, the faces they expand to, and
+/// the frame it was last needed (the least recently needed go first).
+struct CachedBlock {
+    block: Block,
+    faces: u32,
+    needed_frame: u64,
+}
+
 pub struct Scene {
     pub manifest: Manifest,
     /// The hierarchy as far as its pages have loaded.
@@ -88,13 +96,16 @@ pub struct Scene {
     gpu: HashMap<BlockKey, GpuBlock>,
     /// Decoded blocks without faces: ready, nothing to put on the GPU.
     empty: HashSet<BlockKey>,
-    /// Decoded blocks on the CPU, with the frame they were last needed.
-    decoded: HashMap<BlockKey, (Block, u64)>,
+    /// Decoded blocks on the CPU.
+    decoded: HashMap<BlockKey, CachedBlock>,
     /// Occlusion proxies of the decoded blocks, kept and dropped with them.
     cells: HashMap<BlockKey, OccupiedCells>,
     decoded_bytes: u64,
     failed: HashMap<BlockKey, String>,
     upload: Option<wgpu::Buffer>,
+    /// The frame's upload batch, kept so its buffer is allocated once.
+    batch: UploadBatch,
+    pacer: Option<UploadPacer>,
     occlusion: Option<Occlusion>,
     /// Bumped whenever `hidden` changes (the traversal depends on it).
     hidden_generation: u64,
@@ -149,6 +160,8 @@ impl Scene {
             decoded_bytes: 0,
             failed: HashMap::new(),
             upload: None,
+            batch: UploadBatch::new(),
+            pacer: None,
             occlusion: None,
             hidden_generation: 0,
             feedback_changed_frame: 0,
@@ -409,7 +422,7 @@ impl Scene {
             };
             self.stats.bytes_fetched += bytes.len() as u64;
             match decode_fetched(key, self.index.block(&key), &bytes) {
-                Ok(block) => self.insert_decoded(block),
+                Ok(block) => self.insert_decoded(DecodedBlock::new(block)),
                 Err(e) => self.fail(key, e.to_string()),
             }
         }
@@ -419,12 +432,12 @@ impl Scene {
 
     /// Takes a worker's answer for block `key`: `fetched` response bytes and
     /// the decoded block, or why it failed for good.
-    pub fn insert_worker_result(&mut self, key: BlockKey, fetched: u64, block: Result<Block, String>) {
+    pub fn insert_worker_result(&mut self, key: BlockKey, fetched: u64, block: Result<DecodedBlock, String>) {
         self.requests.finished(&Request::Block(key));
         self.stats.bytes_fetched += fetched;
         match block {
-            Ok(block) if block.key == key => self.insert_decoded(block),
-            Ok(block) => self.fail(key, format!("asked for block {key}, got block {}", block.key)),
+            Ok(decoded) if decoded.block.key == key => self.insert_decoded(decoded),
+            Ok(decoded) => self.fail(key, format!("asked for block {key}, got block {}", decoded.block.key)),
             Err(e) => self.fail(key, e),
         }
         self.stats.requests_in_flight = self.requests.in_flight() as u32;
@@ -432,17 +445,19 @@ impl Scene {
     }
 
     /// Takes a decoded block.
-    pub fn insert_decoded(&mut self, block: Block) {
+    pub fn insert_decoded(&mut self, decoded: DecodedBlock) {
+        let DecodedBlock { block, faces, cells } = decoded;
         let key = block.key;
         self.stats.blocks_loaded += 1;
-        if block.face_count() == 0 {
+        if faces == 0 {
             self.empty.insert(key);
             return;
         }
         self.decoded_bytes += std::mem::size_of_val(block.voxels.as_slice()) as u64;
-        self.cells.insert(key, OccupiedCells::new(&block));
-        if let Some((old, _)) = self.decoded.insert(key, (block, self.frame_counter)) {
-            self.decoded_bytes -= std::mem::size_of_val(old.voxels.as_slice()) as u64;
+        self.cells.insert(key, cells);
+        let cached = CachedBlock { block, faces, needed_frame: self.frame_counter };
+        if let Some(old) = self.decoded.insert(key, cached) {
+            self.decoded_bytes -= std::mem::size_of_val(old.block.voxels.as_slice()) as u64;
         }
     }
 
@@ -483,6 +498,13 @@ impl Scene {
     /// into pooled buffers the residency grants within the budget. Returns how
     /// many blocks went up.
     pub fn upload(&mut self, renderer: &Renderer) -> usize {
+        let cap = self.pacer.as_ref().map_or(UPLOAD_BYTES_PER_FRAME, UploadPacer::cap_bytes);
+        self.upload_within(renderer, cap)
+    }
+
+    /// [`Scene::upload`] with a cap of `cap` bytes this frame.
+    fn upload_within(&mut self, renderer: &Renderer, cap: u64) -> usize {
+        let packing_from = (self.clock)();
         // Fixed targets first: they shrink the block budget the traversal plans within.
         self.residency.set_fixed_bytes(self.fixed_gpu_bytes(
             renderer.occupancy_cells(),
@@ -502,13 +524,13 @@ impl Scene {
         // loaded. Last frame's other blocks will not be drawn again, so they may go.
         let mut protected: HashSet<BlockKey> = self.needed().into_keys().collect();
         protected.extend(self.traversal.hidden.iter().filter(|k| self.gpu.contains_key(k)).copied());
-        let mut batch = UploadBatch::default();
+        let mut batch = std::mem::take(&mut self.batch);
         for key in todo {
-            let Some((block, _)) = self.decoded.get(&key) else { continue };
-            if !batch.fits(block) {
+            let Some(cached) = self.decoded.get(&key) else { continue };
+            if !batch.fits(&cached.block, cap) {
                 break;
             }
-            let faces = block.face_count();
+            let faces = cached.faces;
             let room = self.residency.make_room(block_gpu_bytes(faces), &protected);
             for victim in &room.evict {
                 if let Some(g) = self.gpu.remove(victim) {
@@ -526,28 +548,35 @@ impl Scene {
                 self.stats.uploads_refused += 1;
                 break;
             };
-            let Some((block, _)) = self.decoded.get(&key) else { continue };
-            batch.push(block, buffers);
+            let Some(cached) = self.decoded.get(&key) else { continue };
+            batch.push(&cached.block, cached.faces, buffers);
         }
         if batch.is_empty() {
+            self.batch = batch;
             return 0;
         }
         let webgpu_from = (self.clock)();
         let upload = self.upload.get_or_insert_with(|| upload_buffer(&renderer.device));
         batch.write(&renderer.queue, upload);
-        self.stats.bytes_uploaded += batch.byte_len();
+        let uploaded_bytes = batch.byte_len();
+        self.stats.bytes_uploaded += uploaded_bytes;
         let mut encoder = renderer
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("upload blocks") });
         let blocks = renderer.expander.expand_batch(
             &renderer.device,
             &mut encoder,
-            batch,
+            &mut batch,
             &renderer.block_layout,
             upload,
         );
+        self.batch = batch;
         renderer.queue.submit([encoder.finish()]);
-        self.stats.note_webgpu((self.clock)() - webgpu_from);
+        let now = (self.clock)();
+        self.stats.note_webgpu(now - webgpu_from);
+        if let Some(pacer) = &mut self.pacer {
+            pacer.record(uploaded_bytes, now - packing_from);
+        }
         let n = blocks.len();
         for g in blocks {
             self.gpu.insert(g.key, g);
@@ -580,7 +609,13 @@ impl Scene {
 
     /// Uploads until nothing needed waits (native loops; the browser uploads once per frame).
     pub fn upload_all(&mut self, renderer: &Renderer) {
-        while self.upload(renderer) > 0 {}
+        while self.upload_within(renderer, UPLOAD_BYTES_PER_FRAME) > 0 {}
+    }
+
+    /// Paces each frame's upload to `budget_ms` of main thread ([`UploadPacer`]);
+    /// without it a frame uploads up to the whole upload buffer.
+    pub fn pace_uploads(&mut self, budget_ms: f64) {
+        self.pacer = Some(UploadPacer::new(budget_ms));
     }
 
     fn note_residency(&mut self) {
@@ -604,7 +639,7 @@ impl Scene {
 
     /// The decoded block, if kept.
     pub fn block(&self, key: &BlockKey) -> Option<&Block> {
-        self.decoded.get(key).map(|(b, _)| b)
+        self.decoded.get(key).map(|c| &c.block)
     }
 
     pub fn gpu_block(&self, key: &BlockKey) -> Option<&GpuBlock> {
@@ -649,7 +684,7 @@ impl Scene {
         }
         for key in self.traversal.priority.keys() {
             if let Some(entry) = self.decoded.get_mut(key) {
-                entry.1 = self.frame_counter;
+                entry.needed_frame = self.frame_counter;
             }
         }
         let gpu_blocks: Vec<(&GpuBlock, Option<Fade>)> =
@@ -809,7 +844,7 @@ impl Scene {
             .decoded
             .iter()
             .filter(|(k, _)| !self.gpu.contains_key(k) && !self.traversal.priority.contains_key(k))
-            .map(|(k, (_, frame))| (*frame, *k))
+            .map(|(k, c)| (c.needed_frame, *k))
             .collect();
         victims.sort();
         for (_, key) in victims {
@@ -817,8 +852,8 @@ impl Scene {
                 break;
             }
             self.cells.remove(&key);
-            if let Some((b, _)) = self.decoded.remove(&key) {
-                self.decoded_bytes -= std::mem::size_of_val(b.voxels.as_slice()) as u64;
+            if let Some(c) = self.decoded.remove(&key) {
+                self.decoded_bytes -= std::mem::size_of_val(c.block.voxels.as_slice()) as u64;
             }
         }
     }

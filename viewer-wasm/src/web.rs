@@ -32,6 +32,28 @@ thread_local! {
     // frames only delays the one that shows the latest state.
     static FRAME_IN_FLIGHT: Cell<bool> = const { Cell::new(false) };
     static REDRAW_AFTER_FLIGHT: Cell<bool> = const { Cell::new(false) };
+    // The canvas's size in device pixels, as the ResizeObserver last saw it.
+    // Reading clientWidth in a frame would force a layout there (the stats line
+    // changed the page since the last one): milliseconds of main thread.
+    static CANVAS_SIZE: Cell<Option<(u32, u32)>> = const { Cell::new(None) };
+}
+
+/// Keeps [`CANVAS_SIZE`] current: the observer runs after layout, where reading the size is free.
+fn observe_canvas_size(canvas: &HtmlCanvasElement) -> Result<(), String> {
+    let observed = canvas.clone();
+    let on_resize = Closure::<dyn FnMut(js_sys::Array)>::new(move |_entries: js_sys::Array| {
+        let size = canvas_pixels(&observed);
+        if CANVAS_SIZE.with(|c| c.replace(Some(size))) != Some(size) {
+            request_frame();
+        }
+    });
+    let observer = web_sys::ResizeObserver::new(on_resize.as_ref().unchecked_ref())
+        .map_err(|e| format!("ResizeObserver: {e:?}"))?;
+    observer.observe(canvas);
+    // Both live as long as the page.
+    on_resize.forget();
+    std::mem::forget(observer);
+    Ok(())
 }
 
 struct Pointer {
@@ -161,6 +183,9 @@ async fn scene_id() -> Result<String, String> {
 }
 
 /// Canvas drawing-buffer size: its CSS size in device pixels.
+/// Main-thread milliseconds a frame may spend uploading blocks ([`crate::expand::UploadPacer`]).
+const UPLOAD_BUDGET_MS: f64 = 2.0;
+
 fn canvas_pixels(canvas: &HtmlCanvasElement) -> (u32, u32) {
     let dpr = window().device_pixel_ratio().max(1.0);
     let w = (canvas.client_width().max(1) as f64 * dpr).round() as u32;
@@ -210,6 +235,8 @@ async fn run() -> Result<(), String> {
         *caps.formats.first().ok_or("the canvas offers no format")?
     };
     let (width, height) = canvas_pixels(&canvas);
+    CANVAS_SIZE.with(|c| c.set(Some((width, height))));
+    observe_canvas_size(&canvas)?;
     canvas.set_width(width);
     canvas.set_height(height);
     let mut config =
@@ -235,6 +262,8 @@ async fn run() -> Result<(), String> {
     let manifest = Manifest::from_json(&manifest_bytes).map_err(|e| format!("scene {id}: {e}"))?;
     let renderer = Renderer::new(device, queue, format, manifest.grid.resolution);
     let mut scene = Scene::new(manifest, (width, height));
+    // Half the 4 ms a main-thread task may take: the rest of the frame needs the other half.
+    scene.pace_uploads(UPLOAD_BUDGET_MS);
     // ?ao=0 turns ambient occlusion off, ?px=3 coarsens the LOD (max projected geometric error).
     if let Some(ao) = url_number("ao", 0.0..=1.0) {
         scene.ao_strength = ao;
@@ -456,7 +485,7 @@ impl App {
     }
 
     fn resize_if_needed(&mut self) {
-        let (w, h) = canvas_pixels(&self.canvas);
+        let Some((w, h)) = CANVAS_SIZE.with(Cell::get) else { return };
         if (w, h) != (self.config.width, self.config.height) {
             self.canvas.set_width(w);
             self.canvas.set_height(h);

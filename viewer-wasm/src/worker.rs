@@ -6,11 +6,12 @@
 use std::cell::RefCell;
 use std::collections::HashMap;
 
+use bytemuck::Zeroable;
 use voxstream_format::{Block, BlockKey, PackedVoxel};
 use wasm_bindgen::JsCast;
 use wasm_bindgen::prelude::*;
 
-use crate::decode::decode_checked;
+use crate::decode::{DecodedBlock, decode_checked};
 
 /// Workers in the pool: decoding is short next to a fetch, two keep up.
 const WORKERS: usize = 2;
@@ -24,7 +25,7 @@ pub fn decode_block_for_worker(key: &str, bytes: &[u8], voxels: i32, hash: &str)
     let expected = u32::try_from(voxels).ok();
     let hash = Some(hash).filter(|h| !h.is_empty());
     let block = decode_checked(key, expected, hash, bytes).map_err(|e| JsValue::from_str(&e.to_string()))?;
-    Ok(bytemuck::cast_slice(&block.voxels).to_vec())
+    Ok(DecodedBlock::new(block).to_message())
 }
 
 /// Runs in the occupancy worker: the AO volume splatted from an
@@ -103,7 +104,7 @@ pub struct WorkerResult {
     pub key: BlockKey,
     /// Bytes of the response body.
     pub fetched: u64,
-    pub block: Result<Block, String>,
+    pub block: Result<DecodedBlock, String>,
 }
 
 pub struct DecodePool {
@@ -126,18 +127,24 @@ fn parse_message(data: &JsValue) -> Option<(u32, WorkerResult)> {
     let fetched = get("fetched").and_then(|v| v.as_f64()).unwrap_or(0.0) as u64;
     let block = if get("ok")?.as_bool()? {
         let buffer: js_sys::ArrayBuffer = get("voxels")?.dyn_into().ok()?;
-        let bytes = js_sys::Uint8Array::new(&buffer).to_vec();
-        if bytes.len() % size_of::<PackedVoxel>() != 0 {
-            Err(format!("block {key}: worker returned {} bytes", bytes.len()))
-        } else {
-            let voxels: Vec<PackedVoxel> =
-                bytes.chunks_exact(size_of::<PackedVoxel>()).map(bytemuck::pod_read_unaligned).collect();
-            Ok(Block { key, voxels })
-        }
+        from_answer(key, &js_sys::Uint8Array::new(&buffer))
     } else {
         Err(get("error").and_then(|e| e.as_string()).unwrap_or_else(|| format!("block {key}: worker failed")))
     };
     Some((id, WorkerResult { key, fetched, block }))
+}
+
+/// The block in a worker's answer ([`DecodedBlock::to_message`]), its voxels
+/// copied once, straight into their place in wasm memory.
+fn from_answer(key: BlockKey, answer: &js_sys::Uint8Array) -> Result<DecodedBlock, String> {
+    let len = answer.length() as usize;
+    let n = DecodedBlock::message_voxels(key, len)?;
+    let mut voxels = vec![PackedVoxel::zeroed(); n];
+    let voxel_bytes = (n * size_of::<PackedVoxel>()) as u32;
+    answer.subarray(0, voxel_bytes).copy_to(bytemuck::cast_slice_mut(&mut voxels));
+    let mut trailer = [0u8; DecodedBlock::TRAILER_BYTES];
+    answer.subarray(voxel_bytes, len as u32).copy_to(&mut trailer);
+    DecodedBlock::from_message(Block { key, voxels }, &trailer)
 }
 
 impl DecodePool {

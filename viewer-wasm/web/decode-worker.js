@@ -1,12 +1,14 @@
 // Decode worker: fetches a block and decodes and checks it with the viewer's
 // own wasm (voxstream_format), off the main thread. The main thread gets the
-// voxels as a transferred ArrayBuffer, ready to upload.
+// voxels as a transferred ArrayBuffer, ready to upload, followed by the block's
+// occupied cells and face count (DecodedBlock::to_message in decode.rs), so it
+// never walks the voxels itself.
 //
 //   in:  { id, url, key, voxels, hash, start?, end? }
 //        voxels: the count the manifest states, or -1; hash: the block's blake3, or ''
 //        start/end: on a static site, the block's bytes [start, end] (inclusive) of the pack at url
 //        { abort: id }              the view no longer needs it
-//   out: { id, key, ok: true, voxels: ArrayBuffer, fetched }
+//   out: { id, key, ok: true, voxels: ArrayBuffer (voxels, cells, face count), fetched }
 //        { id, key, ok: false, error, fetched }
 import init, { decode_block_for_worker } from './pkg/voxstream_viewer.js';
 import { fetchBlockBytes } from './block-fetch.js';
