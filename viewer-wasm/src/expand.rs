@@ -120,6 +120,44 @@ impl Expander {
         Self { pipeline, layout }
     }
 
+    /// Runs the expansion once on nothing (zero workgroups), at startup: the
+    /// first use of the pipeline and of its submit path costs the browser's
+    /// main thread milliseconds, which would otherwise land on the first frame
+    /// that streams blocks in.
+    pub fn prime(&self, device: &wgpu::Device, queue: &wgpu::Queue) {
+        let buffer = |size: u64| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("expand primer"),
+                size,
+                usage: wgpu::BufferUsages::STORAGE,
+                mapped_at_creation: false,
+            })
+        };
+        let (voxels, faces, args) =
+            (buffer(size_of::<PackedVoxel>() as u64), buffer(FACE_RECORD_BYTES), buffer(16));
+        let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("expand primer"),
+            layout: &self.layout,
+            entries: &[
+                wgpu::BindGroupEntry { binding: 0, resource: voxels.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 1, resource: faces.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 2, resource: args.as_entire_binding() },
+            ],
+        });
+        let mut encoder =
+            device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("expand primer") });
+        {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("expand primer"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&self.pipeline);
+            pass.set_bind_group(0, &group, &[]);
+            pass.dispatch_workgroups(0, 1, 1);
+        }
+        queue.submit([encoder.finish()]);
+    }
+
     /// Records one compute pass that expands every block of `batch` (whose
     /// voxels [`UploadBatch::finish`] has just written) into its buffers.
     pub fn expand_batch(

@@ -103,6 +103,7 @@ impl Renderer {
     ) -> Self {
         let occupancy_cells = cells_for_grid(grid_resolution);
         let expander = Expander::new(&device);
+        expander.prime(&device, &queue);
         let block_layout = block_bind_group_layout(&device);
         let frame_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("frame"),
