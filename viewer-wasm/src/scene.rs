@@ -504,7 +504,6 @@ impl Scene {
 
     /// [`Scene::upload`] with a cap of `cap` bytes this frame.
     fn upload_within(&mut self, renderer: &Renderer, cap: u64) -> usize {
-        let packing_from = (self.clock)();
         // Fixed targets first: they shrink the block budget the traversal plans within.
         self.residency.set_fixed_bytes(self.fixed_gpu_bytes(
             renderer.occupancy_cells(),
@@ -524,6 +523,8 @@ impl Scene {
         // loaded. Last frame's other blocks will not be drawn again, so they may go.
         let mut protected: HashSet<BlockKey> = self.needed().into_keys().collect();
         protected.extend(self.traversal.hidden.iter().filter(|k| self.gpu.contains_key(k)).copied());
+        // The pacer times what the bytes cost: packing, the write, the expansion (not the traversal).
+        let packing_from = (self.clock)();
         let mut batch = std::mem::take(&mut self.batch);
         for key in todo {
             let Some(cached) = self.decoded.get(&key) else { continue };
