@@ -10,6 +10,7 @@ itself ran. Their gap is what the CPU WebGPU adds on a machine with few cores.
 """
 import argparse
 import json
+from collections import Counter
 
 
 def main():
@@ -27,10 +28,23 @@ def main():
         for e in events
         if e.get("ph") == "M" and e.get("name") == "thread_name"
     }
+    # The viewer's renderer: the one whose main thread fires animation frames (Chromium may run
+    # another, for the blank page it opened first).
+    frames = Counter(
+        e["pid"]
+        for e in events
+        if e.get("name") == "FireAnimationFrame" and names.get((e["pid"], e["tid"])) == "CrRendererMain"
+    )
+    if not frames:
+        raise SystemExit("no animation frame in the trace: was it taken with devtools.timeline?")
+    page = frames.most_common(1)[0][0]
     tasks = [
         e
         for e in events
-        if e.get("ph") == "X" and e.get("name") == "RunTask" and names.get((e["pid"], e["tid"])) == "CrRendererMain"
+        if e.get("ph") == "X"
+        and e.get("name") == "RunTask"
+        and e["pid"] == page
+        and names.get((e["pid"], e["tid"])) == "CrRendererMain"
     ]
     if not tasks:
         raise SystemExit("no CrRendererMain RunTask events: was the trace taken with devtools.timeline?")
@@ -40,6 +54,7 @@ def main():
             e
             for e in events
             if e.get("ph") == "X"
+            and e["pid"] == page
             and names.get((e["pid"], e["tid"])) == "CrRendererMain"
             and e.get("name") not in ("RunTask", "ThreadControllerImpl::RunTask")
         ),
@@ -69,8 +84,13 @@ def main():
                 if label not in seen:
                     seen.append(label)
         return ", ".join(seen[:5])
-    # While streaming: from the first block a worker answered (a posted message) on.
-    first_answer = next((e["ts"] for e in inner if e["name"] == "HandlePostMessage"), None)
+    # While streaming: from the first block a worker answered (a posted message after the first
+    # animation frame, which asks for the first blocks) on.
+    first_frame = next((e["ts"] for e in inner if e["name"] == "FireAnimationFrame"), None)
+    first_answer = next(
+        (e["ts"] for e in inner if e["name"] == "HandlePostMessage" and first_frame is not None and e["ts"] > first_frame),
+        None,
+    )
     if a.streaming:
         if first_answer is None:
             raise SystemExit("no worker message in the trace: nothing was streamed")

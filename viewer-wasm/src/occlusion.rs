@@ -540,6 +540,9 @@ const CELLS: u32 = 4;
 pub struct OccupiedCells {
     key: BlockKey,
     cells: [Option<Aabb>; (CELLS * CELLS * CELLS) as usize],
+    /// Each octant's union of its 8 cells: the block's own test boxes, asked
+    /// for every frame, so worked out once.
+    octants: [Option<Aabb>; 8],
 }
 
 impl OccupiedCells {
@@ -557,7 +560,19 @@ impl OccupiedCells {
             let slot: &mut Option<Aabb> = &mut cells[cell];
             *slot = Some(slot.map_or(b, |c| c.union(&b)));
         }
-        Self { key, cells }
+        Self::with_cells(key, cells)
+    }
+
+    fn with_cells(key: BlockKey, cells: [Option<Aabb>; (CELLS * CELLS * CELLS) as usize]) -> Self {
+        let cell = |x: u32, y: u32, z: u32| cells[(x + CELLS * (y + CELLS * z)) as usize];
+        let octants = std::array::from_fn(|o| {
+            let o = o as u32;
+            let (ox, oy, oz) = (2 * (o & 1), (o & 2), (o & 4) / 2);
+            (0..8u32)
+                .filter_map(|i| cell(ox + (i & 1), oy + (i >> 1 & 1), oz + (i >> 2)))
+                .reduce(|a, b| a.union(&b))
+        });
+        Self { key, cells, octants }
     }
 
     /// Bytes of [`OccupiedCells::to_bytes`]: each cell's min and max as f32 LE.
@@ -589,7 +604,7 @@ impl OccupiedCells {
                 *cell = Some(Aabb { min: Vec3::new(f[0], f[1], f[2]), max: Vec3::new(f[3], f[4], f[5]) });
             }
         }
-        Some(Self { key, cells })
+        Some(Self::with_cells(key, cells))
     }
 
     /// Boxes that together hold `key`'s surface: for the block itself its 8
@@ -599,13 +614,7 @@ impl OccupiedCells {
         let cell = |x: u32, y: u32, z: u32| self.cells[(x + CELLS * (y + CELLS * z)) as usize];
         let mut boxes = Vec::with_capacity(8);
         if *key == self.key {
-            for o in 0..8u32 {
-                let (ox, oy, oz) = (2 * (o & 1), (o & 2), (o & 4) / 2);
-                let octant = (0..8u32)
-                    .filter_map(|i| cell(ox + (i & 1), oy + (i >> 1 & 1), oz + (i >> 2)))
-                    .reduce(|a, b| a.union(&b));
-                boxes.extend(octant);
-            }
+            boxes.extend(self.octants.iter().flatten());
         } else if key.level + 1 == self.key.level && key.parent() == self.key {
             let (ox, oy, oz) = (2 * (key.x & 1), 2 * (key.y & 1), 2 * (key.z & 1));
             boxes.extend((0..8u32).filter_map(|i| cell(ox + (i & 1), oy + (i >> 1 & 1), oz + (i >> 2))));
@@ -689,9 +698,20 @@ mod tests {
             let cells_volume: f32 = boxes.iter().map(volume).sum();
             assert!(cells_volume < 0.6 * volume(&whole), "{child:?}: {cells_volume} of {}", volume(&whole));
         }
-        // The block itself: its octants hold all its voxels too.
+        // The block itself: its octants hold all its voxels too, and come back the same from bytes.
         let own = cells.boxes_for(&parent).unwrap();
         assert!(!own.is_empty() && own.len() <= 8);
+        let origin = Vec3::new(parent.x as f32, parent.y as f32, parent.z as f32) * 128.0;
+        for v in &parent_voxels {
+            let lo = origin + Vec3::new(v[0] as f32, v[1] as f32, v[2] as f32) * 2.0;
+            assert!(
+                own.iter().any(|b| b.min.cmple(lo).all() && b.max.cmpge(lo + 2.0).all()),
+                "parent voxel {v:?} lies outside its octants"
+            );
+        }
+        let again = OccupiedCells::from_bytes(parent, &cells.to_bytes()).unwrap();
+        assert_eq!(again, cells);
+        assert_eq!(again.boxes_for(&parent), Some(own));
         // Control: keys that are neither the block nor a child get no proxies.
         assert!(cells.boxes_for(&BlockKey { level: 0, x: 0, y: 0, z: 0 }).is_none());
         assert!(cells.boxes_for(&BlockKey { level: 2, x: 1, y: 0, z: 1 }).is_none());
