@@ -5,8 +5,6 @@
 //! (`TraverseParams::strict`), wants several times more from the finer build: its coarse cubes
 //! measure as less accurate, because the surface clips some of them at a corner.
 
-use std::collections::HashSet;
-
 use glam::Vec3;
 use voxstream::reference::analytic;
 use voxstream_viewer::camera::OrbitCamera;
@@ -34,7 +32,7 @@ fn wanted_voxels(resolution: u32, strict: bool) -> (u64, usize) {
         focal_pixels: cam.focal_pixels(HEIGHT_PX),
     };
     let params = TraverseParams { strict, ..Default::default() };
-    let t = traverse(&index, &stored.manifest.root.key, &view, &params, &HashSet::new());
+    let t = traverse(&index, &stored.manifest.root.key, &view, &params, &Default::default());
     assert_eq!(t.held_by_budget, 0);
     for k in &t.blocks {
         let e = index.block(k).unwrap();

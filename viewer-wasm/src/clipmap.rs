@@ -38,7 +38,9 @@
 //! every cell of level k inside its region holds the sum over level k's
 //! sources of their densities there.
 
-use std::collections::{BTreeSet, HashMap};
+use std::collections::BTreeSet;
+
+use rustc_hash::FxHashMap as HashMap;
 
 use glam::{Mat4, Vec3, Vec4};
 use voxstream_format::{BLOCK_SIZE, Block, BlockKey};
@@ -395,7 +397,7 @@ impl OccupancyClipmap {
             uniform_buffer,
             layout: None,
             levels: Vec::new(),
-            voxel_words: HashMap::new(),
+            voxel_words: HashMap::default(),
             dispatch_buffer: Self::dispatch_buffer(device, 64),
             clear_pipeline: compute_pipeline(
                 device,

@@ -9,7 +9,7 @@
 //! threshold pattern with `t` and its complement. A block entering the view
 //! without replacing anything appears at once: there is nothing to fade from.
 
-use std::collections::{HashMap, HashSet};
+use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
 
 use voxstream_format::BlockKey;
 

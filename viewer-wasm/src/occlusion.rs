@@ -20,7 +20,7 @@
 //! A pending pick reads that frame's depth whole instead (one pixel's exact
 //! depth is what a pick needs).
 
-use std::collections::HashSet;
+use rustc_hash::FxHashSet as HashSet;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU8, Ordering};
 
@@ -362,7 +362,7 @@ impl Occlusion {
                             let depth = DepthPyramid::from_rows(&view, l.texels, l.row_bytes)
                                 .with_pixel_scale(l.scale, r.size);
                             // A block with several boxes is hidden only if all of them are.
-                            let mut visible = HashSet::new();
+                            let mut visible = HashSet::default();
                             for (k, b) in &r.tests {
                                 if !visible.contains(k) && !depth.hides(b, &r.view_proj) {
                                     visible.insert(*k);
@@ -370,7 +370,7 @@ impl Occlusion {
                             }
                             r.tests.iter().map(|(k, _)| *k).filter(|k| !visible.contains(k)).collect()
                         }
-                        Err(_) => HashSet::new(),
+                        Err(_) => HashSet::default(),
                     };
                     buffer.unmap();
                     r.state.store(IDLE, Ordering::Release);

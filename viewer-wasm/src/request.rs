@@ -6,7 +6,7 @@
 //! needs is reported stale so the caller can abort it (AbortController in the
 //! browser) and its slot goes to a useful one.
 
-use std::collections::{HashMap, HashSet};
+use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
 
 use voxstream_format::{BlockKey, PageRef};
 
@@ -150,7 +150,7 @@ mod tests {
     fn queue_orders_by_error_caps_and_drops_stale() {
         let mut q = RequestQueue::new(2);
         let blocks: HashMap<BlockKey, f32> =
-            [(key(2, 0), 8.0), (key(1, 0), 4.0), (key(1, 1), 6.0), (key(0, 0), 2.0)].into();
+            [(key(2, 0), 8.0), (key(1, 0), 4.0), (key(1, 1), 6.0), (key(0, 0), 2.0)].into_iter().collect();
         let page = PageRef { root: key(1, 1), hash: "a".repeat(64), bytes: 10, location: Default::default() };
         q.plan(std::slice::from_ref(&page), &blocks, |_| false, |k| *k == key(2, 0));
         // Page first, then the largest error; the loaded root is skipped; cap 2.
@@ -158,7 +158,7 @@ mod tests {
         assert_eq!(q.in_flight(), 2);
         assert!(q.start().is_empty(), "the cap holds");
         // The camera moved: key(1, 1) is no longer needed, the page still is.
-        let moved: HashMap<BlockKey, f32> = [(key(1, 0), 4.0)].into();
+        let moved: HashMap<BlockKey, f32> = [(key(1, 0), 4.0)].into_iter().collect();
         q.plan(std::slice::from_ref(&page), &moved, |_| false, |_| false);
         assert_eq!(q.take_stale(), vec![Request::Block(key(1, 1))]);
         assert_eq!(q.in_flight(), 1);

@@ -9,7 +9,7 @@
 //! No compaction: size classes bound the waste instead (WebGPU cannot copy a
 //! buffer onto itself, so compaction would need a second buffer anyway).
 
-use std::collections::{HashMap, HashSet};
+use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
 
 use voxstream_format::BlockKey;
 
@@ -90,8 +90,8 @@ impl Residency {
         Self {
             budget,
             fixed: 0,
-            resident: HashMap::new(),
-            free: HashMap::new(),
+            resident: HashMap::default(),
+            free: HashMap::default(),
             free_bytes: 0,
             resident_bytes: 0,
             peak: 0,
@@ -299,14 +299,14 @@ mod tests {
             r.resident_bytes += 250;
         }
         assert_eq!(r.used_bytes(), 850);
-        assert_eq!(r.make_room(100, &HashSet::new()), Room { fits: true, evict: vec![] });
+        assert_eq!(r.make_room(100, &HashSet::default()), Room { fits: true, evict: vec![] });
         // 300 more needs one block out: the one seen longest ago (frame 1).
-        let room = r.make_room(300, &HashSet::new());
+        let room = r.make_room(300, &HashSet::default());
         assert_eq!(room, Room { fits: true, evict: vec![BlockKey::new(0, 1, 0, 0)] });
         // Protected blocks stay, even if that means no room.
         let all: HashSet<BlockKey> = r.resident.keys().copied().collect();
         assert!(!r.make_room(300, &all).fits);
         // More than the budget can ever hold is refused.
-        assert!(!r.make_room(2000, &HashSet::new()).fits);
+        assert!(!r.make_room(2000, &HashSet::default()).fits);
     }
 }

@@ -10,7 +10,7 @@
 //! It never fetches by itself; the caller feeds it fetched bytes, so the same
 //! code runs under the browser's event loop and a blocking native loop.
 
-use std::collections::{HashMap, HashSet};
+use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
 
 use glam::{Mat4, Vec3};
 use voxstream_format::{Block, BlockKey, HierarchyPage, Manifest, PageRef, SceneIndex};
@@ -151,21 +151,21 @@ impl Scene {
             traversed_for: None,
             traversal: Traversal::default(),
             requests: RequestQueue::new(DEFAULT_MAX_IN_FLIGHT),
-            failed_pages: HashMap::new(),
+            failed_pages: HashMap::default(),
             residency: Residency::new(DEFAULT_BUDGET_BYTES),
-            gpu: HashMap::new(),
-            empty: HashSet::new(),
-            decoded: HashMap::new(),
-            cells: HashMap::new(),
+            gpu: HashMap::default(),
+            empty: HashSet::default(),
+            decoded: HashMap::default(),
+            cells: HashMap::default(),
             decoded_bytes: 0,
-            failed: HashMap::new(),
+            failed: HashMap::default(),
             upload: None,
             batch: UploadBatch::new(),
             pacer: None,
             occlusion: None,
             hidden_generation: 0,
             feedback_changed_frame: 0,
-            hidden: HashSet::new(),
+            hidden: HashSet::default(),
             drawn: Vec::new(),
             occupancy_for: None,
             occupancy_built_ms: f64::NEG_INFINITY,
@@ -282,7 +282,7 @@ impl Scene {
                 .map_or_else(|| self.camera.focal_pixels(self.viewport.1 as f32), |v| v.focal_pixels),
         };
         let started = (self.clock)();
-        let no_feedback = HashSet::new();
+        let no_feedback = HashSet::default();
         let occluded = if self.occlusion_culling { &self.hidden } else { &no_feedback };
         self.traversal =
             traverse(&self.index, &self.manifest.root.key, &view, &self.traverse_params(), occluded);
@@ -313,7 +313,7 @@ impl Scene {
     fn needed(&self) -> HashMap<BlockKey, f32> {
         let hidden: HashSet<&BlockKey> = self.traversal.hidden.iter().collect();
         let max_level = self.manifest.coarsest_level();
-        let mut needed = HashMap::new();
+        let mut needed = HashMap::default();
         for key in self.traversal.blocks.iter().filter(|k| !hidden.contains(k)) {
             let mut k = *key;
             loop {

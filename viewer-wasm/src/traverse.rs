@@ -5,7 +5,9 @@
 //! push the wanted set past the budget, the traversal keeps it coarse: the view
 //! settles for coarser levels instead of breaking the budget.
 
-use std::collections::{BinaryHeap, HashMap, HashSet};
+use std::collections::BinaryHeap;
+
+use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
 
 use voxstream_format::{BlockEntry, BlockKey, PageRef, SceneIndex};
 
@@ -146,11 +148,11 @@ mod tests {
         let (m, index) = pyramid(1024);
         let cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(1024.0));
         let view = view_of(&cam, 2000.0);
-        let free = traverse(&index, &m.root.key, &view, &TraverseParams::default(), &HashSet::new());
+        let free = traverse(&index, &m.root.key, &view, &TraverseParams::default(), &HashSet::default());
         assert!(free.held_by_budget == 0 && free.blocks.iter().any(|k| k.level == 0));
         let budget = free.bytes / 4;
         let tight = TraverseParams { max_bytes: budget, ..Default::default() };
-        let held = traverse(&index, &m.root.key, &view, &tight, &HashSet::new());
+        let held = traverse(&index, &m.root.key, &view, &tight, &HashSet::default());
         assert!(held.bytes <= budget, "{} > {budget}", held.bytes);
         assert!(held.held_by_budget > 0 && held.blocks.len() < free.blocks.len());
         let coarsest =
@@ -170,7 +172,7 @@ mod tests {
         let (m, index) = pyramid(512);
         let cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(512.0));
         let view = view_of(&cam, 2000.0);
-        let all = traverse(&index, &m.root.key, &view, &TraverseParams::default(), &HashSet::new());
+        let all = traverse(&index, &m.root.key, &view, &TraverseParams::default(), &HashSet::default());
         let hidden = m.root.key.children().unwrap()[0];
         let below = |t: &Traversal| {
             t.blocks
@@ -186,7 +188,7 @@ mod tests {
         };
         // Control: without feedback its subtree is refined.
         assert!(below(&all) > 0);
-        let occluded: HashSet<BlockKey> = [hidden].into();
+        let occluded: HashSet<BlockKey> = [hidden].into_iter().collect();
         let t = traverse(&index, &m.root.key, &view, &TraverseParams::default(), &occluded);
         assert_eq!(below(&t), 0, "nothing below a hidden block is wanted");
         assert!(t.blocks.contains(&hidden), "the hidden block stays as its own proxy");
@@ -199,7 +201,7 @@ mod tests {
         let cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(512.0));
         let view = view_of(&cam, 2000.0);
         let params = TraverseParams::default();
-        let all = traverse(&index, &m.root.key, &view, &params, &HashSet::new());
+        let all = traverse(&index, &m.root.key, &view, &params, &HashSet::default());
         // A block the view wants as it is: its error is met, nothing below it is visited.
         let leaf = *all
             .blocks
@@ -208,7 +210,7 @@ mod tests {
             .expect("a wanted block that meets the error");
         // Control: without feedback it is wanted and not hidden.
         assert!(!all.hidden.contains(&leaf));
-        let t = traverse(&index, &m.root.key, &view, &params, &[leaf].into());
+        let t = traverse(&index, &m.root.key, &view, &params, &[leaf].into_iter().collect());
         assert_eq!(t.hidden, vec![leaf], "a hidden block that meets the error is hidden too");
         assert!(t.blocks.contains(&leaf), "it stays wanted as its own proxy (drawn if loaded)");
         assert_eq!(t.blocks.len(), all.blocks.len(), "nothing else changes");

@@ -5,8 +5,8 @@
 //! resized), never continuously: SwiftShader, a CPU WebGPU, takes about a
 //! second per frame of a detailed scene.
 
+use rustc_hash::FxHashMap as HashMap;
 use std::cell::{Cell, RefCell};
-use std::collections::HashMap;
 
 use voxstream_format::{Manifest, SceneSummary};
 use wasm_bindgen::JsCast;
@@ -339,12 +339,12 @@ async fn run() -> Result<(), String> {
             scene,
             source,
             canvas: canvas.clone(),
-            pointers: HashMap::new(),
+            pointers: HashMap::default(),
             last_view_proj: [0.0; 16],
             last_pick: None,
             picks_answered: 0,
             screenshot_pending: false,
-            aborts: HashMap::new(),
+            aborts: HashMap::default(),
             decoder,
             occupancy_worker,
             ready: false,

@@ -3,8 +3,8 @@
 //! and check it ([`decode_block_for_worker`]); the main thread receives the
 //! voxels as a transferred buffer and only copies them into the upload batch.
 
+use rustc_hash::FxHashMap as HashMap;
 use std::cell::RefCell;
-use std::collections::HashMap;
 
 use bytemuck::Zeroable;
 use voxstream_format::{Block, BlockKey, PackedVoxel};
@@ -171,7 +171,7 @@ impl DecodePool {
             onmessage.forget();
             workers.push(worker);
         }
-        Ok(Self { workers, next_id: 0, next_worker: 0, owner: HashMap::new(), ids: HashMap::new() })
+        Ok(Self { workers, next_id: 0, next_worker: 0, owner: HashMap::default(), ids: HashMap::default() })
     }
 
     /// Asks a worker to fetch `request` and decode block `key`, checking its voxel count and
