@@ -113,8 +113,9 @@ impl DecodedBlock {
         Ok(Self { block, faces, cells })
     }
 
-    /// [`Self::from_message`] from the whole answer held in `bytes` (native tests).
-    pub fn from_message_bytes(key: BlockKey, bytes: &[u8]) -> Result<Self, String> {
+    /// [`Self::from_message`] from the whole answer held in `bytes`.
+    #[cfg(test)]
+    fn from_message_bytes(key: BlockKey, bytes: &[u8]) -> Result<Self, String> {
         let n = Self::message_voxels(key, bytes.len())?;
         let (voxels, trailer) = bytes.split_at(n * size_of::<PackedVoxel>());
         let voxels =

@@ -20,9 +20,10 @@
 //! A pending pick reads that frame's depth whole instead (one pixel's exact
 //! depth is what a pick needs).
 
-use rustc_hash::FxHashSet as HashSet;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU8, Ordering};
+
+use rustc_hash::FxHashSet as HashSet;
 
 use glam::{Mat4, Vec3, Vec4};
 use voxstream_format::{BLOCK_SIZE, Block, BlockKey};
@@ -179,7 +180,6 @@ impl DepthReduce {
 pub struct Visibility {
     pub frame: u64,
     pub hidden: HashSet<BlockKey>,
-    pub tested: usize,
 }
 
 pub struct Occlusion {
@@ -376,7 +376,7 @@ impl Occlusion {
                     r.state.store(IDLE, Ordering::Release);
                     // A readback taken only for a pick tested nothing: it says nothing about visibility.
                     if !r.tests.is_empty() && newest.as_ref().is_none_or(|v| v.frame < r.frame) {
-                        newest = Some(Visibility { frame: r.frame, hidden, tested: r.tests.len() });
+                        newest = Some(Visibility { frame: r.frame, hidden });
                     }
                 }
                 FAILED => r.state.store(IDLE, Ordering::Release),
@@ -564,13 +564,9 @@ impl OccupiedCells {
     }
 
     fn with_cells(key: BlockKey, cells: [Option<Aabb>; (CELLS * CELLS * CELLS) as usize]) -> Self {
-        let cell = |x: u32, y: u32, z: u32| cells[(x + CELLS * (y + CELLS * z)) as usize];
         let octants = std::array::from_fn(|o| {
             let o = o as u32;
-            let (ox, oy, oz) = (2 * (o & 1), (o & 2), (o & 4) / 2);
-            (0..8u32)
-                .filter_map(|i| cell(ox + (i & 1), oy + (i >> 1 & 1), oz + (i >> 2)))
-                .reduce(|a, b| a.union(&b))
+            octant_cells(&cells, [o & 1, o >> 1 & 1, o >> 2]).reduce(|a, b| a.union(&b))
         });
         Self { key, cells, octants }
     }
@@ -611,18 +607,27 @@ impl OccupiedCells {
     /// octants', for one of its children the cells of that child's octant;
     /// `None` for any other key. Empty octants are left out.
     pub fn boxes_for(&self, key: &BlockKey) -> Option<Vec<Aabb>> {
-        let cell = |x: u32, y: u32, z: u32| self.cells[(x + CELLS * (y + CELLS * z)) as usize];
         let mut boxes = Vec::with_capacity(8);
         if *key == self.key {
             boxes.extend(self.octants.iter().flatten());
         } else if key.level + 1 == self.key.level && key.parent() == self.key {
-            let (ox, oy, oz) = (2 * (key.x & 1), 2 * (key.y & 1), 2 * (key.z & 1));
-            boxes.extend((0..8u32).filter_map(|i| cell(ox + (i & 1), oy + (i >> 1 & 1), oz + (i >> 2))));
+            boxes.extend(octant_cells(&self.cells, [key.x & 1, key.y & 1, key.z & 1]));
         } else {
             return None;
         }
         Some(boxes)
     }
+}
+
+/// The occupied cells of octant `o` (each coordinate 0 or 1) of a block's 4×4×4 cells.
+fn octant_cells(
+    cells: &[Option<Aabb>; (CELLS * CELLS * CELLS) as usize],
+    o: [u32; 3],
+) -> impl Iterator<Item = Aabb> + '_ {
+    let [ox, oy, oz] = o.map(|c| 2 * c);
+    (0..8u32).filter_map(move |i| {
+        cells[(ox + (i & 1) + CELLS * (oy + (i >> 1 & 1) + CELLS * (oz + (i >> 2)))) as usize]
+    })
 }
 
 /// A block's test box: its tight bounds grown by one voxel of `drawn_level`,

@@ -5,9 +5,9 @@
 //! resized), never continuously: SwiftShader, a CPU WebGPU, takes about a
 //! second per frame of a detailed scene.
 
-use rustc_hash::FxHashMap as HashMap;
 use std::cell::{Cell, RefCell};
 
+use rustc_hash::FxHashMap as HashMap;
 use voxstream_format::{Manifest, SceneSummary};
 use wasm_bindgen::JsCast;
 use wasm_bindgen::prelude::*;
@@ -182,10 +182,10 @@ async fn scene_id() -> Result<String, String> {
     scenes.into_iter().next().map(|s| s.id).ok_or_else(|| "the server has no scenes".to_string())
 }
 
-/// Canvas drawing-buffer size: its CSS size in device pixels.
 /// Main-thread milliseconds a frame may spend uploading blocks ([`crate::expand::UploadPacer`]).
 const UPLOAD_BUDGET_MS: f64 = 2.0;
 
+/// Canvas drawing-buffer size: its CSS size in device pixels.
 fn canvas_pixels(canvas: &HtmlCanvasElement) -> (u32, u32) {
     let dpr = window().device_pixel_ratio().max(1.0);
     let w = (canvas.client_width().max(1) as f64 * dpr).round() as u32;

@@ -3,10 +3,10 @@
 //! and check it ([`decode_block_for_worker`]); the main thread receives the
 //! voxels as a transferred buffer and only copies them into the upload batch.
 
-use rustc_hash::FxHashMap as HashMap;
 use std::cell::RefCell;
 
 use bytemuck::Zeroable;
+use rustc_hash::FxHashMap as HashMap;
 use voxstream_format::{Block, BlockKey, PackedVoxel};
 use wasm_bindgen::JsCast;
 use wasm_bindgen::prelude::*;
