@@ -144,13 +144,17 @@ impl Occupancy {
         let rec = layout.size();
         for id in 0..stream.len() {
             check()?;
-            let (_, raw) = stream.read(id).map_err(|e| BuildError::Temp(e.to_string()))?;
-            raw.par_chunks_exact(rec).with_min_len(256).for_each(|record| {
-                let (tri, _) = layout.decode(record);
-                if let Some(g) = to_grid(tri, frame) {
-                    occ.mark_triangle(&g);
-                }
-            });
+            stream
+                .with_records(id, |raw| {
+                    raw.par_chunks_exact(rec).with_min_len(256).for_each(|record| {
+                        let (tri, _) = layout.decode(record);
+                        if let Some(g) = to_grid(tri, frame) {
+                            occ.mark_triangle(&g);
+                        }
+                    });
+                    Ok(())
+                })
+                .map_err(|e| BuildError::Temp(e.to_string()))?;
         }
         Ok(occ)
     }

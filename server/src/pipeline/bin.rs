@@ -155,7 +155,7 @@ impl<'a> StreamSink<'a> {
                 self.bounds.union(b);
             }
             self.store
-                .push_many(layout, &items)
+                .push_many(layout, items)
                 .map_err(|e| IngestError::Invalid(format!("temporary triangle stream: {e}")))?;
         }
         (self.on_tick)()
@@ -377,7 +377,7 @@ impl Binner {
     fn drain(&mut self) -> Result<(), BuildError> {
         let items: Vec<(Vec<u8>, Bounds)> =
             self.pending.iter_mut().map(|(_, r, b)| (std::mem::take(r), *b)).collect();
-        let ids = self.store.push_many(self.layout, &items).map_err(temp_err)?;
+        let ids = self.store.push_many(self.layout, items).map_err(temp_err)?;
         for ((m, _, _), id) in self.pending.drain(..).zip(ids) {
             if id as u64 >= 1 << SEGMENT_BITS {
                 return Err(BuildError::Temp(format!("more than 2^{SEGMENT_BITS} bin segments")));
@@ -474,7 +474,7 @@ impl Binner {
 }
 
 /// Groups one stream chunk's records by block (on a worker thread).
-fn group_chunk(layout: RecordLayout, raw: Vec<u8>, frame: &GridFrame) -> Placed {
+fn group_chunk(layout: RecordLayout, raw: &[u8], frame: &GridFrame) -> Placed {
     let rec = layout.size();
     let mut blocks: Vec<(u64, Vec<u8>, Bounds)> = Vec::new();
     let mut lookup: FxHashMap<u64, usize> = FxHashMap::default();
@@ -491,7 +491,7 @@ fn group_chunk(layout: RecordLayout, raw: Vec<u8>, frame: &GridFrame) -> Placed 
             .saturating_mul((bhi[2] - blo[2] + 1) as usize);
         records = records.saturating_add(copies);
         if records > LOCAL_RECORDS {
-            return Placed::Raw(raw);
+            return Placed::Raw(raw.to_vec());
         }
         for bz in blo[2]..=bhi[2] {
             for by in blo[1]..=bhi[1] {
@@ -549,17 +549,14 @@ pub fn bin_triangles(
     let group = (group_bytes / 2 / BIN_CHUNK_BYTES).min(BIN_GROUP_PER_THREAD * rayon::current_num_threads());
     let read_group = |ids: std::ops::Range<usize>| -> Result<Vec<Placed>, BuildError> {
         ids.into_par_iter()
-            .map(|id| {
-                let (_, raw) = stream.read(id).map_err(temp_err)?;
-                Ok(group_chunk(layout, raw, frame))
-            })
+            .map(|id| stream.with_records(id, |raw| Ok(group_chunk(layout, raw, frame))).map_err(temp_err))
             .collect()
     };
     let total = stream.len();
     if group == 0 {
         for id in 0..total {
             opts.check_cancelled()?;
-            let (_, raw) = stream.read(id).map_err(temp_err)?;
+            let raw = stream.read(id).map_err(temp_err)?;
             binner.append_placed(Placed::Raw(raw), frame)?;
             progress.stage(Stage::Voxelize, 0.3 * (id + 1) as f64 / total as f64);
         }
@@ -605,14 +602,19 @@ pub fn voxelize_bin(
     let rec = bins.layout.size();
     with_block_voxelizer(|vox| -> Result<_, BuildError> {
         for &entry in index {
-            let (_, raw) = bins.store.read((entry & ((1 << SEGMENT_BITS) - 1)) as usize).map_err(temp_err)?;
-            for record in raw.chunks_exact(rec) {
-                let (tri, color) = bins.layout.decode(record);
-                // Valid: pass 2 binned only triangles that `to_grid` accepted,
-                // and the same arithmetic gives the same grid triangle here.
-                let g = to_grid_unchecked(tri, frame);
-                vox.add(key, &g, bins.layout.color.then_some(color), res, topology);
-            }
+            let segment = (entry & ((1 << SEGMENT_BITS) - 1)) as usize;
+            bins.store
+                .with_records(segment, |raw| {
+                    for record in raw.chunks_exact(rec) {
+                        let (tri, color) = bins.layout.decode(record);
+                        // Valid: pass 2 binned only triangles that `to_grid` accepted,
+                        // and the same arithmetic gives the same grid triangle here.
+                        let g = to_grid_unchecked(tri, frame);
+                        vox.add(key, &g, bins.layout.color.then_some(color), res, topology);
+                    }
+                    Ok(())
+                })
+                .map_err(temp_err)?;
         }
         let voxels = vox.finish_map(|voxel| LodVoxel { voxel, solid: 1, error: 0.0 });
         Ok((!voxels.is_empty()).then_some(LodBlock { key, voxels }))

@@ -23,8 +23,9 @@
 //! float PLY) store f32, so a stream is a lossless copy of the input at half
 //! the bytes; everything else stores f64.
 //!
-//! Chunks live in a [`ChunkStore`]: in memory until the store's resident
-//! limit, then appended to a spill file. Readers of our own chunks still
+//! Chunks live in a [`ChunkStore`]: in memory (the records' own buffer,
+//! no header) until the store's resident limit, then encoded and appended
+//! to a spill file. Readers of our own chunks still
 //! check every length before allocating: the decompressed size is capped by
 //! the header's count, which is capped by [`MAX_CHUNK_TRIANGLES`].
 
@@ -241,9 +242,13 @@ enum Location {
     Disk { offset: u64, len: u32 },
 }
 
-/// Encoded chunks, kept in memory up to a resident limit and appended to a
-/// spill file beyond it. Reads are positional, so many threads can read
+/// Chunks of records, kept in memory up to a resident limit and appended to
+/// a spill file beyond it. Reads are positional, so many threads can read
 /// chunks at once.
+///
+/// A resident chunk is its records' own buffer, moved in and lent out as is:
+/// neither stored nor read through a copy (its header is counted, not kept).
+/// Only spilled chunks are encoded, as lz4 with their header.
 pub struct ChunkStore {
     spill_path: PathBuf,
     spill: Option<File>,
@@ -273,16 +278,25 @@ impl ChunkStore {
         move |source| ChunkError::Io { action, path: self.spill_path.clone(), source }
     }
 
-    /// Encodes and stores records as a chunk: raw while resident (no CPU spent
-    /// on compression), lz4 when spilled (fewer bytes to write and read).
+    /// Whether a chunk of `raw_len` record bytes stays in memory next to `resident` bytes.
+    fn fits(&self, resident: usize, raw_len: usize) -> bool {
+        resident + HEADER_LEN + raw_len <= self.resident_limit
+    }
+
+    /// Stores records as a chunk and returns its id (ids count up from 0):
+    /// the buffer itself while resident (no CPU spent on a copy or on
+    /// compression), lz4 when spilled (fewer bytes to write and read).
     pub fn push_records(
         &mut self,
         layout: RecordLayout,
-        raw: &[u8],
+        raw: Vec<u8>,
         bounds: &Bounds,
     ) -> Result<usize, ChunkError> {
-        let resident = self.resident_bytes + HEADER_LEN + raw.len() <= self.resident_limit;
-        self.push(encode_chunk(layout, raw, bounds, !resident))
+        if self.fits(self.resident_bytes, raw.len()) {
+            Ok(self.keep(raw))
+        } else {
+            self.spill_chunk(&encode_chunk(layout, &raw, bounds, true))
+        }
     }
 
     /// [`Self::push_records`] for many chunks, compressing the spilled ones on
@@ -290,37 +304,52 @@ impl ChunkStore {
     pub fn push_many(
         &mut self,
         layout: RecordLayout,
-        items: &[(Vec<u8>, Bounds)],
+        items: Vec<(Vec<u8>, Bounds)>,
     ) -> Result<Vec<usize>, ChunkError> {
         use rayon::prelude::*;
+        enum Stored {
+            Resident(Vec<u8>),
+            Spilled(Vec<u8>),
+        }
         let mut resident = self.resident_bytes;
-        let compress: Vec<bool> = items
-            .iter()
-            .map(|(raw, _)| {
-                let fits = resident + HEADER_LEN + raw.len() <= self.resident_limit;
-                if fits {
+        let kept: Vec<(Vec<u8>, Bounds, bool)> = items
+            .into_iter()
+            .map(|(raw, bounds)| {
+                let keep = self.fits(resident, raw.len());
+                if keep {
                     resident += HEADER_LEN + raw.len();
                 }
-                !fits
+                (raw, bounds, keep)
             })
             .collect();
-        let chunks: Vec<Vec<u8>> = items
-            .par_iter()
-            .zip(compress)
-            .map(|((raw, bounds), compress)| encode_chunk(layout, raw, bounds, compress))
+        let stored: Vec<Stored> = kept
+            .into_par_iter()
+            .map(|(raw, bounds, keep)| match keep {
+                true => Stored::Resident(raw),
+                false => Stored::Spilled(encode_chunk(layout, &raw, &bounds, true)),
+            })
             .collect();
-        chunks.into_iter().map(|c| self.push(c)).collect()
+        stored
+            .into_iter()
+            .map(|s| match s {
+                Stored::Resident(raw) => Ok(self.keep(raw)),
+                Stored::Spilled(chunk) => self.spill_chunk(&chunk),
+            })
+            .collect()
     }
 
-    /// Stores an encoded chunk and returns its id (ids count up from 0).
-    pub fn push(&mut self, chunk: Vec<u8>) -> Result<usize, ChunkError> {
-        let id = self.chunks.len();
-        if self.resident_bytes + chunk.len() <= self.resident_limit {
-            self.resident_bytes += chunk.len();
-            self.chunks.push(Location::Memory(self.resident.len()));
-            self.resident.push(chunk);
-            return Ok(id);
-        }
+    /// Keeps records in memory (the caller checked that they fit).
+    fn keep(&mut self, mut raw: Vec<u8>) -> usize {
+        // The budget counts lengths: a buffer grown by doubling gives its slack back.
+        raw.shrink_to_fit();
+        self.resident_bytes += HEADER_LEN + raw.len();
+        self.chunks.push(Location::Memory(self.resident.len()));
+        self.resident.push(raw);
+        self.chunks.len() - 1
+    }
+
+    /// Appends an encoded chunk to the spill file.
+    fn spill_chunk(&mut self, chunk: &[u8]) -> Result<usize, ChunkError> {
         if self.spill.is_none() {
             let f = File::options()
                 .read(true)
@@ -331,14 +360,14 @@ impl ChunkStore {
             self.spill = Some(f);
         }
         let mut f = self.spill.as_ref().expect("opened above");
-        f.write_all(&chunk).map_err(|source| ChunkError::Io {
+        f.write_all(chunk).map_err(|source| ChunkError::Io {
             action: "write",
             path: self.spill_path.clone(),
             source,
         })?;
         self.chunks.push(Location::Disk { offset: self.spill_len, len: chunk.len() as u32 });
         self.spill_len += chunk.len() as u64;
-        Ok(id)
+        Ok(self.chunks.len() - 1)
     }
 
     pub fn len(&self) -> usize {
@@ -360,8 +389,9 @@ impl ChunkStore {
         self.spill_len
     }
 
-    /// Calls `f` with chunk `id`'s encoded bytes.
-    pub fn with_chunk<T>(
+    /// Calls `f` with chunk `id`'s records: a resident chunk's own bytes, a
+    /// spilled one read back and decoded.
+    pub fn with_records<T>(
         &self,
         id: usize,
         f: impl FnOnce(&[u8]) -> Result<T, ChunkError>,
@@ -373,14 +403,14 @@ impl ChunkStore {
                 let file = self.spill.as_ref().expect("a disk chunk implies a spill file");
                 let mut buf = vec![0u8; len as usize];
                 read_exact_at(file, &mut buf, offset).map_err(self.io("read"))?;
-                f(&buf)
+                f(&decode_chunk(&buf)?.1)
             }
         }
     }
 
-    /// Decodes chunk `id`.
-    pub fn read(&self, id: usize) -> Result<(ChunkHeader, Vec<u8>), ChunkError> {
-        self.with_chunk(id, decode_chunk)
+    /// Chunk `id`'s records, copied.
+    pub fn read(&self, id: usize) -> Result<Vec<u8>, ChunkError> {
+        self.with_records(id, |raw| Ok(raw.to_vec()))
     }
 }
 
@@ -458,13 +488,12 @@ mod tests {
         for k in 0..5 {
             let mut raw = Vec::new();
             layout.encode(&mut raw, &tri(k as f64), [0.0; 3]);
-            let c = encode_chunk(layout, &raw, &Bounds::EMPTY, k % 2 == 0);
-            assert_eq!(store.push(c.clone()).unwrap(), k);
+            assert_eq!(store.push_records(layout, raw.clone(), &Bounds::EMPTY).unwrap(), k);
             chunks.push(raw);
         }
         assert!(store.spilled_bytes() > 0 && dir.path().join("spill").exists());
         for (k, raw) in chunks.iter().enumerate() {
-            assert_eq!(&store.read(k).unwrap().1, raw);
+            assert_eq!(&store.read(k).unwrap(), raw);
         }
         assert!(store.read(5).is_err());
     }
