@@ -54,6 +54,7 @@
 
 use std::collections::{BTreeMap, HashMap};
 
+use rustc_hash::FxHashMap;
 use serde::{Deserialize, Serialize};
 
 use crate::{BLOCK_SIZE, BlockEntry, BlockKey, Manifest, VoxelBounds};
@@ -838,20 +839,21 @@ pub struct SceneIndex {
     /// The pack holding the root page (the manifest's `root_page_pack`).
     root_page_pack: Option<PackRef>,
     /// Each loaded page's packs, by page root.
-    packs: HashMap<BlockKey, Vec<PackRef>>,
-    entries: HashMap<BlockKey, BlockEntry>,
+    packs: FxHashMap<BlockKey, Vec<PackRef>>,
+    /// The viewer looks blocks up here many times a frame: FxHash, not SipHash.
+    entries: FxHashMap<BlockKey, BlockEntry>,
     /// Pages named by a loaded page (or the manifest) and not loaded yet, by root, each with the
     /// pack its bytes lie in (`None`: its own file).
     pending: BTreeMap<BlockKey, (PageRef, Option<PackRef>)>,
     /// Pages loaded, by root, with their pack (a server answers page URLs from these).
-    loaded: HashMap<BlockKey, (PageRef, Option<PackRef>)>,
+    loaded: FxHashMap<BlockKey, (PageRef, Option<PackRef>)>,
     pages_loaded: usize,
     page_bytes_loaded: u64,
 }
 
 impl SceneIndex {
     pub fn new(manifest: &Manifest) -> Self {
-        let mut entries = HashMap::new();
+        let mut entries = FxHashMap::default();
         entries.insert(manifest.root.key, manifest.root.clone());
         let pending = manifest
             .root_page
@@ -866,10 +868,10 @@ impl SceneIndex {
             root: manifest.root.key,
             root_pack: manifest.root_pack.clone(),
             root_page_pack: manifest.root_page_pack.clone(),
-            packs: HashMap::new(),
+            packs: FxHashMap::default(),
             entries,
             pending,
-            loaded: HashMap::new(),
+            loaded: FxHashMap::default(),
             pages_loaded: 0,
             page_bytes_loaded: 0,
         }

@@ -18,7 +18,10 @@
 //! different cone sets and pixels. Position, normal and history are
 //! ping-ponged: a frame reads the previous frame's pair.
 
+use std::cell::RefCell;
+
 use glam::Mat4;
+use rustc_hash::FxHashMap as HashMap;
 
 use crate::ao::{AoSettings, Upsample, traced_pixel_offset};
 use crate::shaders::AoPass;
@@ -55,7 +58,26 @@ pub struct FrameTargets {
     /// V upsampled to full resolution.
     pub upsampled: wgpu::Texture,
     pub history: [wgpu::Texture; 2],
+    views: TargetViews,
+    /// The passes' input bind groups, made on first use and kept as long as
+    /// the targets: a frame then creates no view and no bind group (each is a
+    /// call into the browser's WebGPU, on the main thread).
+    groups: RefCell<HashMap<InputsKey, wgpu::BindGroup>>,
 }
+
+/// A view of each of [`FrameTargets`]' textures, made with them.
+struct TargetViews {
+    position: [wgpu::TextureView; 2],
+    normal: [wgpu::TextureView; 2],
+    colour: wgpu::TextureView,
+    traced: wgpu::TextureView,
+    upsampled: wgpu::TextureView,
+    history: [wgpu::TextureView; 2],
+}
+
+/// What a pass's inputs are: the pass, the pair written this frame, and the
+/// V texture the composite reads.
+type InputsKey = (AoPass, usize, Option<VisibilityTexture>);
 
 impl FrameTargets {
     fn new(device: &wgpu::Device, size: (u32, u32), downscale: u32) -> Self {
@@ -75,27 +97,53 @@ impl FrameTargets {
             })
         };
         let low = (size.0.div_ceil(downscale), size.1.div_ceil(downscale));
+        let position = [
+            make("g-buffer position a", GBUFFER_POSITION_FORMAT, size),
+            make("g-buffer position b", GBUFFER_POSITION_FORMAT, size),
+        ];
+        let normal = [
+            make("g-buffer normal a", GBUFFER_NORMAL_FORMAT, size),
+            make("g-buffer normal b", GBUFFER_NORMAL_FORMAT, size),
+        ];
+        let colour = make("g-buffer colour", GBUFFER_COLOUR_FORMAT, size);
+        let traced = make("ao traced", VISIBILITY_FORMAT, low);
+        let upsampled = make("ao upsampled", VISIBILITY_FORMAT, size);
+        let history =
+            [make("ao history a", HISTORY_FORMAT, size), make("ao history b", HISTORY_FORMAT, size)];
+        let view = |t: &wgpu::Texture| t.create_view(&Default::default());
+        let views = TargetViews {
+            position: position.each_ref().map(view),
+            normal: normal.each_ref().map(view),
+            colour: view(&colour),
+            traced: view(&traced),
+            upsampled: view(&upsampled),
+            history: history.each_ref().map(view),
+        };
         Self {
             size,
             downscale,
-            position: [
-                make("g-buffer position a", GBUFFER_POSITION_FORMAT, size),
-                make("g-buffer position b", GBUFFER_POSITION_FORMAT, size),
-            ],
-            normal: [
-                make("g-buffer normal a", GBUFFER_NORMAL_FORMAT, size),
-                make("g-buffer normal b", GBUFFER_NORMAL_FORMAT, size),
-            ],
-            colour: make("g-buffer colour", GBUFFER_COLOUR_FORMAT, size),
-            traced: make("ao traced", VISIBILITY_FORMAT, low),
-            upsampled: make("ao upsampled", VISIBILITY_FORMAT, size),
-            history: [make("ao history a", HISTORY_FORMAT, size), make("ao history b", HISTORY_FORMAT, size)],
+            position,
+            normal,
+            colour,
+            traced,
+            upsampled,
+            history,
+            views,
+            groups: RefCell::default(),
+        }
+    }
+
+    fn visibility_view(&self, v: Option<VisibilityTexture>) -> &wgpu::TextureView {
+        match v {
+            Some(VisibilityTexture::History(i)) => &self.views.history[i],
+            Some(VisibilityTexture::Upsampled) => &self.views.upsampled,
+            _ => &self.views.traced,
         }
     }
 }
 
 /// Where the last frame's final V is.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum VisibilityTexture {
     /// `traced` (downscale 1, no accumulation): V in r of an R32Float texture.
     Traced,
@@ -289,12 +337,8 @@ impl AoPasses {
 
     /// The G-buffer attachments of the coming frame: position, normal, colour.
     pub fn gbuffer_views(&self) -> [wgpu::TextureView; 3] {
-        let t = self.targets.as_ref().expect("targets() first");
-        [
-            t.position[self.current].create_view(&Default::default()),
-            t.normal[self.current].create_view(&Default::default()),
-            t.colour.create_view(&Default::default()),
-        ]
+        let v = &self.targets.as_ref().expect("targets() first").views;
+        [v.position[self.current].clone(), v.normal[self.current].clone(), v.colour.clone()]
     }
 
     fn pass(&self, pass: AoPass) -> (&wgpu::RenderPipeline, &wgpu::BindGroupLayout) {
@@ -302,13 +346,16 @@ impl AoPasses {
         (pipeline, layout)
     }
 
+    #[allow(clippy::too_many_arguments)]
     fn run(
         &self,
         device: &wgpu::Device,
         encoder: &mut wgpu::CommandEncoder,
         pass: AoPass,
+        (pair, visibility): (usize, Option<VisibilityTexture>),
         frame_group: &wgpu::BindGroup,
-        inputs: &[&wgpu::Texture],
+        targets: &FrameTargets,
+        inputs: &[&wgpu::TextureView],
         output: &wgpu::TextureView,
     ) {
         let (pipeline, layout) = self.pass(pass);
@@ -318,20 +365,21 @@ impl AoPasses {
             AoPass::Temporal => wgpu::Color::TRANSPARENT,
             AoPass::Composite => crate::render::background_color(),
         };
-        let views: Vec<wgpu::TextureView> =
-            inputs.iter().map(|t| t.create_view(&Default::default())).collect();
-        let entries: Vec<wgpu::BindGroupEntry> = views
-            .iter()
-            .enumerate()
-            .map(|(i, v)| wgpu::BindGroupEntry {
-                binding: i as u32,
-                resource: wgpu::BindingResource::TextureView(v),
+        let mut groups = targets.groups.borrow_mut();
+        let group = groups.entry((pass, pair, visibility)).or_insert_with(|| {
+            let entries: Vec<wgpu::BindGroupEntry> = inputs
+                .iter()
+                .enumerate()
+                .map(|(i, v)| wgpu::BindGroupEntry {
+                    binding: i as u32,
+                    resource: wgpu::BindingResource::TextureView(v),
+                })
+                .collect();
+            device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some(pass.entry_point()),
+                layout,
+                entries: &entries,
             })
-            .collect();
-        let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some(pass.entry_point()),
-            layout,
-            entries: &entries,
         });
         let mut rpass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some(pass.entry_point()),
@@ -348,7 +396,7 @@ impl AoPasses {
         });
         rpass.set_pipeline(pipeline);
         rpass.set_bind_group(0, frame_group, &[]);
-        rpass.set_bind_group(1, &group, &[]);
+        rpass.set_bind_group(1, &*group, &[]);
         rpass.draw(0..3, 0..1);
     }
 
@@ -364,49 +412,46 @@ impl AoPasses {
         view_proj: Mat4,
     ) {
         let t = self.targets.as_ref().expect("targets() first");
+        let v = &t.views;
         let (cur, prev) = (self.current, 1 - self.current);
         let mut visibility = None;
         let mut accumulated = false;
         if let Some(s) = settings {
-            let traced_view = t.traced.create_view(&Default::default());
-            self.run(
-                device,
-                encoder,
-                AoPass::Trace,
-                frame_group,
-                &[&t.position[cur], &t.normal[cur]],
-                &traced_view,
-            );
-            let mut current = (&t.traced, VisibilityTexture::Traced);
+            let inputs = [&v.position[cur], &v.normal[cur]];
+            self.run(device, encoder, AoPass::Trace, (cur, None), frame_group, t, &inputs, &v.traced);
+            let mut current = VisibilityTexture::Traced;
             if s.downscale() > 1 {
-                let view = t.upsampled.create_view(&Default::default());
-                let inputs = [&t.position[cur], &t.normal[cur], &t.traced];
-                self.run(device, encoder, AoPass::Upsample, frame_group, &inputs, &view);
-                current = (&t.upsampled, VisibilityTexture::Upsampled);
+                let inputs = [&v.position[cur], &v.normal[cur], &v.traced];
+                self.run(
+                    device,
+                    encoder,
+                    AoPass::Upsample,
+                    (cur, None),
+                    frame_group,
+                    t,
+                    &inputs,
+                    &v.upsampled,
+                );
+                current = VisibilityTexture::Upsampled;
             }
             if s.accumulated_frames() > 1 {
-                let view = t.history[cur].create_view(&Default::default());
                 let inputs = [
-                    &t.position[cur],
-                    &t.normal[cur],
-                    current.0,
-                    &t.position[prev],
-                    &t.normal[prev],
-                    &t.history[prev],
+                    &v.position[cur],
+                    &v.normal[cur],
+                    t.visibility_view(Some(current)),
+                    &v.position[prev],
+                    &v.normal[prev],
+                    &v.history[prev],
                 ];
-                self.run(device, encoder, AoPass::Temporal, frame_group, &inputs, &view);
-                current = (&t.history[cur], VisibilityTexture::History(cur));
+                let key = (cur, Some(current));
+                self.run(device, encoder, AoPass::Temporal, key, frame_group, t, &inputs, &v.history[cur]);
+                current = VisibilityTexture::History(cur);
                 accumulated = true;
             }
-            visibility = Some(current.1);
+            visibility = Some(current);
         }
-        let v = match visibility {
-            Some(VisibilityTexture::History(i)) => &t.history[i],
-            Some(VisibilityTexture::Upsampled) => &t.upsampled,
-            _ => &t.traced,
-        };
-        let inputs = [&t.normal[cur], &t.colour, v];
-        self.run(device, encoder, AoPass::Composite, frame_group, &inputs, target);
+        let inputs = [&v.normal[cur], &v.colour, t.visibility_view(visibility)];
+        self.run(device, encoder, AoPass::Composite, (cur, visibility), frame_group, t, &inputs, target);
         self.last_visibility = visibility;
         self.history_valid = accumulated;
         self.still_frames =

@@ -457,16 +457,17 @@ impl DepthPyramid {
         let mut mips = vec![(width, height, depth)];
         while let Some((w, h, d)) = mips.last().filter(|(w, h, _)| *w > 1 || *h > 1) {
             let (nw, nh) = (w.div_ceil(2), h.div_ceil(2));
-            let mut next = vec![0f32; (nw * nh) as usize];
-            for y in 0..nh {
-                for x in 0..nw {
-                    let mut m = 0f32;
-                    for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
-                        let (sx, sy) = ((2 * x + dx).min(w - 1), (2 * y + dy).min(h - 1));
-                        m = m.max(d[(sy * w + sx) as usize]);
-                    }
-                    next[(y * nw + x) as usize] = m;
-                }
+            let (w, h, cols) = (*w as usize, *h as usize, nw as usize);
+            let mut next = Vec::with_capacity(cols * nh as usize);
+            // Row by row, so the inner loop indexes two rows without clamping y
+            // (this runs on the browser's main thread every feedback frame).
+            for y in 0..nh as usize {
+                let row = |r: usize| &d[r.min(h - 1) * w..][..w];
+                let (r0, r1) = (row(2 * y), row(2 * y + 1));
+                next.extend((0..cols).map(|x| {
+                    let (x0, x1) = (2 * x, (2 * x + 1).min(w - 1));
+                    0f32.max(r0[x0]).max(r0[x1]).max(r1[x0]).max(r1[x1])
+                }));
             }
             mips.push((nw, nh, next));
         }
@@ -770,6 +771,34 @@ mod tests {
     fn depth_of(vp: &Mat4, z: f32) -> f32 {
         let c = *vp * Vec4::new(0.0, 0.0, z, 1.0);
         c.z / c.w
+    }
+
+    #[test]
+    fn each_mip_texel_is_the_farthest_of_the_texels_it_covers() {
+        // Odd sizes: the last column and row of a level are their own pair.
+        let (w, h) = (13u32, 7u32);
+        let depth: Vec<f32> = (0..w * h).map(|i| ((i * 7919) % 101) as f32 / 100.0).collect();
+        let p = DepthPyramid::new(w, h, depth.clone());
+        let base = |x: u32, y: u32| depth[(y.min(h - 1) * w + x.min(w - 1)) as usize];
+        for (level, (lw, lh, texels)) in p.mips.iter().enumerate() {
+            let span = 1u32 << level;
+            for y in 0..*lh {
+                for x in 0..*lw {
+                    let mut far = 0f32;
+                    for sy in y * span..(y + 1) * span {
+                        for sx in x * span..(x + 1) * span {
+                            far = far.max(base(sx, sy));
+                        }
+                    }
+                    assert_eq!(texels[(y * lw + x) as usize], far, "level {level} texel ({x}, {y})");
+                }
+            }
+        }
+        assert_eq!(p.mips.last().map(|m| (m.0, m.1)), Some((1, 1)));
+        // Control: a texel set farther than any other reaches the top.
+        let mut far = depth;
+        far[(6 * w + 12) as usize] = 2.0;
+        assert_eq!(DepthPyramid::new(w, h, far).mips.last().unwrap().2, vec![2.0]);
     }
 
     #[test]

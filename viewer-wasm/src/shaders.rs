@@ -31,7 +31,7 @@ pub const SHADER_FILES: &[(&str, &str)] = &[
 ];
 
 /// The AO's full-screen passes, one shader (and one module) a pass, in frame order.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum AoPass {
     /// Cone tracing at 1/f resolution (ao_trace.wgsl with ao.wgsl).
     Trace,

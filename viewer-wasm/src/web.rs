@@ -104,7 +104,11 @@ fn window() -> web_sys::Window {
 }
 
 fn now_ms() -> f64 {
-    window().performance().map_or(0.0, |p| p.now())
+    thread_local! {
+        // Looked up once: `window.performance` is a call into JS, and the frame reads the clock often.
+        static PERFORMANCE: Option<web_sys::Performance> = window().performance();
+    }
+    PERFORMANCE.with(|p| p.as_ref().map_or(0.0, |p| p.now()))
 }
 
 fn log(msg: &str) {
