@@ -75,8 +75,8 @@ struct TargetViews {
     history: [wgpu::TextureView; 2],
 }
 
-/// What a pass's inputs are: the pass, the pair written this frame, and the
-/// V texture the composite reads.
+/// What a pass's inputs are ([`FrameTargets::inputs`]): the pass, the pair
+/// written this frame, and the V texture the temporal or composite pass reads.
 type InputsKey = (AoPass, usize, Option<VisibilityTexture>);
 
 impl FrameTargets {
@@ -138,6 +138,27 @@ impl FrameTargets {
             Some(VisibilityTexture::History(i)) => &self.views.history[i],
             Some(VisibilityTexture::Upsampled) => &self.views.upsampled,
             _ => &self.views.traced,
+        }
+    }
+
+    /// A pass's inputs, in binding order, from its key: `pair` the position and
+    /// normal written this frame, `visibility` the V it reads (Temporal, Composite).
+    /// The key is the bind group cache's, so it must name every input.
+    fn inputs(&self, (pass, pair, visibility): InputsKey) -> Vec<&wgpu::TextureView> {
+        let v = &self.views;
+        let prev = 1 - pair;
+        match pass {
+            AoPass::Trace => vec![&v.position[pair], &v.normal[pair]],
+            AoPass::Upsample => vec![&v.position[pair], &v.normal[pair], &v.traced],
+            AoPass::Temporal => vec![
+                &v.position[pair],
+                &v.normal[pair],
+                self.visibility_view(visibility),
+                &v.position[prev],
+                &v.normal[prev],
+                &v.history[prev],
+            ],
+            AoPass::Composite => vec![&v.normal[pair], &v.colour, self.visibility_view(visibility)],
         }
     }
 }
@@ -346,16 +367,13 @@ impl AoPasses {
         (pipeline, layout)
     }
 
-    #[allow(clippy::too_many_arguments)]
     fn run(
         &self,
         device: &wgpu::Device,
         encoder: &mut wgpu::CommandEncoder,
-        pass: AoPass,
-        (pair, visibility): (usize, Option<VisibilityTexture>),
+        (pass, pair, visibility): InputsKey,
         frame_group: &wgpu::BindGroup,
         targets: &FrameTargets,
-        inputs: &[&wgpu::TextureView],
         output: &wgpu::TextureView,
     ) {
         let (pipeline, layout) = self.pass(pass);
@@ -367,8 +385,9 @@ impl AoPasses {
         };
         let mut groups = targets.groups.borrow_mut();
         let group = groups.entry((pass, pair, visibility)).or_insert_with(|| {
-            let entries: Vec<wgpu::BindGroupEntry> = inputs
-                .iter()
+            let entries: Vec<wgpu::BindGroupEntry> = targets
+                .inputs((pass, pair, visibility))
+                .into_iter()
                 .enumerate()
                 .map(|(i, v)| wgpu::BindGroupEntry {
                     binding: i as u32,
@@ -413,45 +432,25 @@ impl AoPasses {
     ) {
         let t = self.targets.as_ref().expect("targets() first");
         let v = &t.views;
-        let (cur, prev) = (self.current, 1 - self.current);
+        let cur = self.current;
         let mut visibility = None;
         let mut accumulated = false;
         if let Some(s) = settings {
-            let inputs = [&v.position[cur], &v.normal[cur]];
-            self.run(device, encoder, AoPass::Trace, (cur, None), frame_group, t, &inputs, &v.traced);
+            self.run(device, encoder, (AoPass::Trace, cur, None), frame_group, t, &v.traced);
             let mut current = VisibilityTexture::Traced;
             if s.downscale() > 1 {
-                let inputs = [&v.position[cur], &v.normal[cur], &v.traced];
-                self.run(
-                    device,
-                    encoder,
-                    AoPass::Upsample,
-                    (cur, None),
-                    frame_group,
-                    t,
-                    &inputs,
-                    &v.upsampled,
-                );
+                self.run(device, encoder, (AoPass::Upsample, cur, None), frame_group, t, &v.upsampled);
                 current = VisibilityTexture::Upsampled;
             }
             if s.accumulated_frames() > 1 {
-                let inputs = [
-                    &v.position[cur],
-                    &v.normal[cur],
-                    t.visibility_view(Some(current)),
-                    &v.position[prev],
-                    &v.normal[prev],
-                    &v.history[prev],
-                ];
-                let key = (cur, Some(current));
-                self.run(device, encoder, AoPass::Temporal, key, frame_group, t, &inputs, &v.history[cur]);
+                let key = (AoPass::Temporal, cur, Some(current));
+                self.run(device, encoder, key, frame_group, t, &v.history[cur]);
                 current = VisibilityTexture::History(cur);
                 accumulated = true;
             }
             visibility = Some(current);
         }
-        let inputs = [&v.normal[cur], &v.colour, t.visibility_view(visibility)];
-        self.run(device, encoder, AoPass::Composite, (cur, visibility), frame_group, t, &inputs, target);
+        self.run(device, encoder, (AoPass::Composite, cur, visibility), frame_group, t, target);
         self.last_visibility = visibility;
         self.history_valid = accumulated;
         self.still_frames =
@@ -462,7 +461,7 @@ impl AoPasses {
         self.accumulating = accumulated && settings.is_some_and(|s| since + 1 < s.accumulated_frames());
         self.frame_index = self.frame_index.wrapping_add(1);
         self.prev_view_proj = view_proj;
-        self.current = prev;
+        self.current = 1 - cur;
     }
 
     /// The textures the last frame wrote (`None` before the first frame).

@@ -260,9 +260,10 @@ pub struct UploadPacer {
 
 impl UploadPacer {
     /// The cost assumed before the first measurement: a slow device's (a CPU
-    /// WebGPU's first upload frame took about 6 ms/MiB), so that the first upload frame, which also
-    /// pays for first calls, stays within the budget. A fast device reaches
-    /// the whole buffer a few frames later: each sample halves the estimate's error.
+    /// WebGPU's first upload frame took about 6 ms/MiB), so that the first
+    /// upload frame, which also pays for first calls, stays within the
+    /// budget. A fast device reaches the whole buffer a few frames later:
+    /// each sample halves the estimate's error.
     const FIRST_GUESS_MS_PER_MIB: f64 = 8.0;
 
     pub fn new(budget_ms: f64) -> Self {

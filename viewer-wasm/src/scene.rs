@@ -65,11 +65,13 @@ pub struct DrawnFrame {
 /// The state the traversal was computed for.
 type TraversedFor = (OrbitCamera, (u32, u32), usize, SelectParams, u64, usize, u64, Option<FixedView>);
 
-/// A decoded block kept on the CPU: its voxels, the faces they expand to, and
-/// the frame it was last needed (the least recently needed go first).
+/// A decoded block kept on the CPU: its voxels, the faces they expand to, its
+/// occlusion proxies, and the frame it was last needed (the least recently
+/// needed go first).
 struct CachedBlock {
     block: Block,
     faces: u32,
+    cells: OccupiedCells,
     needed_frame: u64,
 }
 
@@ -98,8 +100,6 @@ pub struct Scene {
     empty: HashSet<BlockKey>,
     /// Decoded blocks on the CPU.
     decoded: HashMap<BlockKey, CachedBlock>,
-    /// Occlusion proxies of the decoded blocks, kept and dropped with them.
-    cells: HashMap<BlockKey, OccupiedCells>,
     decoded_bytes: u64,
     failed: HashMap<BlockKey, String>,
     upload: Option<wgpu::Buffer>,
@@ -156,7 +156,6 @@ impl Scene {
             gpu: HashMap::default(),
             empty: HashSet::default(),
             decoded: HashMap::default(),
-            cells: HashMap::default(),
             decoded_bytes: 0,
             failed: HashMap::default(),
             upload: None,
@@ -454,8 +453,7 @@ impl Scene {
             return;
         }
         self.decoded_bytes += std::mem::size_of_val(block.voxels.as_slice()) as u64;
-        self.cells.insert(key, cells);
-        let cached = CachedBlock { block, faces, needed_frame: self.frame_counter };
+        let cached = CachedBlock { block, faces, cells, needed_frame: self.frame_counter };
         if let Some(old) = self.decoded.insert(key, cached) {
             self.decoded_bytes -= std::mem::size_of_val(old.block.voxels.as_slice()) as u64;
         }
@@ -760,10 +758,9 @@ impl Scene {
                 continue;
             }
             // The tightest boxes the loaded data gives: the block's own cells, else its parent's.
-            let cells = self
-                .cells
-                .get(k)
-                .or_else(|| (k.level < max_level).then(|| k.parent()).and_then(|p| self.cells.get(&p)));
+            let cells_of = |k: &BlockKey| self.decoded.get(k).map(|c| &c.cells);
+            let cells =
+                cells_of(k).or_else(|| (k.level < max_level).then(|| k.parent()).and_then(|p| cells_of(&p)));
             match cells.and_then(|c| c.boxes_for(k)).filter(|b| !b.is_empty()) {
                 Some(boxes) => {
                     tests.extend(boxes.iter().filter_map(|b| b.intersection(&tight)).map(|b| (*k, grown(&b))))
@@ -852,7 +849,6 @@ impl Scene {
             if self.decoded_bytes <= DECODED_CACHE_BYTES {
                 break;
             }
-            self.cells.remove(&key);
             if let Some(c) = self.decoded.remove(&key) {
                 self.decoded_bytes -= std::mem::size_of_val(c.block.voxels.as_slice()) as u64;
             }

@@ -167,14 +167,13 @@ pub enum ChunkError {
     Damaged(String),
 }
 
-/// Encodes `raw` (whole records of `layout`) as one chunk; with `compress`,
-/// as lz4 when that saves bytes.
-pub fn encode_chunk(layout: RecordLayout, raw: &[u8], bounds: &Bounds, compress: bool) -> Vec<u8> {
+/// Encodes `raw` (whole records of `layout`) as one chunk: lz4, or raw when
+/// lz4 saves nothing.
+pub fn encode_chunk(layout: RecordLayout, raw: &[u8], bounds: &Bounds) -> Vec<u8> {
     let triangles = raw.len() / layout.size();
     debug_assert!(raw.len().is_multiple_of(layout.size()) && triangles <= MAX_CHUNK_TRIANGLES);
-    let packed = if compress { lz4_flex::block::compress(raw) } else { Vec::new() };
-    let (codec, payload) =
-        if compress && packed.len() < raw.len() { (CODEC_LZ4, &packed[..]) } else { (CODEC_RAW, raw) };
+    let packed = lz4_flex::block::compress(raw);
+    let (codec, payload) = if packed.len() < raw.len() { (CODEC_LZ4, &packed[..]) } else { (CODEC_RAW, raw) };
     let mut out = Vec::with_capacity(HEADER_LEN + payload.len());
     out.extend_from_slice(MAGIC);
     out.extend_from_slice(&[layout.flags(), codec, 0, 0]);
@@ -283,24 +282,10 @@ impl ChunkStore {
         resident + HEADER_LEN + raw_len <= self.resident_limit
     }
 
-    /// Stores records as a chunk and returns its id (ids count up from 0):
-    /// the buffer itself while resident (no CPU spent on a copy or on
-    /// compression), lz4 when spilled (fewer bytes to write and read).
-    pub fn push_records(
-        &mut self,
-        layout: RecordLayout,
-        raw: Vec<u8>,
-        bounds: &Bounds,
-    ) -> Result<usize, ChunkError> {
-        if self.fits(self.resident_bytes, raw.len()) {
-            Ok(self.keep(raw))
-        } else {
-            self.spill_chunk(&encode_chunk(layout, &raw, bounds, true))
-        }
-    }
-
-    /// [`Self::push_records`] for many chunks, compressing the spilled ones on
-    /// all cores; ids are assigned in order, as if pushed one by one.
+    /// Stores records as chunks and returns their ids (ids count up from 0, in
+    /// order): each buffer itself while resident (no CPU spent on a copy or on
+    /// compression), lz4 when spilled (fewer bytes to write and read), the
+    /// spilled ones compressed on all cores.
     pub fn push_many(
         &mut self,
         layout: RecordLayout,
@@ -326,7 +311,7 @@ impl ChunkStore {
             .into_par_iter()
             .map(|(raw, bounds, keep)| match keep {
                 true => Stored::Resident(raw),
-                false => Stored::Spilled(encode_chunk(layout, &raw, &bounds, true)),
+                false => Stored::Spilled(encode_chunk(layout, &raw, &bounds)),
             })
             .collect();
         stored
@@ -455,7 +440,7 @@ mod tests {
                 bounds.add_triangle(&tri(k as f64));
             }
             assert_eq!(raw.len(), 100 * layout.size());
-            let chunk = encode_chunk(layout, &raw, &bounds, true);
+            let chunk = encode_chunk(layout, &raw, &bounds);
             let (h, back) = decode_chunk(&chunk).unwrap();
             assert_eq!((h.triangles, h.layout, h.bounds), (100, layout, bounds));
             assert_eq!(back, raw);
@@ -470,7 +455,7 @@ mod tests {
         let layout = RecordLayout { f64_positions: false, color: false };
         let mut raw = Vec::new();
         layout.encode(&mut raw, &tri(1.0), [0.0; 3]);
-        let chunk = encode_chunk(layout, &raw, &Bounds::EMPTY, true);
+        let chunk = encode_chunk(layout, &raw, &Bounds::EMPTY);
         for len in 0..chunk.len() {
             assert!(decode_chunk(&chunk[..len]).is_err(), "{len}");
         }
@@ -488,7 +473,7 @@ mod tests {
         for k in 0..5 {
             let mut raw = Vec::new();
             layout.encode(&mut raw, &tri(k as f64), [0.0; 3]);
-            assert_eq!(store.push_records(layout, raw.clone(), &Bounds::EMPTY).unwrap(), k);
+            assert_eq!(store.push_many(layout, vec![(raw.clone(), Bounds::EMPTY)]).unwrap(), vec![k]);
             chunks.push(raw);
         }
         assert!(store.spilled_bytes() > 0 && dir.path().join("spill").exists());
