@@ -17,10 +17,18 @@
 @group(1) @binding(3) var previous_position: texture_2d<f32>;
 @group(1) @binding(4) var previous_normal: texture_2d<f32>;
 @group(1) @binding(5) var history: texture_2d<f32>;
+@group(1) @binding(6) var history_out: texture_storage_2d<rgba32float, write>;
 
-@fragment
-fn fs_temporal(@builtin(position) clip: vec4<f32>) -> @location(0) vec4<f32> {
-    let pixel = vec2<i32>(clip.xy);
+@compute @workgroup_size(8, 8)
+fn cs_temporal(@builtin(global_invocation_id) id: vec3<u32>) {
+    let size = textureDimensions(history_out);
+    if id.x >= size.x || id.y >= size.y {
+        return;
+    }
+    textureStore(history_out, vec2<i32>(id.xy), temporal_pixel(vec2<i32>(id.xy)));
+}
+
+fn temporal_pixel(pixel: vec2<i32>) -> vec4<f32> {
     let size = vec2<f32>(textureDimensions(gbuffer_normal));
     let v = textureLoad(current_ao, pixel, 0).r;
     let here = load_surface(gbuffer_position, gbuffer_normal, pixel);

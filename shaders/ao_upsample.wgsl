@@ -16,12 +16,20 @@
 @group(1) @binding(0) var gbuffer_position: texture_2d<f32>;
 @group(1) @binding(1) var gbuffer_normal: texture_2d<f32>;
 @group(1) @binding(2) var traced: texture_2d<f32>;
+@group(1) @binding(3) var upsampled_out: texture_storage_2d<r32float, write>;
 
-@fragment
-fn fs_upsample(@builtin(position) clip: vec4<f32>) -> @location(0) vec4<f32> {
+@compute @workgroup_size(8, 8)
+fn cs_upsample(@builtin(global_invocation_id) id: vec3<u32>) {
+    let size = textureDimensions(upsampled_out);
+    if id.x >= size.x || id.y >= size.y {
+        return;
+    }
+    textureStore(upsampled_out, vec2<i32>(id.xy), upsample_pixel(vec2<i32>(id.xy)));
+}
+
+fn upsample_pixel(pixel: vec2<i32>) -> vec4<f32> {
     let size = vec2<i32>(textureDimensions(gbuffer_normal));
     let low = vec2<i32>(textureDimensions(traced));
-    let pixel = vec2<i32>(clip.xy);
     let here = load_surface(gbuffer_position, gbuffer_normal, pixel);
     let bilateral = frame.ao_sparse.w > 0.5;
     if bilateral && !here.surface {

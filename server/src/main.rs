@@ -145,41 +145,47 @@ struct RenderArgs {
     timing_runs: usize,
     /// Frames of the still camera to accumulate (temporal accumulation from a
     /// fresh history, each frame's cone set jittered unless --no-jitter): the
-    /// AO written is their average.
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=256))]
-    ao_frames: u32,
+    /// AO written is their average. Default: the viewer's (what a still view
+    /// converges to in the browser).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=256))]
+    ao_frames: Option<u32>,
 }
 
-/// Cone-traced AO settings (defaults in viewer-wasm/src/ao.rs, `AoSettings`).
+/// Cone-traced AO settings. Every one left out is the viewer's own default
+/// (viewer-wasm/src/ao.rs, `AoSettings::default()`), so a plain `render` shows
+/// what the browser shows.
 #[derive(clap::Args)]
 struct AoArgs {
-    /// Cones per pixel: 3, 5, 6, 8 or 16.
-    #[arg(long, default_value_t = 16, value_parser = parse_cones)]
-    cones: u32,
+    /// Cones per pixel: 3, 5, 6, 8 or 16 (viewer default 6).
+    #[arg(long, value_parser = parse_cones)]
+    cones: Option<u32>,
     /// Cone half-angle in degrees (default: asin(1/sqrt(cones))).
     #[arg(long)]
     aperture_deg: Option<f32>,
-    /// Step along a cone as a fraction of its diameter.
-    #[arg(long, default_value_t = 0.5)]
-    step: f32,
-    /// Start offset along the normal, in finest occupancy cells.
-    #[arg(long, default_value_t = 1.5)]
-    offset_cells: f32,
+    /// Step along a cone as a fraction of its diameter (viewer default 1).
+    #[arg(long)]
+    step: Option<f32>,
+    /// Start offset along the normal, in finest occupancy cells (viewer default 1.5).
+    #[arg(long)]
+    offset_cells: Option<f32>,
     /// R, the AO's maximum distance, in source units (default: a tenth of the scene's bounding cube edge).
     #[arg(long)]
     max_distance: Option<f64>,
-    /// λ in w(d) = 1 / (1 + λ·d/R).
-    #[arg(long, default_value_t = 1.0)]
-    falloff: f32,
-    /// Disable empty-space skipping.
+    /// λ in w(d) = 1 / (1 + λ·d/R) (viewer default 1).
     #[arg(long)]
+    falloff: Option<f32>,
+    /// Skip empty space (hierarchical steps through coarse empty cells; off in the viewer).
+    #[arg(long, conflicts_with = "no_empty_skip")]
+    empty_skip: bool,
+    /// No empty-space skipping (the viewer's default; kept for older command lines).
+    #[arg(long, hide = true)]
     no_empty_skip: bool,
     /// Negative control: lay the cones around +Z whatever the surface normal.
     #[arg(long, hide = true)]
     ignore_normal: bool,
-    /// Trace AO for one pixel of each f×f block and upsample (1 = every pixel, 2, 4).
-    #[arg(long, default_value_t = 1, value_parser = parse_downscale)]
-    ao_downscale: u32,
+    /// Trace AO for one pixel of each f×f block and upsample (1 = every pixel, 2, 4; viewer default 2).
+    #[arg(long, value_parser = parse_downscale)]
+    ao_downscale: Option<u32>,
     /// Upsampling of a reduced-resolution trace.
     #[arg(long, value_enum, default_value_t = UpsampleArg::Bilateral)]
     ao_upsample: UpsampleArg,
@@ -239,22 +245,28 @@ impl AoArgs {
             anyhow::ensure!(v.is_finite() && ok, "--{name} out of range: {v}");
             Ok(())
         };
-        finite("step", self.step, self.step > 0.0)?;
-        finite("offset-cells", self.offset_cells, self.offset_cells >= 0.0)?;
-        finite("falloff", self.falloff, self.falloff >= 0.0)?;
+        let d = voxstream_viewer::ao::AoSettings::default();
+        let (step, offset_cells, falloff) = (
+            self.step.unwrap_or(d.step),
+            self.offset_cells.unwrap_or(d.offset_cells),
+            self.falloff.unwrap_or(d.falloff),
+        );
+        finite("step", step, step > 0.0)?;
+        finite("offset-cells", offset_cells, offset_cells >= 0.0)?;
+        finite("falloff", falloff, falloff >= 0.0)?;
         if let Some(a) = self.aperture_deg {
             finite("aperture-deg", a, a > 0.0 && a < 90.0)?;
         }
         Ok(voxstream_viewer::ao::AoSettings {
-            cones: self.cones,
+            cones: self.cones.unwrap_or(d.cones),
             aperture_deg: self.aperture_deg,
-            step: self.step,
-            offset_cells: self.offset_cells,
+            step,
+            offset_cells,
             max_distance: None,
-            falloff: self.falloff,
-            empty_skip: !self.no_empty_skip,
+            falloff,
+            empty_skip: self.empty_skip || (d.empty_skip && !self.no_empty_skip),
             ignore_normal: self.ignore_normal,
-            trace_downscale: self.ao_downscale,
+            trace_downscale: self.ao_downscale.unwrap_or(d.trace_downscale),
             upsample: match self.ao_upsample {
                 UpsampleArg::Bilateral => voxstream_viewer::ao::Upsample::Bilateral,
                 UpsampleArg::Bilinear => voxstream_viewer::ao::Upsample::Bilinear,
@@ -450,15 +462,17 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 .map_err(|e| anyhow::anyhow!("cannot read --camera {}: {e}", args.camera.display()))?;
             let camera = voxstream::render::CameraSpec::from_json(&bytes)
                 .map_err(|e| anyhow::anyhow!("{}: {e:#}", args.camera.display()))?;
+            let ao = args.ao.settings()?;
             let request = voxstream::render::RenderRequest {
                 scene_dir: args.scene.clone(),
                 camera,
                 width: args.width,
                 height: args.height,
-                ao: args.ao.settings()?,
+                ao,
                 max_distance: args.ao.max_distance,
                 timing_runs: args.timing_runs,
-                ao_frames: args.ao_frames,
+                // A fixed cone set gains nothing from more frames of a still view.
+                ao_frames: args.ao_frames.unwrap_or(if ao.jitter { ao.temporal_frames } else { 1 }),
             };
             let out = voxstream::render::render_view(&request)?;
             voxstream::render::write_outputs(&args.out, &out)?;

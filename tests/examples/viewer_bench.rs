@@ -17,6 +17,11 @@
 //!   view (the drawn blocks with no pixel on screen, from the G-buffer).
 //! - budget: a scripted orbit-and-zoom path with a 64 MiB budget: the most
 //!   resident bytes ÷ budget.
+//! - `--frame-times N`: also N frames of the converged view (with occlusion
+//!   culling) with AO and N without: median wall time and, where the adapter
+//!   has timestamp queries, each pass's median GPU time; and, while streaming,
+//!   the GPU time of the longest frame (uploads' expansion and the clipmap's
+//!   update included).
 
 use std::path::Path;
 use std::time::Instant;
@@ -35,6 +40,8 @@ struct Converged {
     peak: u64,
     budget: u64,
     culled_occlusion: u32,
+    /// The most GPU time one streaming frame took (all its timed passes), ms.
+    longest_gpu_frame_ms: Option<f64>,
 }
 
 fn view(offscreen: &Offscreen, kind: &str) -> OrbitCamera {
@@ -57,11 +64,16 @@ fn stream(offscreen: &mut Offscreen, max_frames: usize) -> Converged {
     let mut first_image_ms = None;
     let mut frames = 0;
     let mut last = None;
+    let mut longest_gpu = None;
     for _ in 0..max_frames {
         frames += 1;
         let requests = offscreen.scene.start_requests();
         offscreen.fetch(&requests);
         let frame = offscreen.draw_frame().expect("frame");
+        if let Some(passes) = offscreen.last_pass_times().expect("pass times") {
+            let total: f64 = passes.iter().map(|p| p.ms).filter(|ms| ms.is_finite()).sum();
+            longest_gpu = Some(longest_gpu.map_or(total, |l: f64| l.max(total)));
+        }
         if first_image_ms.is_none() && !frame.drawn.is_empty() {
             first_image_ms = Some(start.elapsed().as_secs_f64() * 1e3);
         }
@@ -83,7 +95,39 @@ fn stream(offscreen: &mut Offscreen, max_frames: usize) -> Converged {
         peak: s.peak_resident_bytes,
         budget: s.budget_bytes,
         culled_occlusion: s.culled_occlusion,
+        longest_gpu_frame_ms: longest_gpu,
     }
+}
+
+/// `--frame-times N`: the converged view's frames with AO and without (one JSON line).
+fn print_frame_times(o: &mut Offscreen, scene: &Path, kind: &str, (w, h): (u32, u32), runs: usize) {
+    let with = o.time_frames(1.0, runs).expect("frames with AO");
+    let without = o.time_frames(0.0, runs).expect("frames without AO");
+    let passes = |t: &voxstream_viewer::offscreen::FrameTiming| match &t.gpu_passes {
+        Some(p) => format!(
+            "{{{}}}",
+            p.iter().map(|x| format!("{:?}:{:.4}", x.label, x.ms)).collect::<Vec<_>>().join(",")
+        ),
+        None => "null".into(),
+    };
+    let gpu_total = |t: &voxstream_viewer::offscreen::FrameTiming| {
+        t.gpu_passes.as_ref().map_or("null".into(), |p| format!("{:.4}", p.iter().map(|x| x.ms).sum::<f64>()))
+    };
+    println!(
+        "{{\"measure\":\"frame_times\",\"scene\":{:?},\"view\":{kind:?},\"size\":\"{w}x{h}\",\"runs\":{runs},\
+         \"frame_ms\":{:.3},\"frame_no_ao_ms\":{:.3},\"gpu_frame_ms\":{},\"gpu_frame_no_ao_ms\":{},\
+         \"gpu_passes_ms\":{},\"gpu_passes_no_ao_ms\":{},\"faces\":{},\"blocks\":{},\"adapter\":{:?}}}",
+        scene.display().to_string(),
+        with.cpu_ms,
+        without.cpu_ms,
+        gpu_total(&with),
+        gpu_total(&without),
+        passes(&with),
+        passes(&without),
+        o.scene.stats.faces_drawn,
+        o.scene.stats.blocks_drawn,
+        o.adapter_name()
+    );
 }
 
 /// `keys` and all their ancestors up to the `coarsest` level: what a view must
@@ -257,13 +301,18 @@ fn main() {
         if let (true, Some(path)) = (occlusion, flag_value(&args, "--png")) {
             save_png(&o, Path::new(path), (w, h));
         }
+        if let (true, Some(n)) = (occlusion, flag_value(&args, "--frame-times")) {
+            let runs = n.parse().expect("--frame-times takes a frame count");
+            print_frame_times(&mut o, scene, kind, (w, h), runs);
+        }
         if !occlusion && args.iter().any(|a| a == "--oracle") {
             print_oracle(&mut o, scene, kind, (w, h));
         }
         println!(
             "{{\"measure\":\"converge\",\"scene\":{:?},\"view\":{kind:?},\"size\":\"{w}x{h}\",\"occlusion\":{occlusion},\
              \"bytes\":{},\"faces\":{},\"blocks\":{},\"frames\":{},\"first_image_ms\":{:.0},\"converged_ms\":{:.0},\
-             \"peak_resident\":{},\"budget\":{},\"culled_occlusion\":{},\"hidden_fetched_bytes\":{hidden_fetched},\"adapter\":{:?}}}",
+             \"peak_resident\":{},\"budget\":{},\"culled_occlusion\":{},\"hidden_fetched_bytes\":{hidden_fetched},\
+             \"longest_gpu_frame_ms\":{},\"adapter\":{:?}}}",
             scene.display().to_string(),
             c.bytes,
             c.faces,
@@ -274,6 +323,7 @@ fn main() {
             c.peak,
             c.budget,
             c.culled_occlusion,
+            c.longest_gpu_frame_ms.map_or("null".into(), |ms| format!("{ms:.4}")),
             o.adapter_name()
         );
     }

@@ -49,7 +49,17 @@ fn keys(sources: &[Vec<&Block>]) -> Vec<Vec<BlockKey>> {
 
 fn run(gpu: &Gpu, clipmap: &mut OccupancyClipmap, layout: ClipmapLayout, all: &[Block], state: &State) {
     let find = |k: &BlockKey| all.iter().find(|b| b.key == *k);
-    clipmap.update(&gpu.device, &gpu.queue, GRID, layout, state.eye, Vec3::X, &keys(&state.sources), find);
+    clipmap.update(
+        &gpu.device,
+        &gpu.queue,
+        GRID,
+        layout,
+        state.eye,
+        Vec3::X,
+        &keys(&state.sources),
+        find,
+        None,
+    );
 }
 
 fn model(layout: ClipmapLayout, state: &State) -> ClipmapModel {

@@ -12,6 +12,12 @@
 //!    normal disagree, blended with weight max(1/frames, 1/N);
 //! 5. **composite** (ao_composite.wgsl): colour × V into the frame's target.
 //!
+//! Passes 2–4 are compute passes writing storage textures (8×8 workgroups, a
+//! texel an invocation); only the composite, which writes the frame's target,
+//! is a full-screen triangle. Why: a GPU with few raster units (a data-centre
+//! H100 shades fragments on 2 of its 66 TPCs) ran the fragment trace 30–70×
+//! slower than it runs in compute; on other GPUs the two cost about the same.
+//!
 //! With jitter on, each frame turns the cone set about the normal
 //! ([`crate::ao::ConeJitter`]) and moves the traced pixel within its block
 //! ([`crate::ao::traced_pixel_offset`]), so accumulated frames average
@@ -90,9 +96,15 @@ impl FrameTargets {
                 dimension: wgpu::TextureDimension::D2,
                 format,
                 // COPY_SRC: `voxstream render` and the tests read them back.
+                // STORAGE_BINDING: the compute passes' outputs (V and the history).
                 usage: wgpu::TextureUsages::RENDER_ATTACHMENT
                     | wgpu::TextureUsages::TEXTURE_BINDING
-                    | wgpu::TextureUsages::COPY_SRC,
+                    | wgpu::TextureUsages::COPY_SRC
+                    | if format == VISIBILITY_FORMAT || format == HISTORY_FORMAT {
+                        wgpu::TextureUsages::STORAGE_BINDING
+                    } else {
+                        wgpu::TextureUsages::empty()
+                    },
                 view_formats: &[],
             })
         };
@@ -141,15 +153,16 @@ impl FrameTargets {
         }
     }
 
-    /// A pass's inputs, in binding order, from its key: `pair` the position and
-    /// normal written this frame, `visibility` the V it reads (Temporal, Composite).
-    /// The key is the bind group cache's, so it must name every input.
+    /// A pass's bindings, in binding order, from its key: `pair` the position
+    /// and normal written this frame, `visibility` the V it reads (Temporal,
+    /// Composite), then a compute pass's output. The key is the bind group
+    /// cache's, so it must name every binding.
     fn inputs(&self, (pass, pair, visibility): InputsKey) -> Vec<&wgpu::TextureView> {
         let v = &self.views;
         let prev = 1 - pair;
         match pass {
-            AoPass::Trace => vec![&v.position[pair], &v.normal[pair]],
-            AoPass::Upsample => vec![&v.position[pair], &v.normal[pair], &v.traced],
+            AoPass::Trace => vec![&v.position[pair], &v.normal[pair], &v.traced],
+            AoPass::Upsample => vec![&v.position[pair], &v.normal[pair], &v.traced, &v.upsampled],
             AoPass::Temporal => vec![
                 &v.position[pair],
                 &v.normal[pair],
@@ -157,6 +170,7 @@ impl FrameTargets {
                 &v.position[prev],
                 &v.normal[prev],
                 &v.history[prev],
+                &v.history[pair],
             ],
             AoPass::Composite => vec![&v.normal[pair], &v.colour, self.visibility_view(visibility)],
         }
@@ -193,9 +207,15 @@ pub struct AoFrameState {
     pub index: u32,
 }
 
+/// A pass's pipeline: compute, or the composite's full-screen triangle.
+enum PassPipeline {
+    Compute(wgpu::ComputePipeline),
+    Render(wgpu::RenderPipeline),
+}
+
 /// The AO passes' pipelines, the targets and the history's state.
 pub struct AoPasses {
-    pipelines: Vec<(AoPass, wgpu::RenderPipeline, wgpu::BindGroupLayout)>,
+    pipelines: Vec<(AoPass, PassPipeline, wgpu::BindGroupLayout)>,
     targets: Option<FrameTargets>,
     /// The pair (position, normal, history) the next frame writes.
     current: usize,
@@ -215,10 +235,10 @@ pub struct AoPasses {
     accumulating: bool,
 }
 
-fn texture_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
+fn texture_entry(binding: u32, visibility: wgpu::ShaderStages) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,
-        visibility: wgpu::ShaderStages::FRAGMENT,
+        visibility,
         ty: wgpu::BindingType::Texture {
             sample_type: wgpu::TextureSampleType::Float { filterable: false },
             view_dimension: wgpu::TextureViewDimension::D2,
@@ -228,13 +248,25 @@ fn texture_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
     }
 }
 
-/// Textures group 1 of each pass binds (all read with textureLoad).
+/// Textures group 1 of each pass reads (all with textureLoad).
 fn pass_texture_count(pass: AoPass) -> u32 {
     match pass {
         AoPass::Trace => 2,
         AoPass::Upsample => 3,
         AoPass::Temporal => 6,
         AoPass::Composite => 3,
+    }
+}
+
+/// Workgroup edge of the compute passes (the WGSL's `@workgroup_size(8, 8)`).
+const PASS_WORKGROUP: u32 = 8;
+
+/// The storage texture a compute pass writes, after its inputs.
+fn pass_output_format(pass: AoPass) -> Option<wgpu::TextureFormat> {
+    match pass {
+        AoPass::Trace | AoPass::Upsample => Some(VISIBILITY_FORMAT),
+        AoPass::Temporal => Some(HISTORY_FORMAT),
+        AoPass::Composite => None,
     }
 }
 
@@ -249,7 +281,25 @@ impl AoPasses {
         let pipelines = AoPass::ALL
             .into_iter()
             .map(|pass| {
-                let entries: Vec<_> = (0..pass_texture_count(pass)).map(texture_entry).collect();
+                let stage = if pass.is_compute() {
+                    wgpu::ShaderStages::COMPUTE
+                } else {
+                    wgpu::ShaderStages::FRAGMENT
+                };
+                let inputs = pass_texture_count(pass);
+                let mut entries: Vec<_> = (0..inputs).map(|b| texture_entry(b, stage)).collect();
+                if let Some(format) = pass_output_format(pass) {
+                    entries.push(wgpu::BindGroupLayoutEntry {
+                        binding: inputs,
+                        visibility: stage,
+                        ty: wgpu::BindingType::StorageTexture {
+                            access: wgpu::StorageTextureAccess::WriteOnly,
+                            format,
+                            view_dimension: wgpu::TextureViewDimension::D2,
+                        },
+                        count: None,
+                    });
+                }
                 let textures = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
                     label: Some(pass.entry_point()),
                     entries: &entries,
@@ -263,11 +313,17 @@ impl AoPasses {
                     label: Some(pass.entry_point()),
                     source: wgpu::ShaderSource::Wgsl(pass.module_source().into()),
                 });
-                let format = match pass {
-                    AoPass::Trace | AoPass::Upsample => VISIBILITY_FORMAT,
-                    AoPass::Temporal => HISTORY_FORMAT,
-                    AoPass::Composite => output_format,
-                };
+                if pass.is_compute() {
+                    let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                        label: Some(pass.entry_point()),
+                        layout: Some(&layout),
+                        module: &module,
+                        entry_point: Some(pass.entry_point()),
+                        compilation_options: Default::default(),
+                        cache: None,
+                    });
+                    return (pass, PassPipeline::Compute(pipeline), textures);
+                }
                 let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
                     label: Some(pass.entry_point()),
                     layout: Some(&layout),
@@ -284,12 +340,12 @@ impl AoPasses {
                         module: &module,
                         entry_point: Some(pass.entry_point()),
                         compilation_options: Default::default(),
-                        targets: &[Some(format.into())],
+                        targets: &[Some(output_format.into())],
                     }),
                     multiview_mask: None,
                     cache: None,
                 });
-                (pass, pipeline, textures)
+                (pass, PassPipeline::Render(pipeline), textures)
             })
             .collect();
         Self {
@@ -362,31 +418,30 @@ impl AoPasses {
         [v.position[self.current].clone(), v.normal[self.current].clone(), v.colour.clone()]
     }
 
-    fn pass(&self, pass: AoPass) -> (&wgpu::RenderPipeline, &wgpu::BindGroupLayout) {
+    fn pass(&self, pass: AoPass) -> (&PassPipeline, &wgpu::BindGroupLayout) {
         let (_, pipeline, layout) = self.pipelines.iter().find(|(p, _, _)| *p == pass).expect("every pass");
         (pipeline, layout)
     }
 
+    /// Records one pass: a compute pass writes its own output (in its bind
+    /// group), the composite draws into `target`.
+    #[allow(clippy::too_many_arguments)]
     fn run(
         &self,
         device: &wgpu::Device,
         encoder: &mut wgpu::CommandEncoder,
-        (pass, pair, visibility): InputsKey,
+        key: InputsKey,
         frame_group: &wgpu::BindGroup,
         targets: &FrameTargets,
-        output: &wgpu::TextureView,
+        target: &wgpu::TextureView,
+        timer: Option<&crate::pass_timer::PassTimer>,
     ) {
+        let pass = key.0;
         let (pipeline, layout) = self.pass(pass);
-        // Every pixel is written; the clear only matters to a reader of an unwritten target.
-        let clear = match pass {
-            AoPass::Trace | AoPass::Upsample => wgpu::Color::WHITE,
-            AoPass::Temporal => wgpu::Color::TRANSPARENT,
-            AoPass::Composite => crate::render::background_color(),
-        };
         let mut groups = targets.groups.borrow_mut();
-        let group = groups.entry((pass, pair, visibility)).or_insert_with(|| {
+        let group = groups.entry(key).or_insert_with(|| {
             let entries: Vec<wgpu::BindGroupEntry> = targets
-                .inputs((pass, pair, visibility))
+                .inputs(key)
                 .into_iter()
                 .enumerate()
                 .map(|(i, v)| wgpu::BindGroupEntry {
@@ -400,23 +455,45 @@ impl AoPasses {
                 entries: &entries,
             })
         });
-        let mut rpass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-            label: Some(pass.entry_point()),
-            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                view: output,
-                depth_slice: None,
-                resolve_target: None,
-                ops: wgpu::Operations { load: wgpu::LoadOp::Clear(clear), store: wgpu::StoreOp::Store },
-            })],
-            depth_stencil_attachment: None,
-            timestamp_writes: None,
-            occlusion_query_set: None,
-            multiview_mask: None,
-        });
-        rpass.set_pipeline(pipeline);
-        rpass.set_bind_group(0, frame_group, &[]);
-        rpass.set_bind_group(1, &*group, &[]);
-        rpass.draw(0..3, 0..1);
+        match pipeline {
+            PassPipeline::Compute(pipeline) => {
+                let (width, height) = match pass {
+                    AoPass::Trace => (targets.traced.width(), targets.traced.height()),
+                    _ => targets.size,
+                };
+                let mut cpass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some(pass.entry_point()),
+                    timestamp_writes: timer.and_then(|t| t.compute_writes(pass.entry_point())),
+                });
+                cpass.set_pipeline(pipeline);
+                cpass.set_bind_group(0, frame_group, &[]);
+                cpass.set_bind_group(1, &*group, &[]);
+                cpass.dispatch_workgroups(width.div_ceil(PASS_WORKGROUP), height.div_ceil(PASS_WORKGROUP), 1);
+            }
+            PassPipeline::Render(pipeline) => {
+                let mut rpass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                    label: Some(pass.entry_point()),
+                    color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                        view: target,
+                        depth_slice: None,
+                        resolve_target: None,
+                        // Every pixel is written; the clear only matters to a reader of an unwritten target.
+                        ops: wgpu::Operations {
+                            load: wgpu::LoadOp::Clear(crate::render::background_color()),
+                            store: wgpu::StoreOp::Store,
+                        },
+                    })],
+                    depth_stencil_attachment: None,
+                    timestamp_writes: timer.and_then(|t| t.render_writes(pass.entry_point())),
+                    occlusion_query_set: None,
+                    multiview_mask: None,
+                });
+                rpass.set_pipeline(pipeline);
+                rpass.set_bind_group(0, frame_group, &[]);
+                rpass.set_bind_group(1, &*group, &[]);
+                rpass.draw(0..3, 0..1);
+            }
+        }
     }
 
     /// Records the passes after the voxel draw: the AO passes `settings` ask
@@ -429,28 +506,28 @@ impl AoPasses {
         settings: Option<&AoSettings>,
         target: &wgpu::TextureView,
         view_proj: Mat4,
+        timer: Option<&crate::pass_timer::PassTimer>,
     ) {
         let t = self.targets.as_ref().expect("targets() first");
-        let v = &t.views;
         let cur = self.current;
         let mut visibility = None;
         let mut accumulated = false;
         if let Some(s) = settings {
-            self.run(device, encoder, (AoPass::Trace, cur, None), frame_group, t, &v.traced);
+            self.run(device, encoder, (AoPass::Trace, cur, None), frame_group, t, target, timer);
             let mut current = VisibilityTexture::Traced;
             if s.downscale() > 1 {
-                self.run(device, encoder, (AoPass::Upsample, cur, None), frame_group, t, &v.upsampled);
+                self.run(device, encoder, (AoPass::Upsample, cur, None), frame_group, t, target, timer);
                 current = VisibilityTexture::Upsampled;
             }
             if s.accumulated_frames() > 1 {
                 let key = (AoPass::Temporal, cur, Some(current));
-                self.run(device, encoder, key, frame_group, t, &v.history[cur]);
+                self.run(device, encoder, key, frame_group, t, target, timer);
                 current = VisibilityTexture::History(cur);
                 accumulated = true;
             }
             visibility = Some(current);
         }
-        self.run(device, encoder, (AoPass::Composite, cur, visibility), frame_group, t, target);
+        self.run(device, encoder, (AoPass::Composite, cur, visibility), frame_group, t, target, timer);
         self.last_visibility = visibility;
         self.history_valid = accumulated;
         self.still_frames =

@@ -508,6 +508,7 @@ impl OccupancyClipmap {
         forward: Vec3,
         sources: &[Vec<BlockKey>],
         block: impl Fn(&BlockKey) -> Option<&'a Block>,
+        timer: Option<&crate::pass_timer::PassTimer>,
     ) -> bool {
         let layout = ClipmapLayout { levels: layout.levels.clamp(1, MAX_CLIP_LEVELS), ..layout };
         let mut replaced = false;
@@ -584,7 +585,7 @@ impl OccupancyClipmap {
             }
         }
         if !ops.is_empty() {
-            self.encode(device, queue, layout, &ops);
+            self.encode(device, queue, layout, &ops, timer);
             self.counters.updates += 1;
         }
         // Voxel words no level uses any more go (the commands above keep theirs alive).
@@ -594,7 +595,14 @@ impl OccupancyClipmap {
         replaced
     }
 
-    fn encode(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, layout: ClipmapLayout, ops: &[Op]) {
+    fn encode(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        layout: ClipmapLayout,
+        ops: &[Op],
+        timer: Option<&crate::pass_timer::PassTimer>,
+    ) {
         let mut records = Vec::with_capacity(ops.len());
         let mut work = Vec::with_capacity(ops.len());
         for op in ops {
@@ -662,7 +670,7 @@ impl OccupancyClipmap {
         {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("clipmap update"),
-                timestamp_writes: None,
+                timestamp_writes: timer.and_then(|t| t.compute_writes("clipmap update")),
             });
             let level_groups = (layout.level_len() as u32).div_ceil(WORKGROUP);
             for (i, (record, key)) in records.iter().zip(&work).enumerate() {

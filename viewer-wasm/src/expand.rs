@@ -167,6 +167,7 @@ impl Expander {
         batch: &mut UploadBatch,
         draw_layout: &wgpu::BindGroupLayout,
         upload: &wgpu::Buffer,
+        timer: Option<&crate::pass_timer::PassTimer>,
     ) -> Vec<GpuBlock> {
         let mut groups = Vec::with_capacity(batch.items.len());
         for item in &batch.items {
@@ -195,7 +196,7 @@ impl Expander {
         {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("expand blocks"),
-                timestamp_writes: None,
+                timestamp_writes: timer.and_then(|t| t.compute_writes("expand blocks")),
             });
             pass.set_pipeline(&self.pipeline);
             for (item, group) in batch.items.iter().zip(&groups) {

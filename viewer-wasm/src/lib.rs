@@ -20,6 +20,7 @@ pub mod decode;
 pub mod expand;
 pub mod fetch;
 pub mod occlusion;
+pub mod pass_timer;
 pub mod render;
 pub mod request;
 pub mod residency;

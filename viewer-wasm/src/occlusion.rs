@@ -269,6 +269,7 @@ impl Occlusion {
         device: &wgpu::Device,
         encoder: &mut wgpu::CommandEncoder,
         depth: &wgpu::Texture,
+        timer: Option<&crate::pass_timer::PassTimer>,
     ) {
         let Some(slot) = self.current else { return };
         let r = &self.readbacks[slot];
@@ -299,7 +300,7 @@ impl Occlusion {
             {
                 let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                     label: Some("depth reduce"),
-                    timestamp_writes: None,
+                    timestamp_writes: timer.and_then(|t| t.compute_writes("depth reduce")),
                 });
                 pass.set_pipeline(&reduce.pipeline);
                 pass.set_bind_group(0, &bind, &[]);

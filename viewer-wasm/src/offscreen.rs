@@ -9,6 +9,7 @@ use voxstream_format::{Block, BlockKey, Manifest, ManifestError};
 
 use crate::camera::OrbitCamera;
 use crate::fetch::{BlockSource, FetchError};
+use crate::pass_timer::PassTime;
 use crate::render::Renderer;
 use crate::request::Request;
 use crate::scene::Scene;
@@ -73,6 +74,15 @@ pub struct GBufferFrame {
     pub field_pixels: usize,
 }
 
+/// A view's frame times (see [`Offscreen::time_frames`]).
+#[derive(Debug, Clone)]
+pub struct FrameTiming {
+    /// Median wall time of a frame, encoding to GPU idle (ms).
+    pub cpu_ms: f64,
+    /// Median GPU time of each pass (`None` where the device has no timestamps).
+    pub gpu_passes: Option<Vec<PassTime>>,
+}
+
 /// A native device and queue.
 pub struct Gpu {
     pub device: wgpu::Device,
@@ -87,8 +97,10 @@ impl Gpu {
         let adapter = pollster::block_on(wgpu::util::initialize_adapter_from_env_or_default(&instance, None))
             .map_err(|e| OffscreenError::NoAdapter(e.to_string()))?;
         let adapter_info = adapter.get_info();
+        // Timestamps, where the adapter has them, time each pass (crate::pass_timer).
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("voxstream offscreen"),
+            required_features: adapter.features() & wgpu::Features::TIMESTAMP_QUERY,
             required_limits: wgpu::Limits::default(),
             ..Default::default()
         }))
@@ -333,14 +345,16 @@ impl Offscreen {
         Ok(GBufferFrame { position_ao, normal, history_frames, frame, field_pixels })
     }
 
-    /// Median milliseconds of `runs` frames of the loaded view at `ao_strength`
-    /// (0: no AO), each from encoding until the GPU is idle.
-    pub fn time_frames(&mut self, ao_strength: f32, runs: usize) -> Result<f64, OffscreenError> {
+    /// `runs` frames of the loaded view at `ao_strength` (0: no AO), each timed
+    /// from encoding until the GPU is idle, and by the GPU per pass where the
+    /// device has timestamps: medians of each.
+    pub fn time_frames(&mut self, ao_strength: f32, runs: usize) -> Result<FrameTiming, OffscreenError> {
         self.load_wanted();
         let saved = self.scene.ao_strength;
         self.scene.ao_strength = ao_strength;
         let view = self.target.create_view(&Default::default());
         let mut times = Vec::new();
+        let mut passes = Vec::new();
         // One untimed frame first: it rebuilds the occupancy volume when AO was off.
         for i in 0..=runs.max(1) {
             let start = Instant::now();
@@ -348,11 +362,26 @@ impl Offscreen {
             wait_idle(&self.renderer.device)?;
             if i > 0 {
                 times.push(start.elapsed().as_secs_f64() * 1e3);
+                if let Some(timer) = &self.renderer.pass_timer {
+                    passes.push(timer.read(&self.renderer.device).map_err(OffscreenError::Readback)?);
+                }
             }
         }
         self.scene.ao_strength = saved;
         times.sort_by(f64::total_cmp);
-        Ok(times[times.len() / 2])
+        Ok(FrameTiming {
+            cpu_ms: times[times.len() / 2],
+            gpu_passes: (!passes.is_empty()).then(|| crate::pass_timer::median_by_label(&passes)),
+        })
+    }
+
+    /// The passes of the last frame drawn, timed by the GPU (`None` without timestamps).
+    pub fn last_pass_times(&self) -> Result<Option<Vec<PassTime>>, OffscreenError> {
+        self.renderer
+            .pass_timer
+            .as_ref()
+            .map(|t| t.read(&self.renderer.device).map_err(OffscreenError::Readback))
+            .transpose()
     }
 
     /// The indirect draw args the compute pass wrote for a cached block:

@@ -86,6 +86,8 @@ pub struct Renderer {
     fade_pipeline: wgpu::RenderPipeline,
     fade_buffer: wgpu::Buffer,
     fade_group: wgpu::BindGroup,
+    /// GPU time per pass, where the device has timestamp queries (native).
+    pub pass_timer: Option<crate::pass_timer::PassTimer>,
 }
 
 /// GPU bytes of the cross-fade slots.
@@ -105,12 +107,13 @@ impl Renderer {
         let expander = Expander::new(&device);
         expander.prime(&device, &queue);
         let block_layout = block_bind_group_layout(&device);
+        // Compute too: the AO's trace, upsample and temporal passes bind the frame.
         let frame_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("frame"),
             entries: &[
                 wgpu::BindGroupLayoutEntry {
                     binding: 0,
-                    visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
+                    visibility: wgpu::ShaderStages::VERTEX_FRAGMENT.union(wgpu::ShaderStages::COMPUTE),
                     ty: wgpu::BindingType::Buffer {
                         ty: wgpu::BufferBindingType::Uniform,
                         has_dynamic_offset: false,
@@ -120,7 +123,7 @@ impl Renderer {
                 },
                 wgpu::BindGroupLayoutEntry {
                     binding: 1,
-                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    visibility: wgpu::ShaderStages::FRAGMENT.union(wgpu::ShaderStages::COMPUTE),
                     ty: wgpu::BindingType::Texture {
                         sample_type: wgpu::TextureSampleType::Float { filterable: true },
                         view_dimension: wgpu::TextureViewDimension::D3,
@@ -130,13 +133,13 @@ impl Renderer {
                 },
                 wgpu::BindGroupLayoutEntry {
                     binding: 2,
-                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    visibility: wgpu::ShaderStages::FRAGMENT.union(wgpu::ShaderStages::COMPUTE),
                     ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
                     count: None,
                 },
                 wgpu::BindGroupLayoutEntry {
                     binding: 3,
-                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    visibility: wgpu::ShaderStages::FRAGMENT.union(wgpu::ShaderStages::COMPUTE),
                     ty: wgpu::BindingType::Buffer {
                         ty: wgpu::BufferBindingType::Uniform,
                         has_dynamic_offset: false,
@@ -148,7 +151,7 @@ impl Renderer {
                 },
                 wgpu::BindGroupLayoutEntry {
                     binding: 4,
-                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    visibility: wgpu::ShaderStages::FRAGMENT.union(wgpu::ShaderStages::COMPUTE),
                     ty: wgpu::BindingType::Buffer {
                         ty: wgpu::BufferBindingType::Storage { read_only: true },
                         has_dynamic_offset: false,
@@ -220,6 +223,7 @@ impl Renderer {
             immediate_size: 0,
         });
         let fade_pipeline = voxel_pipeline(&device, &module, &fade_layout, &gbuffer_targets, "fs_fade");
+        let pass_timer = crate::pass_timer::PassTimer::new(&device, &queue);
         Self {
             device,
             queue,
@@ -238,6 +242,7 @@ impl Renderer {
             fade_pipeline,
             fade_buffer,
             fade_group,
+            pass_timer,
         }
     }
 
@@ -356,6 +361,7 @@ impl Renderer {
             forward,
             sources,
             block,
+            self.pass_timer.as_ref(),
         );
         if replaced {
             self.frame_group = frame_bind_group(
@@ -446,6 +452,7 @@ impl Renderer {
             settings.as_ref(),
             target,
             params.view_proj,
+            self.pass_timer.as_ref(),
         );
     }
 
@@ -474,7 +481,7 @@ impl Renderer {
                 }),
                 stencil_ops: None,
             }),
-            timestamp_writes: None,
+            timestamp_writes: self.pass_timer.as_ref().and_then(|t| t.render_writes("voxels")),
             occlusion_query_set: None,
             multiview_mask: None,
         });

@@ -568,6 +568,7 @@ impl Scene {
             &mut batch,
             &renderer.block_layout,
             upload,
+            renderer.pass_timer.as_ref(),
         );
         self.batch = batch;
         renderer.queue.submit([encoder.finish()]);
@@ -654,6 +655,10 @@ impl Scene {
     /// submits it. `now_ms` paces occupancy rebuilds while streaming.
     pub fn draw(&mut self, renderer: &mut Renderer, target: &wgpu::TextureView, now_ms: f64) -> DrawnFrame {
         self.frame_counter += 1;
+        if let Some(timer) = &renderer.pass_timer {
+            // The clipmap's update, submitted before the frame, is timed with it.
+            timer.begin_frame();
+        }
         let mut step = (self.clock)();
         self.take_feedback();
         self.stats.note_phase("feedback", &mut step, (self.clock)());
@@ -704,7 +709,10 @@ impl Scene {
         let occlusion = self.occlusion.get_or_insert_with(Occlusion::default);
         occlusion.prepare(&renderer.device, self.viewport, params.view_proj, tests, self.frame_counter);
         if let Some(depth) = renderer.depth_texture() {
-            occlusion.encode_copy(&renderer.device, &mut encoder, depth);
+            occlusion.encode_copy(&renderer.device, &mut encoder, depth, renderer.pass_timer.as_ref());
+        }
+        if let Some(timer) = &renderer.pass_timer {
+            timer.resolve(&mut encoder);
         }
         renderer.queue.submit([encoder.finish()]);
         occlusion.after_submit();

@@ -46,14 +46,21 @@ pub enum AoPass {
 impl AoPass {
     pub const ALL: [AoPass; 4] = [AoPass::Trace, AoPass::Upsample, AoPass::Temporal, AoPass::Composite];
 
-    /// The fragment entry point (the vertex one is `vs_fullscreen`).
+    /// The entry point: a compute one for the passes that write a texture of
+    /// their own, the fragment one of a full-screen triangle (`vs_fullscreen`)
+    /// for the composite, which writes the frame's target.
     pub fn entry_point(self) -> &'static str {
         match self {
-            AoPass::Trace => "fs_trace",
-            AoPass::Upsample => "fs_upsample",
-            AoPass::Temporal => "fs_temporal",
+            AoPass::Trace => "cs_trace",
+            AoPass::Upsample => "cs_upsample",
+            AoPass::Temporal => "cs_temporal",
             AoPass::Composite => "fs_composite",
         }
+    }
+
+    /// Whether the pass runs in compute (every pass but the composite).
+    pub fn is_compute(self) -> bool {
+        self != AoPass::Composite
     }
 
     /// The pass's module: frame.wgsl and screen.wgsl, then its own file
@@ -146,11 +153,13 @@ mod tests {
         );
         for pass in AoPass::ALL {
             let module = validate(pass.entry_point(), &pass.module_source());
+            let stage =
+                if pass.is_compute() { naga::ShaderStage::Compute } else { naga::ShaderStage::Fragment };
             assert_eq!(
                 entry_points(&module),
                 vec![
                     ("vs_fullscreen".to_string(), naga::ShaderStage::Vertex),
-                    (pass.entry_point().to_string(), naga::ShaderStage::Fragment),
+                    (pass.entry_point().to_string(), stage),
                 ]
             );
         }

@@ -54,6 +54,19 @@ pub struct AoBenchArgs {
     /// info.json (size, grid origin, voxel size, R), for error maps.
     #[arg(long)]
     pub dump_dir: Option<PathBuf>,
+    /// Time every point without a reference (no error columns): for timing on
+    /// a GPU at full size, e.g. `--time-only --width 1920 --height 1080`.
+    /// Writes ao-timing.md instead of ao-benchmark.md and the plot.
+    #[arg(long)]
+    pub time_only: bool,
+    /// Timed frames per point, with AO and without (medians).
+    #[arg(long, default_value_t = 3)]
+    pub timing_runs: usize,
+    /// Keep each view's built scene and camera under DIR and reuse them on the
+    /// next run (which then needs neither the mesh nor a build, only with
+    /// --time-only: the reference needs the mesh).
+    #[arg(long, value_name = "DIR")]
+    pub scene_cache: Option<PathBuf>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -234,6 +247,11 @@ pub struct Row {
     /// Against the ray-traced view of the mesh (voxelization included).
     pub primary_rmse: f64,
     pub primary_bias: f64,
+    /// GPU time of the AO passes and of the frame without AO (timestamp queries; `None` without them).
+    pub gpu_ao_ms: Option<f64>,
+    pub gpu_frame_no_ao_ms: Option<f64>,
+    /// Each pass's GPU time in the frame with AO.
+    pub gpu_passes_ms: Option<Vec<crate::render::PassMs>>,
 }
 
 /// One image scale's reference: scale, the points, V, one-ray variance, exact V
@@ -252,6 +270,140 @@ struct View {
     mesh: PathBuf,
     camera: CameraSpec,
     shapes: Option<Vec<analytic::Shape>>,
+}
+
+/// A view's built scene kept by `--scene-cache`: `<dir>/<view>@<resolution>.json`
+/// names the scene's directory (relative to `<dir>`) and the camera.
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
+struct CachedScene {
+    scene: String,
+    camera: CameraSpec,
+}
+
+impl CachedScene {
+    fn path(dir: &Path, view: &str, resolution: u32) -> PathBuf {
+        dir.join(format!("{view}@{resolution}.json"))
+    }
+
+    /// The cached scene, if its record parses and its manifest is there.
+    fn load(dir: &Path, view: &str, resolution: u32) -> Option<Self> {
+        let c: CachedScene =
+            serde_json::from_slice(&std::fs::read(Self::path(dir, view, resolution)).ok()?).ok()?;
+        dir.join(&c.scene).join("manifest.json").is_file().then_some(c)
+    }
+}
+
+/// The view's scene directory: from the cache, or built (into the cache, when there is one).
+fn scene_for(view: &View, args: &AoBenchArgs, scratch: &Path) -> anyhow::Result<PathBuf> {
+    if let Some((dir, c)) =
+        args.scene_cache.as_ref().and_then(|d| Some((d, CachedScene::load(d, &view.name, args.resolution)?)))
+    {
+        return Ok(dir.join(c.scene));
+    }
+    let store = args.scene_cache.clone().unwrap_or_else(|| scratch.to_path_buf());
+    let name = view.name.replace('_', "-");
+    let options = crate::pipeline::BuildOptions {
+        resolution: crate::pipeline::Resolution::Explicit(args.resolution),
+        // A cache holds a view at several resolutions, each its own scene.
+        name: Some(if args.scene_cache.is_some() { format!("{name}-{}", args.resolution) } else { name }),
+        // Both modes are benchmarked from one build; cone tracing ignores the field.
+        ao_field: Some(Default::default()),
+        ..Default::default()
+    };
+    let scene_dir = crate::pipeline::build_scene(&view.mesh, &store, &options)
+        .with_context(|| format!("building {}", view.mesh.display()))?
+        .scene_dir;
+    if let Some(dir) = &args.scene_cache {
+        let scene = scene_dir.strip_prefix(dir).unwrap_or(&scene_dir).to_string_lossy().into_owned();
+        let record = serde_json::to_vec_pretty(&CachedScene { scene, camera: view.camera })?;
+        let path = CachedScene::path(dir, &view.name, args.resolution);
+        std::fs::write(&path, record).with_context(|| format!("writing {}", path.display()))?;
+    }
+    Ok(scene_dir)
+}
+
+impl Row {
+    /// A timed render without a reference (`--time-only`): error columns NaN.
+    fn timed(view: &View, point: &Point, out: &crate::render::RenderOutput) -> Self {
+        let t = &out.info.timings;
+        Row {
+            view: view.name.clone(),
+            point: point.label.clone(),
+            width: out.info.width,
+            height: out.info.height,
+            frames: point.frames,
+            frame_ms: t.frame_ms.unwrap_or(f64::NAN),
+            frame_no_ao_ms: t.frame_no_ao_ms.unwrap_or(f64::NAN),
+            ao_over_frame: t.ao_over_frame.unwrap_or(f64::NAN),
+            rmse: f64::NAN,
+            bias: f64::NAN,
+            ssim: f64::NAN,
+            equal_error_rays: None,
+            exact_mae: None,
+            primary_rmse: f64::NAN,
+            primary_bias: f64::NAN,
+            gpu_ao_ms: t.gpu_ao_ms,
+            gpu_frame_no_ao_ms: t.gpu_frame_no_ao_ms,
+            gpu_passes_ms: t.gpu_passes_ms.clone(),
+        }
+    }
+}
+
+/// `--time-only`: ao-timing.md (every view and point: wall-clock frames, and
+/// each pass's GPU time where the adapter has timestamps) and the JSON.
+fn write_timing(args: &AoBenchArgs, rows: &[Row], skipped: &[String]) -> anyhow::Result<()> {
+    use std::fmt::Write;
+    let adapter = voxstream_viewer::offscreen::Gpu::new().map(|g| g.adapter_name()).unwrap_or_default();
+    let mut s = String::new();
+    writeln!(s, "# AO pass timing on {adapter}\n")?;
+    writeln!(
+        s,
+        "Written by `voxstream ao-bench --time-only` (server/src/reference/bench.rs): scenes built at {}³, images {}×{} (2× for a `2x resolution` point), {} timed frames per point with AO and as many without, medians. `frame` is wall time from encoding to GPU idle (CPU work included); `GPU` columns are timestamp queries around each pass. GPU AO = trace + upsample + temporal passes; `GPU AO / frame` divides it by the GPU time of the frame without AO (G-buffer draw, composite, depth reduce).\n",
+        args.resolution, args.width, args.height, args.timing_runs
+    )?;
+    if !skipped.is_empty() {
+        writeln!(s, "Views skipped: {}.\n", skipped.join("; "))?;
+    }
+    writeln!(
+        s,
+        "| view | setting | size | frame ms | no-AO frame ms | GPU AO ms | GPU frame without AO ms | GPU AO / frame | GPU passes with AO (ms) |"
+    )?;
+    writeln!(s, "|---|---|---|---:|---:|---:|---:|---:|---|")?;
+    for r in rows {
+        let ratio = r.gpu_ao_ms.zip(r.gpu_frame_no_ao_ms).map(|(a, f)| a / f);
+        let passes = r.gpu_passes_ms.as_ref().map_or("—".to_string(), |p| {
+            p.iter().map(|x| format!("{} {:.3}", x.pass, x.ms)).collect::<Vec<_>>().join(", ")
+        });
+        writeln!(
+            s,
+            "| {} | {} | {}×{} | {:.2} | {:.2} | {} | {} | {} | {} |",
+            r.view,
+            r.point,
+            r.width,
+            r.height,
+            r.frame_ms,
+            r.frame_no_ao_ms,
+            fmt_opt(r.gpu_ao_ms, 3),
+            fmt_opt(r.gpu_frame_no_ao_ms, 3),
+            fmt_opt(ratio, 2),
+            passes
+        )?;
+    }
+    let path = args.out_dir.join("ao-timing.md");
+    std::fs::write(&path, s).with_context(|| format!("writing {}", path.display()))?;
+    println!(
+        "{}",
+        serde_json::to_string_pretty(&serde_json::json!({
+            "adapter": adapter,
+            "resolution": args.resolution,
+            "width": args.width,
+            "height": args.height,
+            "timing_runs": args.timing_runs,
+            "skipped": skipped,
+            "rows": rows,
+        }))?
+    );
+    Ok(())
 }
 
 /// Writes one render's per-pixel arrays beside the reference's (`--dump-dir`).
@@ -331,6 +483,14 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
         if !args.views.is_empty() && !args.views.iter().any(|v| v == name) {
             continue;
         }
+        if let Some(cached) =
+            args.scene_cache.as_deref().and_then(|d| CachedScene::load(d, name, args.resolution))
+        {
+            if !mesh.is_file() && args.time_only {
+                views.push(View { name: name.to_string(), mesh, camera: cached.camera, shapes: None });
+                continue;
+            }
+        }
         if !mesh.is_file() {
             skipped.push(format!("{name}: {} absent", mesh.display()));
             continue;
@@ -367,17 +527,8 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
     let mut rows = Vec::new();
     for view in &views {
         eprintln!("ao-bench: {} ...", view.name);
-        let options = crate::pipeline::BuildOptions {
-            resolution: crate::pipeline::Resolution::Explicit(args.resolution),
-            name: Some(view.name.replace('_', "-")),
-            // Both modes are benchmarked from one build; cone tracing ignores the field.
-            ao_field: Some(Default::default()),
-            ..Default::default()
-        };
-        let scene_dir = crate::pipeline::build_scene(&view.mesh, &store, &options)
-            .with_context(|| format!("building {}", view.mesh.display()))?
-            .scene_dir;
-        let (mesh, _) = crate::pipeline::read::read_mesh(&view.mesh)?;
+        let scene_dir = scene_for(view, args, &store)?;
+        let mesh = if args.time_only { None } else { Some(crate::pipeline::read::read_mesh(&view.mesh)?.0) };
         let mut bvh: Option<MeshBvh> = None;
         // Reference per image scale, at the default render's points.
         let mut references: Vec<ScaleReference> = Vec::new();
@@ -390,10 +541,25 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
                 height: h,
                 ao: point.settings,
                 max_distance: None,
-                timing_runs: 3,
+                timing_runs: args.timing_runs,
                 ao_frames: point.frames,
             })?;
-            let bvh = bvh.get_or_insert_with(|| MeshBvh::new(&mesh, out.info.grid_origin));
+            let Some(mesh) = &mesh else {
+                rows.push(Row::timed(view, point, &out));
+                let r = rows.last().expect("just pushed");
+                eprintln!(
+                    "  {:36} {}x{}  frame {:8.2} ms (no AO {:.2})  GPU AO {} ms  GPU frame without AO {} ms",
+                    point.label,
+                    w,
+                    h,
+                    r.frame_ms,
+                    r.frame_no_ao_ms,
+                    fmt_opt(r.gpu_ao_ms, 3),
+                    fmt_opt(r.gpu_frame_no_ao_ms, 3)
+                );
+                continue;
+            };
+            let bvh = bvh.get_or_insert_with(|| MeshBvh::new(mesh, out.info.grid_origin));
             if !references.iter().any(|r| r.scale == point.scale) {
                 let params = AoParams {
                     max_distance: out.info.ao.max_distance,
@@ -443,6 +609,9 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
                 exact_mae: exact.as_ref().map(|e| exact_error(&out.ao, e).mae),
                 primary_rmse: p.rmse,
                 primary_bias: p.bias,
+                gpu_ao_ms: t.gpu_ao_ms,
+                gpu_frame_no_ao_ms: t.gpu_frame_no_ao_ms,
+                gpu_passes_ms: t.gpu_passes_ms.clone(),
             });
             eprintln!(
                 "  {:36} {:8.1} ms  RMSE {:.4}  bias {:+.4}  eq. rays {}",
@@ -455,6 +624,9 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
         }
     }
     std::fs::create_dir_all(&args.out_dir)?;
+    if args.time_only {
+        return write_timing(args, &rows, &skipped);
+    }
     let summary = summarize(&points, &rows);
     write_markdown(&args.out_dir.join("ao-benchmark.md"), args, &rows, &summary, &skipped)?;
     write_pareto_png(&args.out_dir.join("ao-pareto.png"), &summary)?;

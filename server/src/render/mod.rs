@@ -222,6 +222,79 @@ pub struct Timings {
     /// ao_pass_ms / frame_no_ao_ms.
     pub ao_over_frame: Option<f64>,
     pub runs: usize,
+    /// GPU time (timestamp queries) of each pass of the frame with AO, median
+    /// per pass, in frame order; absent where the adapter has no timestamps.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gpu_passes_ms: Option<Vec<PassMs>>,
+    /// The same for the frame with AO off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gpu_passes_no_ao_ms: Option<Vec<PassMs>>,
+    /// GPU time of the AO passes (trace, upsample, temporal) in the frame with AO.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gpu_ao_ms: Option<f64>,
+    /// GPU time of every timed pass of the frame without AO (the G-buffer draw,
+    /// the composite and the depth reduce).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gpu_frame_no_ao_ms: Option<f64>,
+}
+
+/// One pass's median GPU time.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PassMs {
+    pub pass: String,
+    pub ms: f64,
+}
+
+/// The passes whose GPU time is the AO's (the AO's own full-screen passes; the
+/// composite runs with AO off too).
+pub const AO_PASSES: [&str; 3] = ["cs_trace", "cs_upsample", "cs_temporal"];
+
+impl Timings {
+    /// Timings of a frame with AO and one without, timed by `with` and `without`.
+    pub fn from_frames(
+        with: &voxstream_viewer::offscreen::FrameTiming,
+        without: &voxstream_viewer::offscreen::FrameTiming,
+        runs: usize,
+    ) -> Self {
+        let listed = |t: &voxstream_viewer::offscreen::FrameTiming| {
+            t.gpu_passes
+                .as_ref()
+                .map(|p| p.iter().map(|x| PassMs { pass: x.label.to_string(), ms: x.ms }).collect::<Vec<_>>())
+        };
+        let gpu_passes_ms = listed(with);
+        let gpu_passes_no_ao_ms = listed(without);
+        let gpu_ao_ms = gpu_passes_ms
+            .as_ref()
+            .map(|p| p.iter().filter(|x| AO_PASSES.contains(&x.pass.as_str())).map(|x| x.ms).sum());
+        let gpu_frame_no_ao_ms = gpu_passes_no_ao_ms.as_ref().map(|p| p.iter().map(|x| x.ms).sum());
+        let (w, wo) = (with.cpu_ms, without.cpu_ms);
+        Timings {
+            frame_ms: Some(w),
+            frame_no_ao_ms: Some(wo),
+            ao_pass_ms: Some(w - wo),
+            ao_over_frame: Some((w - wo) / wo),
+            runs,
+            gpu_passes_ms,
+            gpu_passes_no_ao_ms,
+            gpu_ao_ms,
+            gpu_frame_no_ao_ms,
+        }
+    }
+
+    /// No timing asked for.
+    pub fn none() -> Self {
+        Timings {
+            frame_ms: None,
+            frame_no_ao_ms: None,
+            ao_pass_ms: None,
+            ao_over_frame: None,
+            runs: 0,
+            gpu_passes_ms: None,
+            gpu_passes_no_ao_ms: None,
+            gpu_ao_ms: None,
+            gpu_frame_no_ao_ms: None,
+        }
+    }
 }
 
 /// render.json.
@@ -330,15 +403,9 @@ pub fn render_view(req: &RenderRequest) -> anyhow::Result<RenderOutput> {
     let timings = if req.timing_runs > 0 {
         let with = offscreen.time_frames(1.0, req.timing_runs)?;
         let without = offscreen.time_frames(0.0, req.timing_runs)?;
-        Timings {
-            frame_ms: Some(with),
-            frame_no_ao_ms: Some(without),
-            ao_pass_ms: Some(with - without),
-            ao_over_frame: Some((with - without) / without),
-            runs: req.timing_runs,
-        }
+        Timings::from_frames(&with, &without, req.timing_runs)
     } else {
-        Timings { frame_ms: None, frame_no_ao_ms: None, ao_pass_ms: None, ao_over_frame: None, runs: 0 }
+        Timings::none()
     };
     let n = (w * h) as usize;
     let mut ao_out = vec![f32::NAN; n];
@@ -635,11 +702,9 @@ mod tests {
                     frames: 8,
                 },
                 timings: Timings {
-                    frame_ms: None,
-                    frame_no_ao_ms: None,
-                    ao_pass_ms: None,
-                    ao_over_frame: None,
-                    runs: 0,
+                    gpu_passes_ms: Some(vec![PassMs { pass: "cs_trace".into(), ms: 0.25 }]),
+                    gpu_ao_ms: Some(0.25),
+                    ..Timings::none()
                 },
                 adapter: "test".into(),
                 blocks_drawn: 0,

@@ -1,0 +1,223 @@
+//! GPU time of each pass of a frame, from timestamp queries, on devices that
+//! have them (native Vulkan, lavapipe included; the browser does not ask for
+//! the feature). A frame's timed passes write a timestamp as they begin and
+//! end; [`PassTimer::resolve`] copies them into a mappable buffer at the end of
+//! the frame's encoder, and a native caller reads them once the GPU is idle.
+//!
+//! Why timestamps and not the wall clock around a frame: on a real GPU the AO
+//! passes take well under a millisecond, less than the CPU's own cost of
+//! encoding and waiting, so `frame with AO − frame without` is mostly noise
+//! there.
+
+use std::cell::{Cell, RefCell};
+
+/// Passes a frame can time (a query pair each).
+pub const MAX_TIMED_PASSES: u32 = 16;
+
+/// Timestamp queries over the passes of one frame.
+pub struct PassTimer {
+    query_set: wgpu::QuerySet,
+    resolve: wgpu::Buffer,
+    readback: wgpu::Buffer,
+    /// Nanoseconds per timestamp tick.
+    period_ns: f64,
+    /// This frame's timed passes, in the order their pairs were handed out.
+    labels: RefCell<Vec<&'static str>>,
+    /// Passes resolved into `readback` by the last frame (its labels' prefix).
+    resolved: Cell<u32>,
+}
+
+/// One pass's GPU time.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PassTime {
+    pub label: &'static str,
+    pub ms: f64,
+}
+
+impl PassTimer {
+    /// `None` when the device was not created with [`wgpu::Features::TIMESTAMP_QUERY`].
+    pub fn new(device: &wgpu::Device, queue: &wgpu::Queue) -> Option<Self> {
+        if !device.features().contains(wgpu::Features::TIMESTAMP_QUERY) {
+            return None;
+        }
+        let count = 2 * MAX_TIMED_PASSES;
+        let bytes = count as u64 * wgpu::QUERY_SIZE as u64;
+        let query_set = device.create_query_set(&wgpu::QuerySetDescriptor {
+            label: Some("pass timestamps"),
+            ty: wgpu::QueryType::Timestamp,
+            count,
+        });
+        let resolve = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("pass timestamps, resolved"),
+            size: bytes,
+            usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        });
+        let readback = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("pass timestamps, readback"),
+            size: bytes,
+            usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+            mapped_at_creation: false,
+        });
+        Some(Self {
+            query_set,
+            resolve,
+            readback,
+            period_ns: queue.get_timestamp_period() as f64,
+            labels: RefCell::new(Vec::new()),
+            resolved: Cell::new(0),
+        })
+    }
+
+    /// Forgets the last frame's passes: the next pairs start at 0.
+    pub fn begin_frame(&self) {
+        self.labels.borrow_mut().clear();
+    }
+
+    /// The next query pair for a pass named `label`; `None` once every pair is taken.
+    fn pair(&self, label: &'static str) -> Option<u32> {
+        let mut labels = self.labels.borrow_mut();
+        let index = labels.len() as u32;
+        (index < MAX_TIMED_PASSES).then(|| {
+            labels.push(label);
+            2 * index
+        })
+    }
+
+    /// Timestamp writes for a render pass named `label`.
+    pub fn render_writes(&self, label: &'static str) -> Option<wgpu::RenderPassTimestampWrites<'_>> {
+        self.pair(label).map(|i| wgpu::RenderPassTimestampWrites {
+            query_set: &self.query_set,
+            beginning_of_pass_write_index: Some(i),
+            end_of_pass_write_index: Some(i + 1),
+        })
+    }
+
+    /// Timestamp writes for a compute pass named `label`.
+    pub fn compute_writes(&self, label: &'static str) -> Option<wgpu::ComputePassTimestampWrites<'_>> {
+        self.pair(label).map(|i| wgpu::ComputePassTimestampWrites {
+            query_set: &self.query_set,
+            beginning_of_pass_write_index: Some(i),
+            end_of_pass_write_index: Some(i + 1),
+        })
+    }
+
+    /// Copies this frame's timestamps to the readback buffer (last in the frame's encoder).
+    pub fn resolve(&self, encoder: &mut wgpu::CommandEncoder) {
+        let passes = self.labels.borrow().len() as u32;
+        self.resolved.set(passes);
+        if passes == 0 {
+            return;
+        }
+        encoder.resolve_query_set(&self.query_set, 0..2 * passes, &self.resolve, 0);
+        encoder.copy_buffer_to_buffer(
+            &self.resolve,
+            0,
+            &self.readback,
+            0,
+            2 * passes as u64 * wgpu::QUERY_SIZE as u64,
+        );
+    }
+
+    /// The last resolved frame's pass times, in pass order (native: blocks
+    /// until the copy is done). A pass the device reports out of order (end
+    /// before start) reads as NaN rather than a wrapped huge number.
+    #[cfg(not(target_arch = "wasm32"))]
+    pub fn read(&self, device: &wgpu::Device) -> Result<Vec<PassTime>, String> {
+        let passes = self.resolved.get();
+        if passes == 0 {
+            return Ok(Vec::new());
+        }
+        let bytes = 2 * passes as u64 * wgpu::QUERY_SIZE as u64;
+        let slice = self.readback.slice(..bytes);
+        let (tx, rx) = std::sync::mpsc::channel();
+        slice.map_async(wgpu::MapMode::Read, move |r| {
+            let _ = tx.send(r);
+        });
+        device.poll(wgpu::PollType::wait_indefinitely()).map_err(|e| e.to_string())?;
+        rx.recv().map_err(|e| e.to_string())?.map_err(|e| e.to_string())?;
+        let ticks: Vec<u64> = {
+            let view = slice.get_mapped_range().map_err(|e| format!("{e:?}"))?;
+            view.chunks_exact(8).map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes"))).collect()
+        };
+        self.readback.unmap();
+        let labels = self.labels.borrow();
+        Ok(ticks_to_times(&ticks, &labels[..passes as usize], self.period_ns))
+    }
+}
+
+/// Pass times from (start, end) tick pairs in pass order.
+pub fn ticks_to_times(ticks: &[u64], labels: &[&'static str], period_ns: f64) -> Vec<PassTime> {
+    labels
+        .iter()
+        .zip(ticks.chunks_exact(2))
+        .map(|(&label, pair)| PassTime {
+            label,
+            ms: match pair[1].checked_sub(pair[0]) {
+                Some(d) => d as f64 * period_ns * 1e-6,
+                None => f64::NAN,
+            },
+        })
+        .collect()
+}
+
+/// Median milliseconds per pass label over several frames' times (labels in
+/// first-seen order; a pass missing from some frames has the median of those
+/// it is in; NaN samples are left out).
+pub fn median_by_label(frames: &[Vec<PassTime>]) -> Vec<PassTime> {
+    let mut labels: Vec<&'static str> = Vec::new();
+    for t in frames.iter().flatten() {
+        if !labels.contains(&t.label) {
+            labels.push(t.label);
+        }
+    }
+    labels
+        .into_iter()
+        .map(|label| {
+            // A label twice in a frame (e.g. two passes of one kind) is summed first.
+            let mut samples: Vec<f64> = frames
+                .iter()
+                .filter(|f| f.iter().any(|t| t.label == label))
+                .map(|f| f.iter().filter(|t| t.label == label).map(|t| t.ms).sum::<f64>())
+                .filter(|ms| ms.is_finite())
+                .collect();
+            samples.sort_by(f64::total_cmp);
+            let ms = samples.get(samples.len() / 2).copied().unwrap_or(f64::NAN);
+            PassTime { label, ms }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ticks_become_milliseconds_in_pass_order() {
+        // 1 tick = 1 ns: 2 ms and 0.5 ms.
+        let t = ticks_to_times(&[1_000_000, 3_000_000, 3_000_000, 3_500_000], &["a", "b"], 1.0);
+        assert_eq!(t, vec![PassTime { label: "a", ms: 2.0 }, PassTime { label: "b", ms: 0.5 }]);
+        // Control: a pass whose end precedes its start is NaN, not 1.8e13 ms.
+        let t = ticks_to_times(&[5, 4], &["a"], 1.0);
+        assert!(t[0].ms.is_nan());
+        // A period other than 1 ns scales.
+        let t = ticks_to_times(&[0, 1000], &["a"], 2.5);
+        assert!((t[0].ms - 0.0025).abs() < 1e-12);
+    }
+
+    #[test]
+    fn medians_are_per_label_and_sum_repeats_within_a_frame() {
+        let frame = |v: &[(&'static str, f64)]| v.iter().map(|&(label, ms)| PassTime { label, ms }).collect();
+        let frames = vec![
+            frame(&[("draw", 1.0), ("ao", 0.2), ("ao", 0.1)]),
+            frame(&[("draw", 3.0), ("ao", 0.4)]),
+            frame(&[("draw", 2.0), ("ao", f64::NAN)]),
+        ];
+        let m = median_by_label(&frames);
+        assert_eq!(m[0], PassTime { label: "draw", ms: 2.0 });
+        // ao: 0.3 (summed), 0.4, NaN left out: the upper of two.
+        assert_eq!(m[1].label, "ao");
+        assert!((m[1].ms - 0.4).abs() < 1e-12, "{m:?}");
+        assert_eq!(median_by_label(&[]), Vec::new());
+    }
+}
