@@ -14,20 +14,6 @@
 // frame.wgsl, whose `frame`, `occupancy`, `occupancy_sampler`, `clipmap` and
 // `clipmap_cells` bindings it reads; ao_trace.wgsl calls `ambient_visibility`).
 
-// Opacity 0..1 of grid cell `w` of clipmap level `level` (w inside its region).
-fn clip_cell(level: u32, w: vec3<i32>) -> f32 {
-    // Nothing lies outside the scene grid; its cells are read as empty without
-    // a load (their toroidal slot may hold a cell from the level's other side).
-    if any(w < vec3<i32>(0)) || any(w >= vec3<i32>(i32(clip_grid_cells(level)))) {
-        return 0.0;
-    }
-    let n = i32(clipmap.info.y);
-    let m = vec3<u32>((w % n + n) % n);
-    let un = u32(n);
-    let index = level * un * un * un + (m.z * un + m.y) * un + m.x;
-    return min(f32(clipmap_cells[index]) / 4096.0, 1.0);
-}
-
 // Edge of a level's cell in grid units.
 fn clip_cell_edge(level: u32) -> f32 {
     return clipmap.info.z * exp2(f32(level));
@@ -68,20 +54,61 @@ fn clip_holds_within(level: u32, p: vec3<f32>, margin: f32) -> bool {
 // height above the surface is a few cells at most, then stay in the level.
 const CLIP_HOME_MARGIN: f32 = 12.0;
 
+// Opacity 0..1 of the cell at storage index `index` (toroidal slot of a
+// level), 0 where `known` is false: nothing lies outside the scene grid, and
+// the slot of a cell outside it may hold a cell from the level's other side.
+fn clip_load(index: u32, known: bool) -> f32 {
+    return select(0.0, min(f32(clipmap_cells[index]) / 4096.0, 1.0), known);
+}
+
 // Trilinear opacity of one level at `p` (grid units); with `box_read`, the
-// opacity of the one cell p lies in (the same eight loads, weights 0 or 1).
+// opacity of the one cell p lies in. The two cells' toroidal slots along each
+// axis are found once per sample, by a mask, not by a modulo per cell: integer
+// modulo costs many instructions on a GPU, and 16 cells a quadrilinear sample
+// made it the trace's largest cost.
 fn clip_trilinear(level: u32, p: vec3<f32>, box_read: bool) -> f32 {
     let q = p / clip_cell_edge(level) - 0.5;
     let base = floor(q);
-    var f = q - base;
-    if box_read {
-        f = select(vec3<f32>(0.0), vec3<f32>(1.0), f >= vec3<f32>(0.5));
-    }
+    let f = q - base;
     let b = vec3<i32>(base);
-    let x00 = mix(clip_cell(level, b), clip_cell(level, b + vec3<i32>(1, 0, 0)), f.x);
-    let x10 = mix(clip_cell(level, b + vec3<i32>(0, 1, 0)), clip_cell(level, b + vec3<i32>(1, 1, 0)), f.x);
-    let x01 = mix(clip_cell(level, b + vec3<i32>(0, 0, 1)), clip_cell(level, b + vec3<i32>(1, 0, 1)), f.x);
-    let x11 = mix(clip_cell(level, b + vec3<i32>(0, 1, 1)), clip_cell(level, b + vec3<i32>(1, 1, 1)), f.x);
+    let n = i32(clipmap.info.y);
+    let g = i32(clip_grid_cells(level));
+    // Levels have a power-of-two edge (OccupancyClipmap::new): the slot is a mask, negatives included.
+    let m0 = b & vec3<i32>(n - 1);
+    let m1 = select(m0 + vec3<i32>(1), vec3<i32>(0), m0 + vec3<i32>(1) == vec3<i32>(n));
+    let known0 = (b >= vec3<i32>(0)) & (b < vec3<i32>(g));
+    let known1 = (b >= vec3<i32>(-1)) & (b < vec3<i32>(g - 1));
+    let un = u32(n);
+    let first = level * un * un * un;
+    let x = vec2<u32>(u32(m0.x), u32(m1.x));
+    let y = vec2<u32>(u32(m0.y), u32(m1.y)) * un;
+    let z = vec2<u32>(u32(m0.z), u32(m1.z)) * un * un + vec2<u32>(first);
+    if box_read {
+        let c = f >= vec3<f32>(0.5);
+        let known = select(known0, known1, c);
+        let index = select(z.x, z.y, c.z) + select(y.x, y.y, c.y) + select(x.x, x.y, c.x);
+        return clip_load(index, all(known));
+    }
+    let x00 = mix(
+        clip_load(z.x + y.x + x.x, known0.z && known0.y && known0.x),
+        clip_load(z.x + y.x + x.y, known0.z && known0.y && known1.x),
+        f.x,
+    );
+    let x10 = mix(
+        clip_load(z.x + y.y + x.x, known0.z && known1.y && known0.x),
+        clip_load(z.x + y.y + x.y, known0.z && known1.y && known1.x),
+        f.x,
+    );
+    let x01 = mix(
+        clip_load(z.y + y.x + x.x, known1.z && known0.y && known0.x),
+        clip_load(z.y + y.x + x.y, known1.z && known0.y && known1.x),
+        f.x,
+    );
+    let x11 = mix(
+        clip_load(z.y + y.y + x.x, known1.z && known1.y && known0.x),
+        clip_load(z.y + y.y + x.y, known1.z && known1.y && known1.x),
+        f.x,
+    );
     return mix(mix(x00, x10, f.y), mix(x01, x11, f.y), f.z);
 }
 

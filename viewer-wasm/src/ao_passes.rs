@@ -498,6 +498,7 @@ impl AoPasses {
 
     /// Records the passes after the voxel draw: the AO passes `settings` ask
     /// for (none when `None`: AO off), then the composite into `target`.
+    #[allow(clippy::too_many_arguments)]
     pub fn encode(
         &mut self,
         device: &wgpu::Device,

@@ -93,7 +93,7 @@ impl ClipmapLayout {
     /// but the closed room 0.031 → 0.042 and the Cornell box 0.041 → 0.043
     /// (wide cones over-occlude in rooms), so they are not used.
     pub fn for_scene(grid_resolution: u32, finest_voxel: u32, cells: u32) -> Self {
-        let cells = (cells.max(8) / 2) * 2;
+        let cells = cells.max(8).next_power_of_two();
         let mut finest_cell = finest_voxel.clamp(1, 1 << 30).next_power_of_two();
         while levels_to_cover(grid_resolution, finest_cell, cells) > MAX_CLIP_LEVELS {
             finest_cell *= 2;
@@ -369,7 +369,8 @@ impl OccupancyClipmap {
     /// A clipmap of `cells`³ levels; its cells are allocated by the first
     /// [`OccupancyClipmap::update`] (a placeholder until then).
     pub fn new(device: &wgpu::Device, cells: u32) -> Self {
-        let cells = (cells.max(8) / 2) * 2;
+        // A power of two: the trace finds a cell's toroidal slot by a mask (ao.wgsl).
+        let cells = cells.max(8).next_power_of_two();
         let uniform_buffer = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("clipmap uniform"),
             size: size_of::<ClipmapUniform>() as u64,
