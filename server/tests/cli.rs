@@ -212,3 +212,71 @@ fn object_store_misconfiguration_fails_fast_and_clearly() {
         assert!(!err.contains(secret), "the secret was printed: {err}");
     }
 }
+
+/// `voxstream render` without AO flags renders the viewer's own default
+/// setting (what a still view converges to in the browser), and each flag
+/// overrides its part (the control: the same command with flags differs).
+#[test]
+fn a_plain_render_shows_the_viewers_default_ao() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    // A box 2 units a side: 12 triangles.
+    let cube = b"v 0 0 0\nv 2 0 0\nv 2 2 0\nv 0 2 0\nv 0 0 2\nv 2 0 2\nv 2 2 2\nv 0 2 2\n\
+f 1 3 2\nf 1 4 3\nf 5 6 7\nf 5 7 8\nf 1 2 6\nf 1 6 5\nf 4 7 3\nf 4 8 7\nf 1 5 8\nf 1 8 4\nf 2 3 7\nf 2 7 6\n";
+    let mesh = write(&dir, "cube.obj", cube);
+    let (ok, _, err) = voxstream(&[
+        "build",
+        &mesh,
+        "--out",
+        store.to_str().unwrap(),
+        "--name",
+        "cube",
+        "--resolution",
+        "64",
+    ]);
+    assert!(ok, "build: {err}");
+    let camera = write(
+        &dir,
+        "camera.json",
+        br#"{"eye":[5,4,6],"target":[1,1,1],"up":[0,1,0],"fov_y_deg":40,"near":0.05,"far":50}"#,
+    );
+    let scene = store.join("cube");
+    let render = |out: &str, extra: &[&str]| -> serde_json::Value {
+        let out = dir.path().join(out);
+        let mut args = vec![
+            "render",
+            "--scene",
+            scene.to_str().unwrap(),
+            "--camera",
+            &camera,
+            "--width",
+            "32",
+            "--height",
+            "24",
+            "--timing-runs",
+            "0",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        let (ok, _, err) = voxstream(&args);
+        assert!(ok, "render {extra:?}: {err}");
+        serde_json::from_slice(&std::fs::read(out.join("render.json")).unwrap()).unwrap()
+    };
+    let plain = render("plain", &[]);
+    let d = voxstream_viewer::ao::AoSettings::default();
+    let ao = &plain["ao"];
+    assert_eq!(ao["cones"], d.cones, "{ao}");
+    assert_eq!(ao["step"], d.step as f64, "{ao}");
+    assert_eq!(ao["trace_downscale"], d.trace_downscale, "{ao}");
+    assert_eq!(ao["frames"], d.temporal_frames, "{ao}");
+    assert_eq!(ao["empty_skip"], d.empty_skip, "{ao}");
+    let flagged = render(
+        "flagged",
+        &["--cones", "16", "--step", "0.5", "--ao-downscale", "1", "--ao-frames", "1", "--empty-skip"],
+    );
+    let ao = &flagged["ao"];
+    assert_eq!((ao["cones"].as_u64(), ao["step"].as_f64()), (Some(16), Some(0.5)), "{ao}");
+    assert_eq!((ao["trace_downscale"].as_u64(), ao["frames"].as_u64()), (Some(1), Some(1)), "{ao}");
+    assert_eq!(ao["empty_skip"], true, "{ao}");
+}

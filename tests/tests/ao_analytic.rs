@@ -326,3 +326,46 @@ fn a_wrong_field_fails_the_exact_check() {
     assert!(out.info.ao.field.is_none(), "a scene without a field records one");
     check_outputs("no field", &out);
 }
+
+/// Every pass of a frame is timed by the GPU (timestamp queries, which
+/// lavapipe has): with AO, the G-buffer draw, the three AO compute passes and
+/// the composite, in frame order; without AO (the control), no AO pass, and
+/// `gpu_ao_ms` is the AO passes' sum, not the frame's.
+#[test]
+fn the_passes_of_a_frame_are_timed_by_the_gpu() {
+    let store = tempfile::tempdir().unwrap();
+    let scene = analytic::scenes().into_iter().find(|s| s.name == "sphere_on_plane").expect("scene");
+    let dir = analytic::build(&scene, store.path(), RESOLUTION).expect("build");
+    let out = voxstream::render::render_view(&voxstream::render::RenderRequest {
+        scene_dir: dir,
+        camera: scene.camera,
+        width: WIDTH,
+        height: HEIGHT,
+        ao: AoSettings::default(),
+        max_distance: None,
+        timing_runs: 2,
+        ao_frames: 1,
+    })
+    .expect("render");
+    let t = &out.info.timings;
+    println!("{t:?} on {}", out.info.adapter);
+    let names = |p: &Option<Vec<voxstream::render::PassMs>>| -> Vec<String> {
+        p.as_ref().expect("the adapter has timestamp queries").iter().map(|x| x.pass.clone()).collect()
+    };
+    let with = names(&t.gpu_passes_ms);
+    let without = names(&t.gpu_passes_no_ao_ms);
+    let ao = ["cs_trace", "cs_upsample", "cs_temporal"];
+    let at = |list: &[String], name: &str| list.iter().position(|p| p == name);
+    let order: Vec<Option<usize>> =
+        ["voxels", ao[0], ao[1], ao[2], "fs_composite"].iter().map(|n| at(&with, n)).collect();
+    assert!(order.iter().all(Option::is_some), "passes with AO: {with:?}");
+    assert!(order.windows(2).all(|w| w[0] < w[1]), "passes out of frame order: {with:?}");
+    assert!(ao.iter().all(|n| at(&without, n).is_none()), "AO passes in a frame without AO: {without:?}");
+    assert!(at(&without, "voxels").is_some() && at(&without, "fs_composite").is_some(), "{without:?}");
+    let passes = t.gpu_passes_ms.as_ref().unwrap();
+    assert!(passes.iter().all(|p| p.ms.is_finite() && p.ms >= 0.0), "{passes:?}");
+    let ao_sum: f64 = passes.iter().filter(|p| ao.contains(&p.pass.as_str())).map(|p| p.ms).sum();
+    let all: f64 = passes.iter().map(|p| p.ms).sum();
+    assert!(ao_sum > 0.0 && ao_sum < all, "AO {ao_sum} ms of a {all} ms frame");
+    assert_eq!(t.gpu_ao_ms, Some(ao_sum));
+}

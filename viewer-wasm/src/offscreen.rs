@@ -152,6 +152,13 @@ impl Offscreen {
             scene.camera = camera;
         }
         scene.ao_strength = options.ao_strength;
+        // An image is asked for at its size: the budget grows to hold its targets
+        // (in the browser the drawing buffer shrinks instead, `drawing_size_within`).
+        let need = (crate::scene::frame_target_bytes(width, height) as f64
+            / crate::scene::FRAME_SHARE_OF_BUDGET) as u64;
+        if scene.budget_bytes() < need {
+            scene.set_budget_bytes(need);
+        }
         let target = renderer.device.create_texture(&wgpu::TextureDescriptor {
             label: Some("offscreen target"),
             size: wgpu::Extent3d { width, height, depth_or_array_layers: 1 },

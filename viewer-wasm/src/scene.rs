@@ -40,6 +40,41 @@ const WANTED_SHARE_OF_BUDGET: f64 = 0.8;
 /// GPU comes back without a refetch.
 const DECODED_CACHE_BYTES: u64 = 256 << 20;
 
+/// Most of the GPU budget the frame's own targets may take; the rest holds blocks.
+pub const FRAME_SHARE_OF_BUDGET: f64 = 0.5;
+
+/// GPU bytes a `width`×`height` frame's own targets take: colour and depth,
+/// the G-buffer and AO targets (traced at full resolution: the most), the
+/// occlusion readbacks.
+pub fn frame_target_bytes(width: u32, height: u32) -> u64 {
+    width as u64 * height as u64 * 4 * 2
+        + crate::ao_passes::target_bytes(width, height, 1)
+        + occlusion_gpu_bytes(width, height)
+}
+
+/// The drawing-buffer size for a canvas of `size` device pixels under a GPU
+/// byte budget: `size` itself while its targets take at most
+/// [`FRAME_SHARE_OF_BUDGET`] of the budget, else scaled down, aspect kept,
+/// until they do. Why: at 3840×2160 (a 4K display, or 1920×1080 CSS pixels at
+/// device-pixel ratio 2) the targets alone take about 1 GB, and the default
+/// 512 MiB budget would hold no block at all: nothing would be drawn.
+pub fn drawing_size_within(size: (u32, u32), budget: u64) -> (u32, u32) {
+    let limit = (budget as f64 * FRAME_SHARE_OF_BUDGET) as u64;
+    let (w, h) = (size.0.max(1), size.1.max(1));
+    let full = frame_target_bytes(w, h);
+    if full <= limit {
+        return (w, h);
+    }
+    let mut scale = (limit as f64 / full as f64).sqrt();
+    loop {
+        let fit = (((w as f64 * scale) as u32).max(1), ((h as f64 * scale) as u32).max(1));
+        if fit == (1, 1) || frame_target_bytes(fit.0, fit.1) <= limit {
+            return fit;
+        }
+        scale *= 0.99;
+    }
+}
+
 /// A view given by matrices instead of the orbit camera (native `voxstream
 /// render` with a camera.json); when set it replaces `Scene::camera`.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -182,6 +217,7 @@ impl Scene {
         self.viewport
     }
 
+    /// Sets the drawing size (the caller keeps it within the budget: [`drawing_size_within`]).
     pub fn set_viewport(&mut self, width: u32, height: u32) {
         self.viewport = (width.max(1), height.max(1));
     }
@@ -961,4 +997,29 @@ pub fn default_camera(manifest: &Manifest, aspect: f32) -> OrbitCamera {
     let mut camera = OrbitCamera::framing(min, max);
     camera.fit_box(min, max, aspect);
     camera
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_drawing_buffer_shrinks_until_its_targets_fit_half_the_budget() {
+        let budget = DEFAULT_BUDGET_BYTES;
+        let half = (budget as f64 * FRAME_SHARE_OF_BUDGET) as u64;
+        // 1920×1080 fits the default budget as it is.
+        assert_eq!(drawing_size_within((1920, 1080), budget), (1920, 1080));
+        // 3840×2160 does not (its targets alone are over the whole budget):
+        // scaled down, aspect kept, within half the budget but not far below it.
+        assert!(frame_target_bytes(3840, 2160) > budget);
+        let (w, h) = drawing_size_within((3840, 2160), budget);
+        assert!(frame_target_bytes(w, h) <= half, "{w}x{h}: {} > {half}", frame_target_bytes(w, h));
+        assert!(frame_target_bytes(w, h) as f64 >= 0.95 * half as f64, "{w}x{h} is needlessly small");
+        assert!(((w as f64 / h as f64) - 16.0 / 9.0).abs() < 0.01, "{w}x{h}");
+        // A budget that grows lets the full size back in (the control).
+        assert_eq!(drawing_size_within((3840, 2160), 4 * budget), (3840, 2160));
+        // Nothing fits a budget of a byte: one pixel, never zero.
+        assert_eq!(drawing_size_within((3840, 2160), 1), (1, 1));
+        assert_eq!(drawing_size_within((0, 0), budget), (1, 1));
+    }
 }

@@ -489,8 +489,17 @@ impl App {
     }
 
     fn resize_if_needed(&mut self) {
-        let Some((w, h)) = CANVAS_SIZE.with(Cell::get) else { return };
+        let Some(canvas) = CANVAS_SIZE.with(Cell::get) else { return };
+        let (w, h) = crate::scene::drawing_size_within(canvas, self.scene.budget_bytes());
         if (w, h) != (self.config.width, self.config.height) {
+            if (w, h) != canvas {
+                log(&format!(
+                    "voxstream: drawing {w}x{h} of the canvas's {}x{} device pixels: the frame's targets may take half the {} MiB GPU budget",
+                    canvas.0,
+                    canvas.1,
+                    self.scene.budget_bytes() >> 20
+                ));
+            }
             self.canvas.set_width(w);
             self.canvas.set_height(h);
             self.config.width = w;
