@@ -84,6 +84,7 @@ pub struct FrameTiming {
 }
 
 /// A native device and queue.
+#[derive(Clone)]
 pub struct Gpu {
     pub device: wgpu::Device,
     pub queue: wgpu::Queue,
@@ -110,6 +111,21 @@ impl Gpu {
 
     pub fn adapter_name(&self) -> String {
         format!("{} ({:?})", self.adapter_info.name, self.adapter_info.backend)
+    }
+
+    /// One device for the whole process, opened on first use. Why: a sweep
+    /// renders hundreds of views, and opening a device for each made the
+    /// NVIDIA driver refuse one after about 25 in a process ("no GPU adapter
+    /// found"). Resources are per [`Offscreen`] and freed with it.
+    pub fn shared() -> Result<Self, OffscreenError> {
+        static SHARED: std::sync::Mutex<Option<Gpu>> = std::sync::Mutex::new(None);
+        let mut shared = SHARED.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(gpu) = shared.as_ref() {
+            return Ok(gpu.clone());
+        }
+        let gpu = Gpu::new()?;
+        *shared = Some(gpu.clone());
+        Ok(gpu)
     }
 }
 
@@ -143,7 +159,7 @@ impl Offscreen {
     pub fn open(scene_dir: &Path, options: &RenderOptions) -> Result<Self, OffscreenError> {
         let source = BlockSource::SceneDir(scene_dir.to_path_buf());
         let manifest = Manifest::from_json(&pollster::block_on(source.manifest_bytes())?)?;
-        let gpu = Gpu::new()?;
+        let gpu = Gpu::shared()?;
         let adapter = gpu.adapter_name();
         let (width, height) = (options.width.max(1), options.height.max(1));
         let renderer = Renderer::new(gpu.device, gpu.queue, crate::COLOR_FORMAT, manifest.grid.resolution);

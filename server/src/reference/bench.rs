@@ -353,7 +353,7 @@ impl Row {
 /// each pass's GPU time where the adapter has timestamps) and the JSON.
 fn write_timing(args: &AoBenchArgs, rows: &[Row], skipped: &[String]) -> anyhow::Result<()> {
     use std::fmt::Write;
-    let adapter = voxstream_viewer::offscreen::Gpu::new().map(|g| g.adapter_name()).unwrap_or_default();
+    let adapter = voxstream_viewer::offscreen::Gpu::shared().map(|g| g.adapter_name()).unwrap_or_default();
     let mut s = String::new();
     writeln!(s, "# AO pass timing on {adapter}\n")?;
     writeln!(
@@ -630,7 +630,7 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
     let summary = summarize(&points, &rows);
     write_markdown(&args.out_dir.join("ao-benchmark.md"), args, &rows, &summary, &skipped)?;
     write_pareto_png(&args.out_dir.join("ao-pareto.png"), &summary)?;
-    let adapter = voxstream_viewer::offscreen::Gpu::new().map(|g| g.adapter_name()).unwrap_or_default();
+    let adapter = voxstream_viewer::offscreen::Gpu::shared().map(|g| g.adapter_name()).unwrap_or_default();
     println!(
         "{}",
         serde_json::to_string_pretty(&serde_json::json!({
@@ -697,7 +697,7 @@ fn write_markdown(
     skipped: &[String],
 ) -> anyhow::Result<()> {
     use std::fmt::Write;
-    let adapter = voxstream_viewer::offscreen::Gpu::new().map(|g| g.adapter_name()).unwrap_or_default();
+    let adapter = voxstream_viewer::offscreen::Gpu::shared().map(|g| g.adapter_name()).unwrap_or_default();
     let mut s = String::new();
     writeln!(s, "# Cone-traced AO: run time against error\n")?;
     writeln!(
