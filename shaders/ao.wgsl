@@ -61,6 +61,12 @@ fn clip_load(index: u32, known: bool) -> f32 {
     return select(0.0, min(f32(clipmap_cells[index]) / 4096.0, 1.0), known);
 }
 
+// The two cells of a row along x (storage offset `zy` of its y and z, slots
+// `x`), blended by `fx`; `known_zy`, `kx`: which lie inside the scene grid.
+fn clip_row(zy: u32, x: vec2<u32>, known_zy: bool, kx: vec2<bool>, fx: f32) -> f32 {
+    return mix(clip_load(zy + x.x, known_zy && kx.x), clip_load(zy + x.y, known_zy && kx.y), fx);
+}
+
 // Trilinear opacity of one level at `p` (grid units); with `box_read`, the
 // opacity of the one cell p lies in. The two cells' toroidal slots along each
 // axis are found once per sample, by a mask, not by a modulo per cell: integer
@@ -89,26 +95,11 @@ fn clip_trilinear(level: u32, p: vec3<f32>, box_read: bool) -> f32 {
         let index = select(z.x, z.y, c.z) + select(y.x, y.y, c.y) + select(x.x, x.y, c.x);
         return clip_load(index, all(known));
     }
-    let x00 = mix(
-        clip_load(z.x + y.x + x.x, known0.z && known0.y && known0.x),
-        clip_load(z.x + y.x + x.y, known0.z && known0.y && known1.x),
-        f.x,
-    );
-    let x10 = mix(
-        clip_load(z.x + y.y + x.x, known0.z && known1.y && known0.x),
-        clip_load(z.x + y.y + x.y, known0.z && known1.y && known1.x),
-        f.x,
-    );
-    let x01 = mix(
-        clip_load(z.y + y.x + x.x, known1.z && known0.y && known0.x),
-        clip_load(z.y + y.x + x.y, known1.z && known0.y && known1.x),
-        f.x,
-    );
-    let x11 = mix(
-        clip_load(z.y + y.y + x.x, known1.z && known1.y && known0.x),
-        clip_load(z.y + y.y + x.y, known1.z && known1.y && known1.x),
-        f.x,
-    );
+    let kx = vec2<bool>(known0.x, known1.x);
+    let x00 = clip_row(z.x + y.x, x, known0.z && known0.y, kx, f.x);
+    let x10 = clip_row(z.x + y.y, x, known0.z && known1.y, kx, f.x);
+    let x01 = clip_row(z.y + y.x, x, known1.z && known0.y, kx, f.x);
+    let x11 = clip_row(z.y + y.y, x, known1.z && known1.y, kx, f.x);
     return mix(mix(x00, x10, f.y), mix(x01, x11, f.y), f.z);
 }
 
