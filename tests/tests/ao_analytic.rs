@@ -344,7 +344,8 @@ fn the_passes_of_a_frame_are_timed_by_the_gpu() {
         ao: AoSettings::default(),
         max_distance: None,
         timing_runs: 2,
-        ao_frames: 1,
+        // Accumulated frames: the temporal pass runs.
+        ao_frames: AoSettings::default().temporal_frames,
     })
     .expect("render");
     let t = &out.info.timings;
