@@ -672,7 +672,11 @@ fn a_frame_whose_targets_exceed_the_default_budget_still_draws() {
     held.scene.set_budget_bytes(DEFAULT_BUDGET_BYTES);
     held.load_wanted();
     let control = held.draw_frame().expect("frame");
-    assert!(control.drawn.is_empty(), "the default budget held {} blocks beside the targets", control.drawn.len());
+    assert!(
+        control.drawn.is_empty(),
+        "the default budget held {} blocks beside the targets",
+        control.drawn.len()
+    );
     let mut o = open(&scene, &options);
     assert!(o.scene.budget_bytes() >= 2 * frame_target_bytes(w, h), "budget {}", o.scene.budget_bytes());
     o.load_wanted();
