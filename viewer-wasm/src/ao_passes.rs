@@ -96,7 +96,8 @@ impl FrameTargets {
                 dimension: wgpu::TextureDimension::D2,
                 format,
                 // COPY_SRC: `voxstream render` and the tests read them back.
-                // STORAGE_BINDING: the compute passes' outputs (V and the history).
+                // STORAGE_BINDING: the compute passes' outputs, V and the history (the
+                // positions share the history's format, so they get it too: unused).
                 usage: wgpu::TextureUsages::RENDER_ATTACHMENT
                     | wgpu::TextureUsages::TEXTURE_BINDING
                     | wgpu::TextureUsages::COPY_SRC
