@@ -666,7 +666,7 @@ fn a_frame_whose_targets_exceed_the_default_budget_still_draws() {
     use voxstream_viewer::scene::frame_target_bytes;
     let (_store, scene) = koala_scene();
     let (w, h) = (3840, 2160);
-    assert!(frame_target_bytes(w, h) > DEFAULT_BUDGET_BYTES);
+    assert!(frame_target_bytes(w, h, 1) > DEFAULT_BUDGET_BYTES);
     let options = RenderOptions { ao_strength: 0.0, ..RenderOptions::new(w, h) };
     let mut held = open(&scene, &options);
     held.scene.set_budget_bytes(DEFAULT_BUDGET_BYTES);
@@ -678,7 +678,7 @@ fn a_frame_whose_targets_exceed_the_default_budget_still_draws() {
         control.drawn.len()
     );
     let mut o = open(&scene, &options);
-    assert!(o.scene.budget_bytes() >= 2 * frame_target_bytes(w, h), "budget {}", o.scene.budget_bytes());
+    assert!(o.scene.budget_bytes() >= 2 * frame_target_bytes(w, h, 1), "budget {}", o.scene.budget_bytes());
     o.load_wanted();
     let frame = o.draw_frame().expect("frame");
     println!("{w}x{h}: {} blocks drawn within {} B", frame.drawn.len(), o.scene.budget_bytes());

@@ -170,7 +170,7 @@ impl Offscreen {
         scene.ao_strength = options.ao_strength;
         // An image is asked for at its size: the budget grows to hold its targets
         // (in the browser the drawing buffer shrinks instead, `drawing_size_within`).
-        let need = (crate::scene::frame_target_bytes(width, height) as f64
+        let need = (crate::scene::frame_target_bytes(width, height, 1) as f64
             / crate::scene::FRAME_SHARE_OF_BUDGET) as u64;
         if scene.budget_bytes() < need {
             scene.set_budget_bytes(need);
@@ -385,8 +385,8 @@ impl Offscreen {
             wait_idle(&self.renderer.device)?;
             if i > 0 {
                 times.push(start.elapsed().as_secs_f64() * 1e3);
-                if let Some(timer) = &self.renderer.pass_timer {
-                    passes.push(timer.read(&self.renderer.device).map_err(OffscreenError::Readback)?);
+                if let Some(frame) = self.last_pass_times()? {
+                    passes.push(frame);
                 }
             }
         }
@@ -400,11 +400,7 @@ impl Offscreen {
 
     /// The passes of the last frame drawn, timed by the GPU (`None` without timestamps).
     pub fn last_pass_times(&self) -> Result<Option<Vec<PassTime>>, OffscreenError> {
-        self.renderer
-            .pass_timer
-            .as_ref()
-            .map(|t| t.read(&self.renderer.device).map_err(OffscreenError::Readback))
-            .transpose()
+        self.renderer.pass_timer.as_ref().map(|t| t.read(&self.renderer.device)).transpose()
     }
 
     /// The indirect draw args the compute pass wrote for a cached block:
@@ -460,7 +456,11 @@ fn map_and_read(renderer: &Renderer, staging: &wgpu::Buffer) -> Result<Vec<u8>, 
     map_and_read_on(&renderer.device, staging)
 }
 
-fn map_and_read_on(device: &wgpu::Device, staging: &wgpu::Buffer) -> Result<Vec<u8>, OffscreenError> {
+/// Maps a whole MAP_READ buffer once the GPU is idle and copies it out.
+pub(crate) fn map_and_read_on(
+    device: &wgpu::Device,
+    staging: &wgpu::Buffer,
+) -> Result<Vec<u8>, OffscreenError> {
     let (tx, rx) = std::sync::mpsc::channel();
     staging.map_async(wgpu::MapMode::Read, .., move |r| {
         let _ = tx.send(r);

@@ -124,24 +124,17 @@ impl PassTimer {
     /// until the copy is done). A pass the device reports out of order (end
     /// before start) reads as NaN rather than a wrapped huge number.
     #[cfg(not(target_arch = "wasm32"))]
-    pub fn read(&self, device: &wgpu::Device) -> Result<Vec<PassTime>, String> {
+    pub fn read(&self, device: &wgpu::Device) -> Result<Vec<PassTime>, crate::offscreen::OffscreenError> {
         let passes = self.resolved.get();
         if passes == 0 {
             return Ok(Vec::new());
         }
-        let bytes = 2 * passes as u64 * wgpu::QUERY_SIZE as u64;
-        let slice = self.readback.slice(..bytes);
-        let (tx, rx) = std::sync::mpsc::channel();
-        slice.map_async(wgpu::MapMode::Read, move |r| {
-            let _ = tx.send(r);
-        });
-        device.poll(wgpu::PollType::wait_indefinitely()).map_err(|e| e.to_string())?;
-        rx.recv().map_err(|e| e.to_string())?.map_err(|e| e.to_string())?;
-        let ticks: Vec<u64> = {
-            let view = slice.get_mapped_range().map_err(|e| format!("{e:?}"))?;
-            view.chunks_exact(8).map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes"))).collect()
-        };
-        self.readback.unmap();
+        let bytes = crate::offscreen::map_and_read_on(device, &self.readback)?;
+        let ticks: Vec<u64> = bytes
+            .chunks_exact(8)
+            .take(2 * passes as usize)
+            .map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes")))
+            .collect();
         let labels = self.labels.borrow();
         Ok(ticks_to_times(&ticks, &labels[..passes as usize], self.period_ns))
     }

@@ -44,11 +44,11 @@ const DECODED_CACHE_BYTES: u64 = 256 << 20;
 pub const FRAME_SHARE_OF_BUDGET: f64 = 0.5;
 
 /// GPU bytes a `width`×`height` frame's own targets take: colour and depth,
-/// the G-buffer and AO targets (traced at full resolution: the most), the
+/// the G-buffer and AO targets (AO traced at 1/`ao_downscale` resolution), the
 /// occlusion readbacks.
-pub fn frame_target_bytes(width: u32, height: u32) -> u64 {
+pub fn frame_target_bytes(width: u32, height: u32, ao_downscale: u32) -> u64 {
     width as u64 * height as u64 * 4 * 2
-        + crate::ao_passes::target_bytes(width, height, 1)
+        + crate::ao_passes::target_bytes(width, height, ao_downscale)
         + occlusion_gpu_bytes(width, height)
 }
 
@@ -61,14 +61,15 @@ pub fn frame_target_bytes(width: u32, height: u32) -> u64 {
 pub fn drawing_size_within(size: (u32, u32), budget: u64) -> (u32, u32) {
     let limit = (budget as f64 * FRAME_SHARE_OF_BUDGET) as u64;
     let (w, h) = (size.0.max(1), size.1.max(1));
-    let full = frame_target_bytes(w, h);
+    // Traced at full resolution: the most the targets take.
+    let full = frame_target_bytes(w, h, 1);
     if full <= limit {
         return (w, h);
     }
     let mut scale = (limit as f64 / full as f64).sqrt();
     loop {
         let fit = (((w as f64 * scale) as u32).max(1), ((h as f64 * scale) as u32).max(1));
-        if fit == (1, 1) || frame_target_bytes(fit.0, fit.1) <= limit {
+        if fit == (1, 1) || frame_target_bytes(fit.0, fit.1, 1) <= limit {
             return fit;
         }
         scale *= 0.99;
@@ -268,17 +269,13 @@ impl Scene {
     /// size, the G-buffer and AO targets, the occupancy volume with its mips,
     /// the clipmap (cells and source voxels), uniforms, the upload buffer.
     fn fixed_gpu_bytes(&self, occupancy_cells: u32, ao_downscale: u32, clipmap_bytes: u64) -> u64 {
-        let pixels = self.viewport.0 as u64 * self.viewport.1 as u64;
-        let frame_targets = crate::ao_passes::target_bytes(self.viewport.0, self.viewport.1, ao_downscale);
         let occupancy: u64 =
             (0..=occupancy_cells.max(1).ilog2()).map(|m| ((occupancy_cells >> m) as u64).pow(3)).sum();
-        pixels * 4 * 2
+        frame_target_bytes(self.viewport.0, self.viewport.1, ao_downscale)
             + occupancy
             + clipmap_bytes
-            + frame_targets
             + 512
             + UPLOAD_BYTES_PER_FRAME
-            + occlusion_gpu_bytes(self.viewport.0, self.viewport.1)
             + FADE_BUFFER_BYTES
     }
 
@@ -1011,10 +1008,10 @@ mod tests {
         assert_eq!(drawing_size_within((1920, 1080), budget), (1920, 1080));
         // 3840×2160 does not (its targets alone are over the whole budget):
         // scaled down, aspect kept, within half the budget but not far below it.
-        assert!(frame_target_bytes(3840, 2160) > budget);
+        assert!(frame_target_bytes(3840, 2160, 1) > budget);
         let (w, h) = drawing_size_within((3840, 2160), budget);
-        assert!(frame_target_bytes(w, h) <= half, "{w}x{h}: {} > {half}", frame_target_bytes(w, h));
-        assert!(frame_target_bytes(w, h) as f64 >= 0.95 * half as f64, "{w}x{h} is needlessly small");
+        assert!(frame_target_bytes(w, h, 1) <= half, "{w}x{h}: {} > {half}", frame_target_bytes(w, h, 1));
+        assert!(frame_target_bytes(w, h, 1) as f64 >= 0.95 * half as f64, "{w}x{h} is needlessly small");
         assert!(((w as f64 / h as f64) - 16.0 / 9.0).abs() < 0.01, "{w}x{h}");
         // A budget that grows lets the full size back in (the control).
         assert_eq!(drawing_size_within((3840, 2160), 4 * budget), (3840, 2160));

@@ -323,7 +323,8 @@ fn scene_for(view: &View, args: &AoBenchArgs, scratch: &Path) -> anyhow::Result<
 }
 
 impl Row {
-    /// A timed render without a reference (`--time-only`): error columns NaN.
+    /// A render's size and times; its error columns NaN (`--time-only`, or
+    /// filled in by the caller against the reference).
     fn timed(view: &View, point: &Point, out: &crate::render::RenderOutput) -> Self {
         let t = &out.info.timings;
         Row {
@@ -483,13 +484,11 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
         if !args.views.is_empty() && !args.views.iter().any(|v| v == name) {
             continue;
         }
-        if let Some(cached) =
-            args.scene_cache.as_deref().and_then(|d| CachedScene::load(d, name, args.resolution))
-        {
-            if !mesh.is_file() && args.time_only {
-                views.push(View { name: name.to_string(), mesh, camera: cached.camera, shapes: None });
-                continue;
-            }
+        // Timing needs no mesh where the cache holds the view's scene and camera.
+        let cached = || args.scene_cache.as_deref().and_then(|d| CachedScene::load(d, name, args.resolution));
+        if let Some(cached) = (args.time_only && !mesh.is_file()).then(cached).flatten() {
+            views.push(View { name: name.to_string(), mesh, camera: cached.camera, shapes: None });
+            continue;
         }
         if !mesh.is_file() {
             skipped.push(format!("{name}: {} absent", mesh.display()));
@@ -592,16 +591,7 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
             }
             let c = compare(&out.ao, reference, variance, args.rays, w, h);
             let p = compare(&out.ao, primary, variance, args.rays / 4, w, h);
-            let t = &out.info.timings;
             rows.push(Row {
-                view: view.name.clone(),
-                point: point.label.clone(),
-                width: w,
-                height: h,
-                frames: point.frames,
-                frame_ms: t.frame_ms.unwrap_or(f64::NAN),
-                frame_no_ao_ms: t.frame_no_ao_ms.unwrap_or(f64::NAN),
-                ao_over_frame: t.ao_over_frame.unwrap_or(f64::NAN),
                 rmse: c.rmse,
                 bias: c.bias,
                 ssim: c.ssim,
@@ -609,9 +599,7 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
                 exact_mae: exact.as_ref().map(|e| exact_error(&out.ao, e).mae),
                 primary_rmse: p.rmse,
                 primary_bias: p.bias,
-                gpu_ao_ms: t.gpu_ao_ms,
-                gpu_frame_no_ao_ms: t.gpu_frame_no_ao_ms,
-                gpu_passes_ms: t.gpu_passes_ms.clone(),
+                ..Row::timed(view, point, &out)
             });
             eprintln!(
                 "  {:36} {:8.1} ms  RMSE {:.4}  bias {:+.4}  eq. rays {}",
