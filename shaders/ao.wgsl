@@ -55,16 +55,23 @@ fn clip_holds_within(level: u32, p: vec3<f32>, margin: f32) -> bool {
 const CLIP_HOME_MARGIN: f32 = 12.0;
 
 // Opacity 0..1 of the cell at storage index `index` (toroidal slot of a
-// level), 0 where `known` is false: nothing lies outside the scene grid, and
-// the slot of a cell outside it may hold a cell from the level's other side.
-fn clip_load(index: u32, known: bool) -> f32 {
-    return select(0.0, min(f32(clipmap_cells[index]) / 4096.0, 1.0), known);
+// level) to a cone whose axes weigh `axis_weight` (cone_axis_weights), 0
+// where `known` is false: nothing lies outside the scene grid, and the slot of
+// a cell outside it may hold a cell from the level's other side. A cell holds
+// three words, its opacity to rays along x, y and z (clipmap.rs, voxel_axes).
+fn clip_load(index: u32, known: bool, axis_weight: vec3<f32>) -> f32 {
+    if !known {
+        return 0.0;
+    }
+    let at = index * 3u;
+    let o = vec3<f32>(f32(clipmap_cells[at]), f32(clipmap_cells[at + 1u]), f32(clipmap_cells[at + 2u]));
+    return min(dot(min(o / 4096.0, vec3<f32>(1.0)), axis_weight), 1.0);
 }
 
 // The two cells of a row along x (storage offset `zy` of its y and z, slots
 // `x`), blended by `fx`; `known_zy`, `kx`: which lie inside the scene grid.
-fn clip_row(zy: u32, x: vec2<u32>, known_zy: bool, kx: vec2<bool>, fx: f32) -> f32 {
-    return mix(clip_load(zy + x.x, known_zy && kx.x), clip_load(zy + x.y, known_zy && kx.y), fx);
+fn clip_row(zy: u32, x: vec2<u32>, known_zy: bool, kx: vec2<bool>, fx: f32, w: vec3<f32>) -> f32 {
+    return mix(clip_load(zy + x.x, known_zy && kx.x, w), clip_load(zy + x.y, known_zy && kx.y, w), fx);
 }
 
 // Trilinear opacity of one level at `p` (grid units); with `box_read`, the
@@ -72,7 +79,7 @@ fn clip_row(zy: u32, x: vec2<u32>, known_zy: bool, kx: vec2<bool>, fx: f32) -> f
 // axis are found once per sample, by a mask, not by a modulo per cell: integer
 // modulo costs many instructions on a GPU, and 16 cells a quadrilinear sample
 // made it the trace's largest cost.
-fn clip_trilinear(level: u32, p: vec3<f32>, box_read: bool) -> f32 {
+fn clip_trilinear(level: u32, p: vec3<f32>, box_read: bool, w: vec3<f32>) -> f32 {
     let q = p / clip_cell_edge(level) - 0.5;
     let base = floor(q);
     let f = q - base;
@@ -93,13 +100,13 @@ fn clip_trilinear(level: u32, p: vec3<f32>, box_read: bool) -> f32 {
         let c = f >= vec3<f32>(0.5);
         let known = select(known0, known1, c);
         let index = select(z.x, z.y, c.z) + select(y.x, y.y, c.y) + select(x.x, x.y, c.x);
-        return clip_load(index, all(known));
+        return clip_load(index, all(known), w);
     }
     let kx = vec2<bool>(known0.x, known1.x);
-    let x00 = clip_row(z.x + y.x, x, known0.z && known0.y, kx, f.x);
-    let x10 = clip_row(z.x + y.y, x, known0.z && known1.y, kx, f.x);
-    let x01 = clip_row(z.y + y.x, x, known1.z && known0.y, kx, f.x);
-    let x11 = clip_row(z.y + y.y, x, known1.z && known1.y, kx, f.x);
+    let x00 = clip_row(z.x + y.x, x, known0.z && known0.y, kx, f.x, w);
+    let x10 = clip_row(z.x + y.y, x, known0.z && known1.y, kx, f.x, w);
+    let x01 = clip_row(z.y + y.x, x, known1.z && known0.y, kx, f.x, w);
+    let x11 = clip_row(z.y + y.y, x, known1.z && known1.y, kx, f.x, w);
     return mix(mix(x00, x10, f.y), mix(x01, x11, f.y), f.z);
 }
 
@@ -117,7 +124,7 @@ fn clip_trilinear(level: u32, p: vec3<f32>, box_read: bool) -> f32 {
 // half that surface's opacity at every step and, compounded front to back,
 // come out nearly blocked by a surface it never crosses (docs/ao-benchmark.md,
 // "Where the conference room's error comes from").
-fn clip_sample(p: vec3<f32>, lod: f32) -> vec2<f32> {
+fn clip_sample(p: vec3<f32>, lod: f32, w: vec3<f32>) -> vec2<f32> {
     let levels = u32(clipmap.info.x);
     var level = u32(clamp(floor(lod), 0.0, f32(levels - 1u)));
     var frac = clamp(lod - f32(level), 0.0, 1.0);
@@ -131,9 +138,9 @@ fn clip_sample(p: vec3<f32>, lod: f32) -> vec2<f32> {
     if !clip_contains(level, p) {
         return vec2<f32>(0.0, f32(level));
     }
-    var v = clip_trilinear(level, p, lod <= 0.0);
+    var v = clip_trilinear(level, p, lod <= 0.0, w);
     if frac > 0.0 && level + 1u < levels && clip_contains(level + 1u, p) {
-        v = mix(v, clip_trilinear(level + 1u, p, false), frac);
+        v = mix(v, clip_trilinear(level + 1u, p, false, w), frac);
     } else {
         frac = 0.0;
     }
@@ -143,11 +150,23 @@ fn clip_sample(p: vec3<f32>, lod: f32) -> vec2<f32> {
 // Opacity at grid position `s` for a cone of width 2^lod finest cells, from
 // the clipmap or the volume (frame.volume.y/z describe whichever is traced):
 // (opacity, the lod actually read).
-fn occupancy_at(s: vec3<f32>, lod: f32) -> vec2<f32> {
+fn occupancy_at(s: vec3<f32>, lod: f32, axis_weight: vec3<f32>) -> vec2<f32> {
     if clipmap.info.w > 0.5 {
-        return clip_sample(s, lod);
+        return clip_sample(s, lod, axis_weight);
     }
     return vec2<f32>(textureSampleLevel(occupancy, occupancy_sampler, s / frame.volume.x, lod).r, lod);
+}
+
+// How much a cell's opacity along each axis counts for a cone along unit
+// `dir`: |dir_a| / max_b |dir_b| (seed 001's anisotropic opacity). A cell
+// opaque along a holds a surface facing a, somewhere within it; a ray that
+// crosses the cell along its dominant axis crosses that surface's plane with
+// probability |dir_a| / max |dir|, and a ray running along the surface never
+// does. The dominant axis counts fully, so a surface a cone meets head-on or
+// at up to 45 degrees stays opaque to it.
+fn cone_axis_weights(dir: vec3<f32>) -> vec3<f32> {
+    let a = abs(dir);
+    return a / max(max(a.x, a.y), max(a.z, 1e-6));
 }
 
 // Occlusion (0 = open, 1 = blocked, weighted by w(d)) seen by one cone from p.
@@ -164,8 +183,9 @@ fn occupancy_at(s: vec3<f32>, lod: f32) -> vec2<f32> {
 //   one cell, and never wider than the sample's height above p's tangent plane:
 //   a trilinear sample reaches about one cell around it, so a wider one would
 //   read the surface the cone starts from.
-// - Opacity: a cell's value is its opacity to a ray crossing it (ao.rs); a step
-//   of length s through cells of edge c has alpha_step = 1 - (1 - o)^(s / c).
+// - Opacity: a cell's value is its opacity to a ray crossing it (ao.rs), per
+//   axis in the clipmap, weighed by cone_axis_weights; a step of length s
+//   through cells of edge c has alpha_step = 1 - (1 - o)^(s / c).
 // - Empty-space skipping: where the level (mip) two coarser reads 0, the whole
 //   neighbourhood is empty and the cone jumps half of that level's cell.
 fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, base_cell: f32, cell: f32, max_mip: f32) -> f32 {
@@ -177,6 +197,7 @@ fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, base_cell: f32, cell: 
     let falloff = frame.ao_range.y;
     let skip = frame.ao_range.z > 0.5;
     let origin = p + n * offset;
+    let axis_weight = cone_axis_weights(dir);
     var alpha = 0.0;
     var occlusion = 0.0;
     var t = 0.0;
@@ -195,13 +216,13 @@ fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, base_cell: f32, cell: 
         let mip = clamp(log2(diameter / base_cell), 0.0, max_mip);
         let step_len = max(step_fraction * diameter, 0.5 * cell);
         if skip && mip + 2.0 <= max_mip {
-            let coarse = occupancy_at(s, mip + 2.0);
+            let coarse = occupancy_at(s, mip + 2.0, vec3<f32>(1.0));
             if coarse.x <= 0.0 {
                 t += max(step_len, 0.5 * base_cell * exp2(coarse.y));
                 continue;
             }
         }
-        let sample = occupancy_at(s, mip);
+        let sample = occupancy_at(s, mip, axis_weight);
         // A sample outside the clipmap level its width asks for came from a
         // coarser one; where that level's cells are wider than the width
         // clamp allows, it would read the surface the cone starts from.

@@ -33,5 +33,9 @@ fn clear_cells(@builtin(global_invocation_id) id: vec3<u32>) {
     if all(w >= dispatch.keep_min.xyz) && all(w < dispatch.keep_max.xyz) {
         return;
     }
-    cells[dispatch.level.x * n * n * n + id.x] = 0u;
+    // A cell's three words: its opacity along x, y and z.
+    let at = (dispatch.level.x * n * n * n + id.x) * 3u;
+    cells[at] = 0u;
+    cells[at + 1u] = 0u;
+    cells[at + 2u] = 0u;
 }

@@ -66,6 +66,9 @@ fn splat_block(@builtin(global_invocation_id) id: vec3<u32>) {
     let hi = min(first + vec3<i32>(span), dispatch.region.xyz + vec3<i32>(n));
     let base = dispatch.level.x * dispatch.level.z * dispatch.level.z * dispatch.level.z;
     let subtract = dispatch.level.w == 1u;
+    // voxel_axes in clipmap.rs: the axes of its exposed faces, all three for none.
+    let faces = (word >> 18u) & 63u;
+    let axes = vec3<bool>((faces & 3u) != 0u, (faces & 12u) != 0u, (faces & 48u) != 0u) | vec3<bool>(faces == 0u);
     for (var z = lo.z; z < hi.z; z += 1) {
         for (var y = lo.y; y < hi.y; y += 1) {
             for (var x = lo.x; x < hi.x; x += 1) {
@@ -74,11 +77,16 @@ fn splat_block(@builtin(global_invocation_id) id: vec3<u32>) {
                     continue;
                 }
                 let m = vec3<u32>((w % n + n) % n);
-                let index = base + (m.z * u32(n) + m.y) * u32(n) + m.x;
-                if subtract {
-                    atomicSub(&cells[index], q);
-                } else {
-                    atomicAdd(&cells[index], q);
+                let index = (base + (m.z * u32(n) + m.y) * u32(n) + m.x) * 3u;
+                for (var a = 0u; a < 3u; a += 1u) {
+                    if !axes[a] {
+                        continue;
+                    }
+                    if subtract {
+                        atomicSub(&cells[index + a], q);
+                    } else {
+                        atomicAdd(&cells[index + a], q);
+                    }
                 }
             }
         }

@@ -47,7 +47,8 @@ struct Frame {
 // The occupancy clipmap (viewer-wasm/src/clipmap.rs): `levels` cubes of N^3
 // cells, level k's cell edge finest * 2^k grid units, its region the cells
 // origins[k] .. origins[k] + N, cell w at slot w mod N (toroidal), its
-// opacity in clipmap_cells as fixed point (4096 = 1).
+// opacity along x, y and z in three words of clipmap_cells from 3 * slot, as
+// fixed point (4096 = 1).
 struct Clipmap {
     // x: levels, y: cells per edge N, z: finest cell edge (grid units),
     // w: 1 = the AO traces the clipmap, 0 = the volume.

@@ -20,9 +20,11 @@
 //! - **Storage.** One storage buffer of u32: level k's cells follow level
 //!   k−1's, cell (x, y, z) of the grid at storage slot (x mod N, y mod N,
 //!   z mod N) (toroidal addressing), so when a level moves only the cells
-//!   that newly enter it are cleared and splatted; the rest stay.
-//! - **Content.** A cell holds its surface opacity as fixed point
-//!   ([`DENSITY_ONE`] = 1): each voxel of a source block adds its level-0
+//!   that newly enter it are cleared and splatted; the rest stay. A slot is
+//!   [`CELL_WORDS`] words: the cell's opacity to rays along x, y and z.
+//! - **Content.** A cell holds its surface opacity per axis as fixed point
+//!   ([`DENSITY_ONE`] = 1): each voxel of a source block adds, on each axis
+//!   it blocks ([`voxel_axes`]: those of its exposed faces), its level-0
 //!   equivalent (its prefiltered coverage · its volume in level-0 voxels) /
 //!   cell edge², clamped to 1 per voxel ([`voxel_density_fixed`], integer math
 //!   so the GPU and the CPU model agree exactly). Adding and subtracting a
@@ -53,6 +55,9 @@ pub const CLIP_CELLS: u32 = 128;
 pub const MAX_CLIP_LEVELS: u32 = 8;
 /// Fixed-point opacity 1 in a cell.
 pub const DENSITY_ONE: u32 = 4096;
+/// u32 words a cell holds: its opacity to rays along x, y and z
+/// ([`voxel_axes`]), side by side so a cell's three are one cache line.
+pub const CELL_WORDS: u32 = 3;
 /// Bytes between dispatch records in the dispatch uniform buffer (the
 /// alignment of a dynamic uniform offset).
 const DISPATCH_STRIDE: u64 = 256;
@@ -106,9 +111,14 @@ impl ClipmapLayout {
         self.finest_cell << level
     }
 
-    /// u32 cells in one level.
+    /// Cells in one level.
     pub fn level_len(&self) -> u64 {
         (self.cells as u64).pow(3)
+    }
+
+    /// u32 words of one level's cells ([`CELL_WORDS`] a cell).
+    pub fn level_words(&self) -> u64 {
+        self.level_len() * CELL_WORDS as u64
     }
 
     /// Level `level`'s first cell (grid cells of that level) for an eye at
@@ -201,6 +211,22 @@ pub fn voxel_density_fixed(coverage: u32, voxel_edge: u32, cell: u32) -> u32 {
     q.min(DENSITY_ONE)
 }
 
+/// The axes along which a voxel with exposed-face mask `faces` blocks rays:
+/// those of its exposed faces (bit 2a or 2a + 1: axis a, as in
+/// [`voxstream_format::Face`]); all three for a voxel with none (inside a solid).
+///
+/// Why: voxels stand for a surface. A voxel of a floor (faces ±y exposed)
+/// blocks rays that cross the floor, not rays running along it; a cell
+/// crossed by a floor is opaque along y but open along x and z. Counted
+/// alike on every axis (as before), a coarse cell a floor runs through was
+/// opaque to the cones running along the floor above it, which darkened
+/// every room (seed 001's anisotropic opacity; docs/ao-benchmark.md,
+/// "Opacity per axis").
+pub fn voxel_axes(faces: u8) -> [bool; 3] {
+    let on = |a: usize| faces & (3 << (2 * a)) != 0 || faces & 63 == 0;
+    [on(0), on(1), on(2)]
+}
+
 /// The CPU model of the clipmap: what every cell of a level must hold for a
 /// set of sources and a region (the GPU's result is compared with it).
 #[derive(Debug, Clone, PartialEq)]
@@ -216,7 +242,7 @@ impl ClipmapModel {
         let n = layout.cells as usize;
         let levels = (0..layout.levels as usize)
             .map(|k| {
-                let mut cells = vec![0u32; n * n * n];
+                let mut cells = vec![0u32; n * n * n * CELL_WORDS as usize];
                 let region = CellBox::region(origins[k], layout.cells);
                 let cell = layout.cell(k as u32);
                 for block in sources.get(k).into_iter().flatten() {
@@ -225,6 +251,7 @@ impl ClipmapModel {
                     let span = (edge / cell).max(1) as i64;
                     for v in &block.voxels {
                         let q = voxel_density_fixed(v.coverage() as u32, edge, cell);
+                        let axes = voxel_axes(v.faces());
                         let local = v.local();
                         let first: [i64; 3] = std::array::from_fn(|a| {
                             (origin[a] + local[a] as i64 * edge as i64) / cell as i64
@@ -233,7 +260,10 @@ impl ClipmapModel {
                             for y in first[1]..first[1] + span {
                                 for x in first[0]..first[0] + span {
                                     if region.contains([x, y, z]) {
-                                        cells[slot([x, y, z], n)] += q;
+                                        let at = slot([x, y, z], n) * CELL_WORDS as usize;
+                                        for (a, _) in axes.iter().enumerate().filter(|(_, on)| **on) {
+                                            cells[at + a] += q;
+                                        }
                                     }
                                 }
                             }
@@ -467,7 +497,7 @@ impl OccupancyClipmap {
     /// jump when the cells are allocated) plus the voxel words held now.
     pub fn budget_bytes(&self, grid_resolution: u32) -> u64 {
         let most = ClipmapLayout::for_scene(grid_resolution, 1, self.cells);
-        let reserve = most.levels as u64 * most.level_len() * 4;
+        let reserve = most.levels as u64 * most.level_words() * 4;
         reserve.max(self.cells_buffer.size()) + self.voxel_words_bytes()
     }
 
@@ -515,7 +545,7 @@ impl OccupancyClipmap {
         let mut replaced = false;
         let mut ops = Vec::new();
         if self.layout != Some(layout) {
-            let bytes = layout.levels as u64 * layout.level_len() * 4;
+            let bytes = layout.levels as u64 * layout.level_words() * 4;
             if self.cells_buffer.size() < bytes {
                 self.cells_buffer = Self::cells_buffer(device, bytes);
                 replaced = true;

@@ -498,7 +498,7 @@ pub fn read_buffer_on(
     map_and_read_on(device, &staging)
 }
 
-/// The clipmap's cells as the GPU holds them: per level, cells³ u32 in storage (toroidal) order.
+/// The clipmap's cells as the GPU holds them: per level, cells³ × [`crate::clipmap::CELL_WORDS`] u32 in storage (toroidal) order.
 pub fn read_clipmap_cells(
     device: &wgpu::Device,
     queue: &wgpu::Queue,
@@ -508,7 +508,7 @@ pub fn read_clipmap_cells(
     let bytes = read_buffer_on(device, queue, &clipmap.cells_buffer)?;
     let words: Vec<u32> =
         bytes.chunks_exact(4).map(|b| u32::from_le_bytes(b.try_into().expect("4"))).collect();
-    let n = layout.level_len() as usize;
+    let n = layout.level_words() as usize;
     Ok((0..layout.levels as usize).map(|k| words[k * n..(k + 1) * n].to_vec()).collect())
 }
 
