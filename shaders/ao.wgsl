@@ -74,12 +74,11 @@ fn clip_row(zy: u32, x: vec2<u32>, known_zy: bool, kx: vec2<bool>, fx: f32, w: v
     return mix(clip_load(zy + x.x, known_zy && kx.x, w), clip_load(zy + x.y, known_zy && kx.y, w), fx);
 }
 
-// Trilinear opacity of one level at `p` (grid units); with `box_read`, the
-// opacity of the one cell p lies in. The two cells' toroidal slots along each
+// Trilinear opacity of one level at `p` (grid units). The two cells' toroidal slots along each
 // axis are found once per sample, by a mask, not by a modulo per cell: integer
 // modulo costs many instructions on a GPU, and 16 cells a quadrilinear sample
 // made it the trace's largest cost.
-fn clip_trilinear(level: u32, p: vec3<f32>, box_read: bool, w: vec3<f32>) -> f32 {
+fn clip_trilinear(level: u32, p: vec3<f32>, w: vec3<f32>) -> f32 {
     let q = p / clip_cell_edge(level) - 0.5;
     let base = floor(q);
     let f = q - base;
@@ -96,12 +95,6 @@ fn clip_trilinear(level: u32, p: vec3<f32>, box_read: bool, w: vec3<f32>) -> f32
     let x = vec2<u32>(u32(m0.x), u32(m1.x));
     let y = vec2<u32>(u32(m0.y), u32(m1.y)) * un;
     let z = vec2<u32>(u32(m0.z), u32(m1.z)) * un * un + vec2<u32>(first);
-    if box_read {
-        let c = f >= vec3<f32>(0.5);
-        let known = select(known0, known1, c);
-        let index = select(z.x, z.y, c.z) + select(y.x, y.y, c.y) + select(x.x, x.y, c.x);
-        return clip_load(index, all(known), w);
-    }
     let kx = vec2<bool>(known0.x, known1.x);
     let x00 = clip_row(z.x + y.x, x, known0.z && known0.y, kx, f.x, w);
     let x10 = clip_row(z.x + y.y, x, known0.z && known1.y, kx, f.x, w);
@@ -113,17 +106,11 @@ fn clip_trilinear(level: u32, p: vec3<f32>, box_read: bool, w: vec3<f32>) -> f32
 // Quadrilinear clipmap sample: trilinear in the levels floor(lod) and the next,
 // blended by lod's fraction. Where p lies outside the level the cone's width
 // asks for (far from the camera), the first coarser level holding p stands in.
-// Returns (opacity, the level actually read).
-//
-// Box reads (lod <= 0: the cone is no wider than the finest cell, which the
-// width clamp makes of every sample within a few cells of the start plane):
-// such a sample reads the cell it lies in, the voxel as the box it is, not the
-// trilinear tent, which spreads each cell's opacity half a cell beyond its
-// faces. A narrow cone running beside a surface (along a wall near a floor
-// corner, past a chair leg, under a table edge) would otherwise read about
-// half that surface's opacity at every step and, compounded front to back,
-// come out nearly blocked by a surface it never crosses (docs/ao-benchmark.md,
-// "Where the conference room's error comes from").
+// Returns (opacity, the level actually read). (Narrow samples once read the
+// one cell they lie in, a box read, so that a cone running beside a surface
+// did not read the half cell of opacity the tent spreads past its faces; the
+// opacity per axis (cone_axis_weights) removed that error at every level and
+// the box reads then added error: docs/ao-benchmark.md, "Opacity per axis".)
 fn clip_sample(p: vec3<f32>, lod: f32, w: vec3<f32>) -> vec2<f32> {
     let levels = u32(clipmap.info.x);
     var level = u32(clamp(floor(lod), 0.0, f32(levels - 1u)));
@@ -138,9 +125,9 @@ fn clip_sample(p: vec3<f32>, lod: f32, w: vec3<f32>) -> vec2<f32> {
     if !clip_contains(level, p) {
         return vec2<f32>(0.0, f32(level));
     }
-    var v = clip_trilinear(level, p, lod <= 0.0, w);
+    var v = clip_trilinear(level, p, w);
     if frac > 0.0 && level + 1u < levels && clip_contains(level + 1u, p) {
-        v = mix(v, clip_trilinear(level + 1u, p, false, w), frac);
+        v = mix(v, clip_trilinear(level + 1u, p, w), frac);
     } else {
         frac = 0.0;
     }

@@ -829,20 +829,58 @@ mod tests {
 
     #[test]
     fn the_model_puts_each_voxel_in_its_cell() {
+        // Face 0 (-x) exposed: the voxels block rays along x only.
         let mut voxels = vec![PackedVoxel::new([3, 4, 5], 1, oct_encode([0.0, 0.0, 1.0]))];
         voxels.push(PackedVoxel::new([60, 0, 0], 1, oct_encode([0.0, 0.0, 1.0])));
         let block = Block { key: BlockKey::new(0, 1, 0, 0), voxels };
         let layout = ClipmapLayout { cells: 64, finest_cell: 1, levels: 2 };
         let model = ClipmapModel::build(layout, &[[64, 0, 0], [0, 0, 0]], &[vec![&block], vec![&block]]);
-        // Level 0: region x 64..128 holds both voxels at full density.
-        assert_eq!(model.levels[0][slot([67, 4, 5], 64)], DENSITY_ONE);
-        assert_eq!(model.levels[0][slot([124, 0, 0], 64)], DENSITY_ONE);
+        let x = |c: [i64; 3]| slot(c, 64) * CELL_WORDS as usize;
+        // Level 0: region x 64..128 holds both voxels at full density, along x.
+        assert_eq!(model.levels[0][x([67, 4, 5])], DENSITY_ONE);
+        assert_eq!(model.levels[0][x([124, 0, 0])], DENSITY_ONE);
         assert_eq!(model.levels[0].iter().filter(|&&v| v > 0).count(), 2);
         // Level 1 (2-unit cells, region 0..128): a quarter each.
-        assert_eq!(model.levels[1][slot([33, 2, 2], 64)], DENSITY_ONE / 4);
+        assert_eq!(model.levels[1][x([33, 2, 2])], DENSITY_ONE / 4);
         // Control: a region that misses the block holds nothing.
         let away = ClipmapModel::build(layout, &[[0, 0, 0], [100, 0, 0]], &[vec![&block], vec![&block]]);
         assert!(away.levels.iter().all(|l| l.iter().all(|&v| v == 0)));
+    }
+
+    #[test]
+    fn a_voxel_blocks_the_axes_of_its_exposed_faces() {
+        use voxstream_format::Face;
+        let mask = |faces: &[Face]| faces.iter().fold(0u8, |m, f| m | f.bit());
+        assert_eq!(voxel_axes(mask(&[Face::NegY, Face::PosY])), [false, true, false]);
+        assert_eq!(voxel_axes(mask(&[Face::PosX, Face::NegZ])), [true, false, true]);
+        assert_eq!(voxel_axes(mask(&Face::ALL)), [true; 3]);
+        // Inside a solid (no face exposed): every axis.
+        assert_eq!(voxel_axes(0), [true; 3]);
+
+        // A floor: one layer of voxels with ±y exposed fills a 4-voxel cell
+        // along y only, at full opacity (16 voxels × 1/16).
+        let floor = mask(&[Face::NegY, Face::PosY]);
+        let voxels: Vec<PackedVoxel> = (0..4)
+            .flat_map(|x| {
+                (0..4).map(move |z| PackedVoxel::new([x, 1, z], floor, oct_encode([0.0, 1.0, 0.0])))
+            })
+            .collect();
+        let block = Block { key: BlockKey::new(0, 0, 0, 0), voxels };
+        let layout = ClipmapLayout { cells: 8, finest_cell: 4, levels: 1 };
+        let model = ClipmapModel::build(layout, &[[0, 0, 0]], &[vec![&block]]);
+        let at = slot([0, 0, 0], 8) * CELL_WORDS as usize;
+        assert_eq!(model.levels[0][at..at + 3], [0, DENSITY_ONE, 0]);
+        // Control: the same voxels with no face exposed count on every axis.
+        let solid = Block {
+            key: block.key,
+            voxels: block
+                .voxels
+                .iter()
+                .map(|v| PackedVoxel::new(v.local(), 0, oct_encode([0.0, 1.0, 0.0])))
+                .collect(),
+        };
+        let model = ClipmapModel::build(layout, &[[0, 0, 0]], &[vec![&solid]]);
+        assert_eq!(model.levels[0][at..at + 3], [DENSITY_ONE; 3]);
     }
 
     #[test]

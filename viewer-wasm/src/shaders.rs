@@ -82,7 +82,7 @@ impl AoPass {
 /// `ao.wgsl` and `ao_trace.wgsl` replace the built-in ones when a trace
 /// pipeline is created: to try a change to the tracer without rebuilding
 /// (a release build takes minutes), and for tests whose negative control is
-/// a deliberately different tracer (`tests/tests/ao_box_reads.rs`).
+/// a deliberately different tracer (`tests/tests/ao_axis_opacity.rs`).
 pub const DEV_AO_WGSL_ENV: &str = "VOXSTREAM_DEV_AO_WGSL";
 
 /// The trace pass's ao.wgsl and ao_trace.wgsl: the built-in ones, or those in
