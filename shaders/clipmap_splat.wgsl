@@ -15,7 +15,8 @@ struct Dispatch {
     level: vec4<u32>,
     // xyz: the level's first cell, w: the block's voxel count.
     region: vec4<i32>,
-    // Cells already right: [keep_min, keep_max).
+    // Cells already right: [keep_min.xyz, keep_max.xyz). keep_min.w: the
+    // block's first word in voxel_words (every source block's words share it).
     keep_min: vec4<i32>,
     keep_max: vec4<i32>,
 }
@@ -48,10 +49,11 @@ fn voxel_density_fixed(coverage: u32, edge: u32, cell: u32) -> u32 {
 
 @compute @workgroup_size(64)
 fn splat_block(@builtin(global_invocation_id) id: vec3<u32>) {
-    if id.x >= u32(dispatch.region.w) || id.x >= arrayLength(&voxel_words) {
+    let at = u32(dispatch.keep_min.w) + id.x;
+    if id.x >= u32(dispatch.region.w) || at >= arrayLength(&voxel_words) {
         return;
     }
-    let word = voxel_words[id.x];
+    let word = voxel_words[at];
     let edge = dispatch.block.w;
     let cell = dispatch.level.y;
     let q = voxel_density_fixed(word >> 24u, edge, cell);

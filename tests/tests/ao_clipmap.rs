@@ -86,6 +86,13 @@ fn the_gpu_clipmap_matches_its_model_through_scrolls_arrivals_and_departures() {
         block(0, [2, 2, 2], 4),
         block(1, [0, 0, 1], 5),
         block(2, [1, 0, 0], 6),
+        // Arrive together at the end.
+        block(0, [1, 1, 2], 7),
+        block(0, [2, 1, 2], 8),
+        block(0, [1, 2, 2], 9),
+        block(0, [2, 2, 1], 10),
+        block(0, [1, 2, 0], 11),
+        block(0, [2, 1, 0], 12),
     ];
     let layout = ClipmapLayout { cells: 64, finest_cell: 1, levels: 4 };
     // Level k's sources: level-0 blocks in the fine levels, the coarse ones everywhere.
@@ -127,6 +134,19 @@ fn the_gpu_clipmap_matches_its_model_through_scrolls_arrivals_and_departures() {
     // Back to where it started: exactly the first state again.
     run(&gpu, &mut clipmap, layout, &all, &first);
     assert_eq!(mismatches(&gpu, &clipmap, &expected), 0, "after scrolling back");
+
+    // Six blocks arrive at once, and leave. Blocks that come back after leaving
+    // get new words; a batch that does not fit beside the live words moves
+    // those to a larger buffer first. Every splat must find its block's words.
+    let crowded = State { eye: first.eye, sources: by_level(&[0, 1, 2, 6, 7, 8, 9, 10, 11]) };
+    run(&gpu, &mut clipmap, layout, &all, &crowded);
+    assert_eq!(mismatches(&gpu, &clipmap, &model(layout, &crowded)), 0, "after the crowd arrived");
+    run(&gpu, &mut clipmap, layout, &all, &first);
+    assert_eq!(mismatches(&gpu, &clipmap, &expected), 0, "after the crowd left");
+    assert!(
+        clipmap.counters.word_moves >= 1,
+        "the voxel words never moved: the checks above missed that case"
+    );
 
     // Negative control: scrolls that skip clearing the exposed cells leave stale sums.
     let mut broken = OccupancyClipmap::new(&gpu.device, layout.cells);

@@ -42,7 +42,7 @@
 
 use std::collections::BTreeSet;
 
-use rustc_hash::FxHashMap as HashMap;
+use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
 
 use glam::{Mat4, Vec3, Vec4};
 use voxstream_format::{BLOCK_SIZE, Block, BlockKey};
@@ -337,6 +337,8 @@ pub struct ClipmapCounters {
     pub blocks_uploaded: u64,
     /// Full rebuilds (layout changes).
     pub rebuilds: u64,
+    /// Times the source blocks' voxel words moved into a larger buffer.
+    pub word_moves: u64,
 }
 
 /// The clipmap on the GPU with its CPU bookkeeping.
@@ -349,8 +351,8 @@ pub struct OccupancyClipmap {
     pub uniform_buffer: wgpu::Buffer,
     layout: Option<ClipmapLayout>,
     levels: Vec<ClipLevel>,
-    /// Voxel words of the source blocks (position and coverage), with their counts.
-    voxel_words: HashMap<BlockKey, (wgpu::Buffer, u32)>,
+    /// Voxel words of the source blocks (position, faces and coverage).
+    voxel_words: VoxelWordArena,
     dispatch_buffer: wgpu::Buffer,
     clear_pipeline: wgpu::ComputePipeline,
     splat_pipeline: wgpu::ComputePipeline,
@@ -395,6 +397,115 @@ fn compute_pipeline(
     })
 }
 
+/// The source blocks' voxel words in one storage buffer, a range a block.
+/// A splat finds its block's words by the first word in its dispatch record,
+/// so an update binds one buffer for all its splats instead of making a
+/// buffer and a bind group per block: in a browser every WebGPU call costs
+/// the page's main thread, and the first frames splat every block.
+///
+/// Ranges are handed out in order and never reused in place: commands
+/// already submitted may still read them. A batch that does not fit moves
+/// the live blocks (from their CPU copies) into a new buffer with room to spare.
+struct VoxelWordArena {
+    buffer: wgpu::Buffer,
+    /// Each block's first word, and its words (for that move).
+    blocks: HashMap<BlockKey, (u32, Vec<u32>)>,
+    /// The first word never handed out.
+    end: u64,
+    /// Words of the blocks held.
+    live: u64,
+}
+
+/// Words of the smallest arena: a few small blocks.
+const ARENA_MIN_WORDS: u64 = 1 << 14;
+
+impl VoxelWordArena {
+    fn new(device: &wgpu::Device) -> Self {
+        Self { buffer: Self::buffer(device, ARENA_MIN_WORDS), blocks: HashMap::default(), end: 0, live: 0 }
+    }
+
+    fn buffer(device: &wgpu::Device, words: u64) -> wgpu::Buffer {
+        device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("clipmap source voxels"),
+            size: words.max(1) * 4,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        })
+    }
+
+    fn contains(&self, key: &BlockKey) -> bool {
+        self.blocks.contains_key(key)
+    }
+
+    /// A block's first word and word count.
+    fn range(&self, key: &BlockKey) -> Option<(u32, u32)> {
+        self.blocks.get(key).map(|(first, words)| (*first, words.len() as u32))
+    }
+
+    /// Adds blocks not held yet, with one buffer write for all of them.
+    /// Returns the blocks refused: those that do not fit `max_words` beside the live ones.
+    fn insert_many(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        mut new: Vec<(BlockKey, Vec<u32>)>,
+        max_words: u64,
+    ) -> HashSet<BlockKey> {
+        let mut refused = HashSet::default();
+        let mut need: u64 = new.iter().map(|(_, w)| w.len() as u64).sum();
+        while self.live + need > max_words {
+            let Some((key, words)) = new.pop() else { break };
+            need -= words.len() as u64;
+            refused.insert(key);
+        }
+        if new.is_empty() {
+            return refused;
+        }
+        let capacity = self.buffer.size() / 4;
+        if self.end + need > capacity {
+            let words = (2 * (self.live + need)).clamp(ARENA_MIN_WORDS, max_words.max(self.live + need));
+            self.buffer = Self::buffer(device, words);
+            // Live blocks first, in key order (deterministic), then the new ones below.
+            let mut keys: Vec<BlockKey> = self.blocks.keys().copied().collect();
+            keys.sort_unstable();
+            let mut moved = Vec::with_capacity(self.live as usize);
+            for key in keys {
+                let (first, words) = self.blocks.get_mut(&key).expect("listed");
+                *first = moved.len() as u32;
+                moved.extend_from_slice(words);
+            }
+            if !moved.is_empty() {
+                queue.write_buffer(&self.buffer, 0, bytemuck::cast_slice(&moved));
+            }
+            self.end = moved.len() as u64;
+        }
+        let mut batch = Vec::with_capacity(need as usize);
+        for (key, words) in new {
+            let first = self.end + batch.len() as u64;
+            batch.extend_from_slice(&words);
+            self.live += words.len() as u64;
+            self.blocks.insert(key, (first as u32, words));
+        }
+        if !batch.is_empty() {
+            queue.write_buffer(&self.buffer, self.end * 4, bytemuck::cast_slice(&batch));
+        }
+        self.end += batch.len() as u64;
+        refused
+    }
+
+    /// Drops the blocks `keep` refuses (their words stay in the buffer until the next move).
+    fn retain(&mut self, mut keep: impl FnMut(&BlockKey) -> bool) {
+        let live = &mut self.live;
+        self.blocks.retain(|k, (_, words)| {
+            let kept = keep(k);
+            if !kept {
+                *live -= words.len() as u64;
+            }
+            kept
+        });
+    }
+}
+
 impl OccupancyClipmap {
     /// A clipmap of `cells`³ levels; its cells are allocated by the first
     /// [`OccupancyClipmap::update`] (a placeholder until then).
@@ -428,7 +539,7 @@ impl OccupancyClipmap {
             uniform_buffer,
             layout: None,
             levels: Vec::new(),
-            voxel_words: HashMap::default(),
+            voxel_words: VoxelWordArena::new(device),
             dispatch_buffer: Self::dispatch_buffer(device, 64),
             clear_pipeline: compute_pipeline(
                 device,
@@ -488,7 +599,7 @@ impl OccupancyClipmap {
     }
 
     fn voxel_words_bytes(&self) -> u64 {
-        self.voxel_words.values().map(|(b, _)| b.size()).sum()
+        self.voxel_words.buffer.size()
     }
 
     /// What the residency budget counts for the clipmap of a
@@ -596,23 +707,28 @@ impl OccupancyClipmap {
             level.sources = wanted;
         }
         // Voxel words for every block a splat reads (a removed block's are still here).
+        let mut new_words: Vec<(BlockKey, Vec<u32>)> = Vec::new();
         for op in &ops {
             if let Op::Splat { key, .. } = op
-                && !self.voxel_words.contains_key(key)
+                && !self.voxel_words.contains(key)
+                && !new_words.iter().any(|(k, _)| k == key)
                 && let Some(b) = block(key)
             {
-                let words: Vec<u32> = b.voxels.iter().map(|v| v.pos_faces).collect();
-                let buffer = device.create_buffer(&wgpu::BufferDescriptor {
-                    label: Some("clipmap source voxels"),
-                    size: (words.len().max(1) * 4) as u64,
-                    usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
-                    mapped_at_creation: false,
-                });
-                if !words.is_empty() {
-                    queue.write_buffer(&buffer, 0, bytemuck::cast_slice(&words));
-                }
-                self.voxel_words.insert(*key, (buffer, words.len() as u32));
-                self.counters.blocks_uploaded += 1;
+                new_words.push((*key, b.voxels.iter().map(|v| v.pos_faces).collect()));
+            }
+        }
+        self.counters.blocks_uploaded += new_words.len() as u64;
+        let max_words = device.limits().max_storage_buffer_binding_size / 4;
+        let buffer_before = self.voxel_words.buffer.size();
+        let refused = self.voxel_words.insert_many(device, queue, new_words, max_words);
+        if self.voxel_words.buffer.size() != buffer_before {
+            self.counters.word_moves += 1;
+        }
+        if !refused.is_empty() {
+            // Never added, so never to be subtracted: a later update adds them when there is room.
+            ops.retain(|op| !matches!(op, Op::Splat { key, .. } if refused.contains(key)));
+            for level in &mut self.levels {
+                level.sources.retain(|k| !refused.contains(k));
             }
         }
         if !ops.is_empty() {
@@ -621,7 +737,7 @@ impl OccupancyClipmap {
         }
         // Voxel words no level uses any more go (the commands above keep theirs alive).
         let used: BTreeSet<BlockKey> = self.levels.iter().flat_map(|l| l.sources.iter().copied()).collect();
-        self.voxel_words.retain(|k, _| used.contains(k));
+        self.voxel_words.retain(|k| used.contains(k));
         queue.write_buffer(&self.uniform_buffer, 0, bytemuck::bytes_of(&self.uniform(true)));
         replaced
     }
@@ -655,19 +771,20 @@ impl OccupancyClipmap {
                     self.counters.clears += 1;
                 }
                 Op::Splat { key, subtract, .. } => {
-                    let Some((_, count)) = self.voxel_words.get(key) else { continue };
-                    if *count == 0 {
+                    let Some((first, count)) = self.voxel_words.range(key) else { continue };
+                    if count == 0 {
                         continue;
                     }
                     let edge = 1u32 << key.level;
                     let corner = key.coord().map(|c| c.saturating_mul(BLOCK_SIZE << key.level));
                     record.block = [corner[0], corner[1], corner[2], edge];
                     record.level[3] = *subtract as u32;
-                    record.region[3] = *count as i32;
+                    record.region[3] = count as i32;
+                    record.keep_min[3] = first as i32;
                     records.push(record);
                     work.push(Some(*key));
                     self.counters.splats += 1;
-                    self.counters.voxels_splatted += *count as u64;
+                    self.counters.voxels_splatted += count as u64;
                 }
             }
         }
@@ -696,6 +813,15 @@ impl OccupancyClipmap {
                 wgpu::BindGroupEntry { binding: 1, resource: self.cells_buffer.as_entire_binding() },
             ],
         });
+        let splat_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("clipmap splat"),
+            layout: &self.splat_layout,
+            entries: &[
+                wgpu::BindGroupEntry { binding: 0, resource: record_binding },
+                wgpu::BindGroupEntry { binding: 1, resource: self.cells_buffer.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 2, resource: self.voxel_words.buffer.as_entire_binding() },
+            ],
+        });
         let mut encoder =
             device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("clipmap update") });
         {
@@ -712,22 +838,9 @@ impl OccupancyClipmap {
                         pass.set_bind_group(0, &clear_group, &[offset]);
                         pass.dispatch_workgroups(level_groups, 1, 1);
                     }
-                    Some(key) => {
-                        let (words, _) = &self.voxel_words[key];
-                        let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-                            label: Some("clipmap splat"),
-                            layout: &self.splat_layout,
-                            entries: &[
-                                wgpu::BindGroupEntry { binding: 0, resource: record_binding.clone() },
-                                wgpu::BindGroupEntry {
-                                    binding: 1,
-                                    resource: self.cells_buffer.as_entire_binding(),
-                                },
-                                wgpu::BindGroupEntry { binding: 2, resource: words.as_entire_binding() },
-                            ],
-                        });
+                    Some(_) => {
                         pass.set_pipeline(&self.splat_pipeline);
-                        pass.set_bind_group(0, &group, &[offset]);
+                        pass.set_bind_group(0, &splat_group, &[offset]);
                         pass.dispatch_workgroups((record.region[3] as u32).div_ceil(WORKGROUP), 1, 1);
                     }
                 }
