@@ -463,7 +463,8 @@ impl VoxelWordArena {
         }
         let capacity = self.buffer.size() / 4;
         if self.end + need > capacity {
-            let words = (2 * (self.live + need)).clamp(ARENA_MIN_WORDS, max_words.max(self.live + need));
+            // Room to spare, within the binding limit (which the live and new words fit, above).
+            let words = (2 * (self.live + need)).max(ARENA_MIN_WORDS).min(max_words).max(self.live + need);
             self.buffer = Self::buffer(device, words);
             // Live blocks first, in key order (deterministic), then the new ones below.
             let mut keys: Vec<BlockKey> = self.blocks.keys().copied().collect();
