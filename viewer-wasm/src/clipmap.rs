@@ -709,10 +709,11 @@ impl OccupancyClipmap {
         }
         // Voxel words for every block a splat reads (a removed block's are still here).
         let mut new_words: Vec<(BlockKey, Vec<u32>)> = Vec::new();
+        let mut listed: HashSet<BlockKey> = HashSet::default();
         for op in &ops {
             if let Op::Splat { key, .. } = op
                 && !self.voxel_words.contains(key)
-                && !new_words.iter().any(|(k, _)| k == key)
+                && listed.insert(*key)
                 && let Some(b) = block(key)
             {
                 new_words.push((*key, b.voxels.iter().map(|v| v.pos_faces).collect()));
