@@ -414,6 +414,8 @@ struct VoxelWordArena {
     end: u64,
     /// Words of the blocks held.
     live: u64,
+    /// Times the live words moved into a new buffer.
+    moves: u64,
 }
 
 /// Words of the smallest arena: a few small blocks.
@@ -421,7 +423,13 @@ const ARENA_MIN_WORDS: u64 = 1 << 14;
 
 impl VoxelWordArena {
     fn new(device: &wgpu::Device) -> Self {
-        Self { buffer: Self::buffer(device, ARENA_MIN_WORDS), blocks: HashMap::default(), end: 0, live: 0 }
+        Self {
+            buffer: Self::buffer(device, ARENA_MIN_WORDS),
+            blocks: HashMap::default(),
+            end: 0,
+            live: 0,
+            moves: 0,
+        }
     }
 
     fn buffer(device: &wgpu::Device, words: u64) -> wgpu::Buffer {
@@ -479,6 +487,7 @@ impl VoxelWordArena {
                 queue.write_buffer(&self.buffer, 0, bytemuck::cast_slice(&moved));
             }
             self.end = moved.len() as u64;
+            self.moves += 1;
         }
         let mut batch = Vec::with_capacity(need as usize);
         for (key, words) in new {
@@ -721,11 +730,8 @@ impl OccupancyClipmap {
         }
         self.counters.blocks_uploaded += new_words.len() as u64;
         let max_words = device.limits().max_storage_buffer_binding_size / 4;
-        let buffer_before = self.voxel_words.buffer.size();
         let refused = self.voxel_words.insert_many(device, queue, new_words, max_words);
-        if self.voxel_words.buffer.size() != buffer_before {
-            self.counters.word_moves += 1;
-        }
+        self.counters.word_moves = self.voxel_words.moves;
         if !refused.is_empty() {
             // Never added, so never to be subtracted: a later update adds them when there is room.
             ops.retain(|op| !matches!(op, Op::Splat { key, .. } if refused.contains(key)));
@@ -753,7 +759,8 @@ impl OccupancyClipmap {
         timer: Option<&crate::pass_timer::PassTimer>,
     ) {
         let mut records = Vec::with_capacity(ops.len());
-        let mut work = Vec::with_capacity(ops.len());
+        // Per record: a splat (or a clear).
+        let mut splats = Vec::with_capacity(ops.len());
         for op in ops {
             let (level, origin, keep) = match op {
                 Op::Clear { level, origin, keep } => (*level, *origin, *keep),
@@ -769,7 +776,7 @@ impl OccupancyClipmap {
             match op {
                 Op::Clear { .. } => {
                     records.push(record);
-                    work.push(None);
+                    splats.push(false);
                     self.counters.clears += 1;
                 }
                 Op::Splat { key, subtract, .. } => {
@@ -784,7 +791,7 @@ impl OccupancyClipmap {
                     record.region[3] = count as i32;
                     record.keep_min[3] = first as i32;
                     records.push(record);
-                    work.push(Some(*key));
+                    splats.push(true);
                     self.counters.splats += 1;
                     self.counters.voxels_splatted += count as u64;
                 }
@@ -832,19 +839,16 @@ impl OccupancyClipmap {
                 timestamp_writes: timer.and_then(|t| t.compute_writes("clipmap update")),
             });
             let level_groups = (layout.level_len() as u32).div_ceil(WORKGROUP);
-            for (i, (record, key)) in records.iter().zip(&work).enumerate() {
+            for (i, (record, &splat)) in records.iter().zip(&splats).enumerate() {
                 let offset = (i as u64 * DISPATCH_STRIDE) as u32;
-                match key {
-                    None => {
-                        pass.set_pipeline(&self.clear_pipeline);
-                        pass.set_bind_group(0, &clear_group, &[offset]);
-                        pass.dispatch_workgroups(level_groups, 1, 1);
-                    }
-                    Some(_) => {
-                        pass.set_pipeline(&self.splat_pipeline);
-                        pass.set_bind_group(0, &splat_group, &[offset]);
-                        pass.dispatch_workgroups((record.region[3] as u32).div_ceil(WORKGROUP), 1, 1);
-                    }
+                if splat {
+                    pass.set_pipeline(&self.splat_pipeline);
+                    pass.set_bind_group(0, &splat_group, &[offset]);
+                    pass.dispatch_workgroups((record.region[3] as u32).div_ceil(WORKGROUP), 1, 1);
+                } else {
+                    pass.set_pipeline(&self.clear_pipeline);
+                    pass.set_bind_group(0, &clear_group, &[offset]);
+                    pass.dispatch_workgroups(level_groups, 1, 1);
                 }
             }
         }
