@@ -125,18 +125,34 @@ struct Shaded {
     colour: vec4<f32>,
     // The unit normal of the AO hemisphere.
     normal: vec3<f32>,
+    // Whether `normal` is the stored normal as it is (not turned to the side we see).
+    stored: bool,
 }
 
+// A stored normal more than 45 degrees past edge-on to the eye belongs to the
+// surface's other side: scans' triangles disagree on their winding, and both
+// sides of a triangle are surface (issue 9's definition). Nearer edge-on it
+// stays, since at a small convex feature the voxel staircase shows faces a
+// little past its silhouette, whose outward normals point slightly away.
+const OTHER_SIDE_COS: f32 = -0.70710678;
+
 fn shade(in: VertexOut) -> Shaded {
+    let to_eye = normalize(frame.eye.xyz - in.grid_pos);
     // The stored normal is the smooth surface normal, which hides the voxel
-    // staircase. Where it points away from the face we are drawing (thin
-    // features), bend it until it faces the same side as the face.
+    // staircase. Where it belongs to the side we do not see, it turns over;
+    // where it points away from the face we are drawing (thin features), it
+    // bends until it faces the same side as the face.
     var n = normalize(in.normal);
+    var stored = true;
+    if dot(n, to_eye) < OTHER_SIDE_COS {
+        n = -n;
+        stored = false;
+    }
     let agreement = dot(n, in.face_normal);
     if agreement < 0.0 {
         n = normalize(n + in.face_normal * (0.3 - agreement));
+        stored = false;
     }
-    let to_eye = normalize(frame.eye.xyz - in.grid_pos);
     let headlight = max(dot(n, to_eye), 0.0);
     let key = max(dot(n, frame.key_light.xyz), 0.0);
     let diffuse = 0.65 * headlight + 0.35 * key;
@@ -148,6 +164,7 @@ fn shade(in: VertexOut) -> Shaded {
     var out: Shaded;
     out.colour = vec4<f32>(in.base_colour * light, 1.0);
     out.normal = n;
+    out.stored = stored;
     return out;
 }
 
@@ -167,11 +184,11 @@ fn gbuffer(in: VertexOut) -> GBufferOut {
     let s = shade(in);
     var out: GBufferOut;
     out.colour = s.colour;
-    // The field's V was computed for the stored normal; where shade() bent the
-    // normal to the other side (a thin sheet seen from behind) it does not
-    // apply, and the trace pass cone-traces the pixel instead.
+    // The field's V was computed for the stored normal; where shade() turned
+    // or bent the normal (the other side, a thin sheet seen from behind) it
+    // does not apply, and the trace pass cone-traces the pixel instead.
     var field_w = 1.0;
-    if in.field > 0u && dot(normalize(in.normal), in.face_normal) >= 0.0 {
+    if in.field > 0u && s.stored {
         field_w = 2.0 + f32(in.field - 1u) / 254.0;
     }
     out.position = vec4<f32>(in.grid_pos, field_w);

@@ -80,9 +80,11 @@ impl AoPass {
 
 /// Environment variable (native builds only) naming a directory whose
 /// `ao.wgsl` and `ao_trace.wgsl` replace the built-in ones when a trace
-/// pipeline is created: to try a change to the tracer without rebuilding
-/// (a release build takes minutes), and for tests whose negative control is
-/// a deliberately different tracer (`tests/tests/ao_axis_opacity.rs`).
+/// pipeline is created, and whose `voxel.wgsl`, if it holds one, replaces
+/// the draw's: to try a change to the tracer or the shading without
+/// rebuilding (a release build takes minutes), and for tests whose negative
+/// control is a deliberately different shader (`tests/tests/ao_axis_opacity.rs`,
+/// `tests/tests/ao_winding.rs`).
 pub const DEV_AO_WGSL_ENV: &str = "VOXSTREAM_DEV_AO_WGSL";
 
 /// The trace pass's ao.wgsl and ao_trace.wgsl: the built-in ones, or those in
@@ -108,8 +110,19 @@ pub fn expand_module_source() -> &'static str {
     EXPAND_WGSL
 }
 
-/// The draw module: frame.wgsl then voxel.wgsl (WGSL has no includes).
+/// The draw module: frame.wgsl then voxel.wgsl (WGSL has no includes), or the
+/// voxel.wgsl in [`DEV_AO_WGSL_ENV`]'s directory where it holds one (the
+/// shading's negative controls; ao.wgsl and ao_trace.wgsl must be there too).
 pub fn voxel_module_source() -> String {
+    #[cfg(not(target_arch = "wasm32"))]
+    if let Some(dir) = std::env::var_os(DEV_AO_WGSL_ENV) {
+        let path = std::path::Path::new(&dir).join("voxel.wgsl");
+        if path.is_file() {
+            let voxel = std::fs::read_to_string(&path)
+                .unwrap_or_else(|e| panic!("{DEV_AO_WGSL_ENV}: reading {}: {e}", path.display()));
+            return format!("{FRAME_WGSL}\n{voxel}");
+        }
+    }
     format!("{FRAME_WGSL}\n{VOXEL_WGSL}")
 }
 
