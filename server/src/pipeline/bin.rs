@@ -343,6 +343,10 @@ struct Binner {
     index: Vec<u64>,
     /// Full buffers wait here (block, records, bounds) and are encoded together.
     pending: Vec<(u64, Vec<u8>, Bounds)>,
+    /// Emptied stream chunks, each a segment's full capacity, for new buffers
+    /// to fill: memory already touched, where a fresh buffer costs a page
+    /// fault every 4 KiB.
+    spare: Vec<Vec<u8>>,
     triangles: u64,
     skipped: u64,
 }
@@ -417,6 +421,12 @@ impl Binner {
                 }
             };
             let buf = &mut self.buffers[i];
+            if buf.raw.capacity() == 0
+                && let Some(mut spare) = self.spare.pop()
+            {
+                spare.clear();
+                buf.raw = spare;
+            }
             // Up to the buffer's end, and up to the record that passes the limit.
             let allowed = (self.buffer_limit.saturating_sub(self.buffered) / rec + 1) * rec;
             let take = (full - buf.raw.len()).min(allowed).min(rest.len());
@@ -526,7 +536,7 @@ fn group_chunk(layout: RecordLayout, raw: &[u8], frame: &GridFrame) -> Placed {
 /// one grouping while the one before is appended), and appended in input
 /// order; a budget too small for two chunks bins one chunk at a time.
 pub fn bin_triangles(
-    stream: &ChunkStore,
+    stream: &mut ChunkStore,
     layout: RecordLayout,
     frame: &GridFrame,
     spill_path: &Path,
@@ -543,11 +553,12 @@ pub fn bin_triangles(
         buffer_limit,
         index: Vec::new(),
         pending: Vec::new(),
+        spare: Vec::new(),
         triangles: 0,
         skipped: 0,
     };
     let group = (group_bytes / 2 / BIN_CHUNK_BYTES).min(BIN_GROUP_PER_THREAD * rayon::current_num_threads());
-    let read_group = |ids: std::ops::Range<usize>| -> Result<Vec<Placed>, BuildError> {
+    let read_group = |stream: &ChunkStore, ids: std::ops::Range<usize>| -> Result<Vec<Placed>, BuildError> {
         ids.into_par_iter()
             .map(|id| stream.with_records(id, |raw| Ok(group_chunk(layout, raw, frame))).map_err(temp_err))
             .collect()
@@ -568,6 +579,7 @@ pub fn bin_triangles(
             let ids = next..(next + group).min(total);
             next = ids.end;
             // Appends the group before while this one is read and grouped.
+            let reading: &ChunkStore = stream;
             let (appended, grouped) = rayon::join(
                 || -> Result<(), BuildError> {
                     for p in std::mem::take(&mut ready) {
@@ -575,10 +587,17 @@ pub fn bin_triangles(
                     }
                     Ok(())
                 },
-                || read_group(ids),
+                || read_group(reading, ids.clone()),
             );
             appended?;
             ready = grouped?;
+            // Grouped copies hold these chunks' records now.
+            let full = MAX_CHUNK_TRIANGLES * layout.size();
+            for id in ids {
+                if let Some(raw) = stream.take_resident(id).filter(|raw| raw.capacity() == full) {
+                    binner.spare.push(raw);
+                }
+            }
             progress.stage(Stage::Voxelize, 0.3 * next as f64 / total.max(1) as f64);
         }
     }

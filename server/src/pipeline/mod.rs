@@ -775,7 +775,7 @@ pub fn build_scene_reporting(
         r => r?,
     };
     let StreamSink {
-        store: stream_store,
+        store: mut stream_store,
         layout,
         bounds,
         triangles: read_triangles,
@@ -808,18 +808,7 @@ pub fn build_scene_reporting(
     }
     tracing::debug!(reason = %resolution_choice.reason, "build: resolution");
 
-    // Pass 2: bin by block.
-    progress.stage(Stage::Voxelize, 0.0);
-    let bins = bin::bin_triangles(
-        &stream_store,
-        layout,
-        &frame,
-        &temp.path().join("bins.vxt"),
-        (plan.bin_resident(), plan.bin_buffers(), plan.bin_groups()),
-        opts,
-        &progress,
-    )?;
-    // The AO field, from the stream's triangles, before the stream is dropped.
+    // The AO field, from the stream's triangles, before binning empties the stream.
     let field = match &opts.ao_field {
         Some(o) => {
             let check = || opts.check_cancelled();
@@ -836,6 +825,18 @@ pub fn build_scene_reporting(
         }
         None => None,
     };
+
+    // Pass 2: bin by block.
+    progress.stage(Stage::Voxelize, 0.0);
+    let bins = bin::bin_triangles(
+        &mut stream_store,
+        layout,
+        &frame,
+        &temp.path().join("bins.vxt"),
+        (plan.bin_resident(), plan.bin_buffers(), plan.bin_groups()),
+        opts,
+        &progress,
+    )?;
     tracing::debug!(
         seconds = start.elapsed().as_secs_f64(),
         stream_chunks = stream_store.len(),

@@ -238,7 +238,12 @@ pub fn decode_chunk(bytes: &[u8]) -> Result<(ChunkHeader, Vec<u8>), ChunkError> 
 #[derive(Debug, Clone, Copy)]
 enum Location {
     Memory(usize),
-    Disk { offset: u64, len: u32 },
+    Disk {
+        offset: u64,
+        len: u32,
+    },
+    /// A resident chunk whose buffer [`ChunkStore::take_resident`] handed out.
+    Taken,
 }
 
 /// Chunks of records, kept in memory up to a resident limit and appended to
@@ -383,6 +388,7 @@ impl ChunkStore {
     ) -> Result<T, ChunkError> {
         match self.chunks.get(id) {
             None => Err(ChunkError::Damaged(format!("no chunk {id}"))),
+            Some(Location::Taken) => Err(ChunkError::Damaged(format!("chunk {id} was taken"))),
             Some(Location::Memory(i)) => f(&self.resident[*i]),
             Some(&Location::Disk { offset, len }) => {
                 let file = self.spill.as_ref().expect("a disk chunk implies a spill file");
@@ -391,6 +397,19 @@ impl ChunkStore {
                 f(&decode_chunk(&buf)?.1)
             }
         }
+    }
+
+    /// Takes resident chunk `id`'s buffer out of the store (its records are
+    /// then gone: reading it again is an error), for a pass that has consumed
+    /// it to reuse; `None` for a spilled or already taken chunk. The store
+    /// keeps counting its bytes, so its holder's share of the budget does not
+    /// shrink while the buffer lives on elsewhere.
+    pub fn take_resident(&mut self, id: usize) -> Option<Vec<u8>> {
+        let Some(Location::Memory(i)) = self.chunks.get(id).copied() else {
+            return None;
+        };
+        self.chunks[id] = Location::Taken;
+        Some(std::mem::take(&mut self.resident[i]))
     }
 
     /// Chunk `id`'s records, copied.
@@ -481,5 +500,14 @@ mod tests {
             assert_eq!(&store.read(k).unwrap(), raw);
         }
         assert!(store.read(5).is_err());
+
+        // A resident chunk's buffer can be taken once, whole; a spilled one cannot.
+        let taken = store.take_resident(0).expect("chunk 0 is resident");
+        assert_eq!(taken, chunks[0]);
+        assert!(store.read(0).is_err(), "a taken chunk reads as an error, not as empty records");
+        assert!(store.take_resident(0).is_none());
+        assert!(store.take_resident(4).is_none(), "chunk 4 is spilled");
+        assert_eq!(&store.read(4).unwrap(), &chunks[4]);
+        assert_eq!(&store.read(1).unwrap(), &chunks[1]);
     }
 }
