@@ -17,7 +17,7 @@
 
 mod ao_support;
 
-use ao_support::{RESOLUTION, render_still};
+use ao_support::{RESOLUTION, render_still, with_voxel_shader};
 use glam::DVec3;
 use voxstream::reference::analytic::{self, AnalyticScene, Shape};
 use voxstream::render::{CameraSpec, RenderOutput};
@@ -177,18 +177,4 @@ fn a_surface_wound_away_from_the_eye_renders_as_its_seen_side() {
         "without the rule the winding hardly changes the AO (mean |ΔV| {:.4}): the test cannot fail",
         control.ao
     );
-}
-
-/// Runs `f` with `voxel_wgsl` in place of the shipped shaders/voxel.wgsl (the AO shaders as shipped).
-fn with_voxel_shader<T>(voxel_wgsl: &str, f: impl FnOnce() -> T) -> T {
-    use voxstream_viewer::shaders::{AO_TRACE_WGSL, AO_WGSL, DEV_AO_WGSL_ENV};
-    let shaders = tempfile::tempdir().unwrap();
-    std::fs::write(shaders.path().join("ao.wgsl"), AO_WGSL).unwrap();
-    std::fs::write(shaders.path().join("ao_trace.wgsl"), AO_TRACE_WGSL).unwrap();
-    std::fs::write(shaders.path().join("voxel.wgsl"), voxel_wgsl).unwrap();
-    // SAFETY: this test binary runs one test; no other thread reads the environment.
-    unsafe { std::env::set_var(DEV_AO_WGSL_ENV, shaders.path()) };
-    let out = f();
-    unsafe { std::env::remove_var(DEV_AO_WGSL_ENV) };
-    out
 }

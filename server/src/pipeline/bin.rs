@@ -564,6 +564,8 @@ pub fn bin_triangles(
             .collect()
     };
     let total = stream.len();
+    // A full chunk's buffer: the capacity a spare must have to hold a whole segment.
+    let segment_bytes = MAX_CHUNK_TRIANGLES * layout.size();
     if group == 0 {
         for id in 0..total {
             opts.check_cancelled()?;
@@ -592,9 +594,8 @@ pub fn bin_triangles(
             appended?;
             ready = grouped?;
             // Grouped copies hold these chunks' records now.
-            let full = MAX_CHUNK_TRIANGLES * layout.size();
             for id in ids {
-                if let Some(raw) = stream.take_resident(id).filter(|raw| raw.capacity() == full) {
+                if let Some(raw) = stream.take_resident(id).filter(|raw| raw.capacity() == segment_bytes) {
                     binner.spare.push(raw);
                 }
             }

@@ -70,9 +70,22 @@ pub fn error_where(
 
 /// Runs `f` with `ao_wgsl` in place of the shipped shaders/ao.wgsl.
 pub fn with_ao_shader<T>(ao_wgsl: &str, f: impl FnOnce() -> T) -> T {
+    with_dev_shaders(ao_wgsl, None, f)
+}
+
+/// Runs `f` with `voxel_wgsl` in place of the shipped shaders/voxel.wgsl (the AO shaders as shipped).
+pub fn with_voxel_shader<T>(voxel_wgsl: &str, f: impl FnOnce() -> T) -> T {
+    with_dev_shaders(voxstream_viewer::shaders::AO_WGSL, Some(voxel_wgsl), f)
+}
+
+/// Runs `f` with the given ao.wgsl and, if any, voxel.wgsl loaded through `VOXSTREAM_DEV_AO_WGSL`.
+fn with_dev_shaders<T>(ao_wgsl: &str, voxel_wgsl: Option<&str>, f: impl FnOnce() -> T) -> T {
     let shaders = tempfile::tempdir().unwrap();
     std::fs::write(shaders.path().join("ao.wgsl"), ao_wgsl).unwrap();
     std::fs::write(shaders.path().join("ao_trace.wgsl"), voxstream_viewer::shaders::AO_TRACE_WGSL).unwrap();
+    if let Some(voxel) = voxel_wgsl {
+        std::fs::write(shaders.path().join("voxel.wgsl"), voxel).unwrap();
+    }
     // SAFETY: each test binary using this runs one test; no other thread reads the environment.
     unsafe { std::env::set_var(voxstream_viewer::shaders::DEV_AO_WGSL_ENV, shaders.path()) };
     let out = f();
