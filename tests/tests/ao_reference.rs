@@ -5,7 +5,7 @@
 //! 1024 cosine-weighted rays per pixel) at the render's own points.
 //!
 //! The default setting is rendered as the viewer shows a still view: traced
-//! at half resolution, bilaterally upsampled, its `temporal_frames` (4)
+//! at half resolution, bilaterally upsampled, its `temporal_frames` (8)
 //! jittered frames accumulated.
 //!
 //! Goals (issue 9): RMSE ≤ 0.05, |mean bias| ≤ 0.02, equal-error rays ≥ 32.

@@ -79,8 +79,14 @@ pub(crate) fn to_grid(tri: [[f64; 3]; 3], frame: &GridFrame) -> Option<[[f64; 3]
 }
 
 /// [`to_grid`] without the validity check, for triangles already checked by it.
+///
+/// A product with the voxel's reciprocal, not nine divisions: the divisions
+/// were a tenth of the bin pass. The grid triangle is whatever this returns;
+/// every pass and the in-memory reference call this one function, so they
+/// agree bit for bit, and `p - origin` stays exact for shifted scans.
 pub(crate) fn to_grid_unchecked(tri: [[f64; 3]; 3], frame: &GridFrame) -> [[f64; 3]; 3] {
-    tri.map(|p| std::array::from_fn(|a| (p[a] - frame.origin[a]) / frame.voxel_size))
+    let per_voxel = 1.0 / frame.voxel_size;
+    tri.map(|p| std::array::from_fn(|a| (p[a] - frame.origin[a]) * per_voxel))
 }
 
 pub fn valid_triangle(tri: &[[f64; 3]; 3]) -> bool {

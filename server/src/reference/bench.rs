@@ -45,8 +45,10 @@ pub struct AoBenchArgs {
     /// temporal accumulation (`sparse-temporal`).
     #[arg(long, value_enum, default_value_t = Sweep::Cones)]
     pub sweep: Sweep,
-    /// Frame counts N of the `sparse-temporal` sweep's accumulated points (comma-separated).
-    #[arg(long, value_delimiter = ',', default_value = "4,16")]
+    /// Frame counts N of the `sparse-temporal` sweep's accumulated points
+    /// (comma-separated; default: the viewer's own N, and 16). The other
+    /// sweeps' accumulated points take the first (default: the viewer's N).
+    #[arg(long, value_delimiter = ',')]
     pub frames: Vec<u32>,
     /// Also write each view's per-pixel arrays under DIR/<view>/<point index>/:
     /// ao.f32, reference.f32, reference_variance.f32 (little-endian f32),
@@ -99,7 +101,19 @@ pub struct Point {
 /// Full or reduced resolution, one frame or `frames` accumulated, at the
 /// default cone setting, with two comparisons: accumulation without jitter,
 /// and plain bilinear upsampling.
+/// N of the accumulated points of the sweeps that have one: the first of
+/// `--frames`, else the viewer's own ([`AoSettings::default`]).
+fn accumulated_frames(frames: &[u32]) -> u32 {
+    frames
+        .first()
+        .copied()
+        .unwrap_or(AoSettings::default().temporal_frames)
+        .clamp(1, voxstream_viewer::ao::MAX_TEMPORAL_FRAMES)
+}
+
 fn sparse_temporal_sweep(frames: &[u32]) -> Vec<Point> {
+    let default_frames = [AoSettings::default().temporal_frames, 16];
+    let frames = if frames.is_empty() { &default_frames[..] } else { frames };
     use voxstream_viewer::ao::Upsample;
     let d = AoSettings {
         trace_downscale: 1,
@@ -143,7 +157,7 @@ fn sparse_temporal_sweep(frames: &[u32]) -> Vec<Point> {
 
 fn structure_sweep(frames: &[u32]) -> Vec<Point> {
     use voxstream_viewer::ao::AoStructure;
-    let n = frames.first().copied().unwrap_or(4).clamp(1, voxstream_viewer::ao::MAX_TEMPORAL_FRAMES);
+    let n = accumulated_frames(frames);
     let mut points = Vec::new();
     for structure in [AoStructure::Volume, AoStructure::Clipmap] {
         let name = structure.name();
@@ -171,7 +185,7 @@ fn structure_sweep(frames: &[u32]) -> Vec<Point> {
 
 fn mode_sweep(frames: &[u32]) -> Vec<Point> {
     use voxstream_viewer::ao::AoMode;
-    let n = frames.first().copied().unwrap_or(4).clamp(1, voxstream_viewer::ao::MAX_TEMPORAL_FRAMES);
+    let n = accumulated_frames(frames);
     let full =
         AoSettings { trace_downscale: 1, interleave: false, temporal_frames: 1, ..AoSettings::default() };
     vec![
@@ -513,8 +527,7 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
         Sweep::Structure => structure_sweep(&args.frames),
         Sweep::Mode => mode_sweep(&args.frames),
         Sweep::Default => {
-            let n =
-                args.frames.first().copied().unwrap_or(4).clamp(1, voxstream_viewer::ao::MAX_TEMPORAL_FRAMES);
+            let n = accumulated_frames(&args.frames);
             vec![Point {
                 label: format!("default ({n} frames)"),
                 settings: AoSettings::default(),
