@@ -49,9 +49,11 @@ fn keys(sources: &[Vec<&Block>]) -> Vec<Vec<BlockKey>> {
 
 fn run(gpu: &Gpu, clipmap: &mut OccupancyClipmap, layout: ClipmapLayout, all: &[Block], state: &State) {
     let find = |k: &BlockKey| all.iter().find(|b| b.key == *k);
+    let mut encoder = gpu.device.create_command_encoder(&Default::default());
     clipmap.update(
         &gpu.device,
         &gpu.queue,
+        &mut encoder,
         GRID,
         layout,
         state.eye,
@@ -60,6 +62,7 @@ fn run(gpu: &Gpu, clipmap: &mut OccupancyClipmap, layout: ClipmapLayout, all: &[
         find,
         None,
     );
+    gpu.queue.submit([encoder.finish()]);
 }
 
 fn model(layout: ClipmapLayout, state: &State) -> ClipmapModel {

@@ -359,6 +359,9 @@ pub struct OccupancyClipmap {
     clear_layout: wgpu::BindGroupLayout,
     splat_layout: wgpu::BindGroupLayout,
     pub counters: ClipmapCounters,
+    /// The device's largest storage binding in u32 words, read once: in a
+    /// browser each `limits()` is a call into JavaScript.
+    max_binding_words: u64,
     /// Test only: scrolls leave the newly exposed cells as they were (a deliberately wrong clipmap).
     pub skip_scroll_clear: bool,
 }
@@ -566,6 +569,7 @@ impl OccupancyClipmap {
             clear_layout,
             splat_layout,
             counters: ClipmapCounters::default(),
+            max_binding_words: device.limits().max_storage_buffer_binding_size / 4,
             skip_scroll_clear: false,
         }
     }
@@ -647,13 +651,16 @@ impl OccupancyClipmap {
     /// Brings the clipmap to `layout`, the levels placed for `eye` and
     /// `forward` (grid units) and splatted from `sources[k]` (level k's
     /// blocks; `block` gives their voxels the first time a block is used).
-    /// Only what changed is cleared or splatted. Returns whether the cells
-    /// buffer was replaced (the frame's bind group must be rebuilt).
+    /// Only what changed is cleared or splatted, recorded into `encoder` (the
+    /// caller submits it, with the frame; this call's queue writes land
+    /// first). Returns whether the cells buffer was replaced (the frame's bind
+    /// group must be rebuilt).
     #[allow(clippy::too_many_arguments)]
     pub fn update<'a>(
         &mut self,
         device: &wgpu::Device,
         queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
         grid_resolution: u32,
         layout: ClipmapLayout,
         eye: Vec3,
@@ -729,8 +736,7 @@ impl OccupancyClipmap {
             }
         }
         self.counters.blocks_uploaded += new_words.len() as u64;
-        let max_words = device.limits().max_storage_buffer_binding_size / 4;
-        let refused = self.voxel_words.insert_many(device, queue, new_words, max_words);
+        let refused = self.voxel_words.insert_many(device, queue, new_words, self.max_binding_words);
         self.counters.word_moves = self.voxel_words.moves;
         if !refused.is_empty() {
             // Never added, so never to be subtracted: a later update adds them when there is room.
@@ -740,7 +746,7 @@ impl OccupancyClipmap {
             }
         }
         if !ops.is_empty() {
-            self.encode(device, queue, layout, &ops, timer);
+            self.encode(device, queue, encoder, layout, &ops, timer);
             self.counters.updates += 1;
         }
         // Voxel words no level uses any more go (the commands above keep theirs alive).
@@ -754,6 +760,7 @@ impl OccupancyClipmap {
         &mut self,
         device: &wgpu::Device,
         queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
         layout: ClipmapLayout,
         ops: &[Op],
         timer: Option<&crate::pass_timer::PassTimer>,
@@ -831,8 +838,6 @@ impl OccupancyClipmap {
                 wgpu::BindGroupEntry { binding: 2, resource: self.voxel_words.buffer.as_entire_binding() },
             ],
         });
-        let mut encoder =
-            device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("clipmap update") });
         {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("clipmap update"),
@@ -852,7 +857,6 @@ impl OccupancyClipmap {
                 }
             }
         }
-        queue.submit([encoder.finish()]);
     }
 }
 

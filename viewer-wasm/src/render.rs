@@ -345,6 +345,7 @@ impl Renderer {
     /// passes submitted here.
     pub fn update_clipmap<'a>(
         &mut self,
+        encoder: &mut wgpu::CommandEncoder,
         grid_resolution: u32,
         layout: ClipmapLayout,
         view: (glam::Vec3, glam::Vec3),
@@ -355,6 +356,7 @@ impl Renderer {
         let replaced = self.clipmap.update(
             &self.device,
             &self.queue,
+            encoder,
             grid_resolution,
             layout,
             eye,

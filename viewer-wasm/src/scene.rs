@@ -529,12 +529,31 @@ impl Scene {
     /// into pooled buffers the residency grants within the budget. Returns how
     /// many blocks went up.
     pub fn upload(&mut self, renderer: &Renderer) -> usize {
-        let cap = self.pacer.as_ref().map_or(UPLOAD_BYTES_PER_FRAME, UploadPacer::cap_bytes);
+        let cap = self.upload_cap();
         self.upload_within(renderer, cap)
     }
 
-    /// [`Scene::upload`] with a cap of `cap` bytes this frame.
+    /// This frame's upload cap: the pacer's, or the whole upload buffer.
+    fn upload_cap(&self) -> u64 {
+        self.pacer.as_ref().map_or(UPLOAD_BYTES_PER_FRAME, UploadPacer::cap_bytes)
+    }
+
+    /// [`Scene::upload`] with a cap of `cap` bytes, submitted on its own: each
+    /// call rewrites the upload buffer, so its expansion must run before the next.
     fn upload_within(&mut self, renderer: &Renderer, cap: u64) -> usize {
+        let mut encoder = renderer
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("upload blocks") });
+        let n = self.upload_into(renderer, &mut encoder, cap);
+        if n > 0 {
+            renderer.queue.submit([encoder.finish()]);
+        }
+        n
+    }
+
+    /// Records this frame's upload (at most `cap` bytes) into `encoder`, which
+    /// the caller submits before the upload buffer is written again.
+    fn upload_into(&mut self, renderer: &Renderer, encoder: &mut wgpu::CommandEncoder, cap: u64) -> usize {
         // Fixed targets first: they shrink the block budget the traversal plans within.
         self.residency.set_fixed_bytes(self.fixed_gpu_bytes(
             renderer.occupancy_cells(),
@@ -592,19 +611,15 @@ impl Scene {
         batch.write(&renderer.queue, upload);
         let uploaded_bytes = batch.byte_len();
         self.stats.bytes_uploaded += uploaded_bytes;
-        let mut encoder = renderer
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("upload blocks") });
         let blocks = renderer.expander.expand_batch(
             &renderer.device,
-            &mut encoder,
+            encoder,
             &mut batch,
             &renderer.block_layout,
             upload,
             renderer.pass_timer.as_ref(),
         );
         self.batch = batch;
-        renderer.queue.submit([encoder.finish()]);
         let now = (self.clock)();
         self.stats.note_webgpu(now - webgpu_from);
         if let Some(pacer) = &mut self.pacer {
@@ -689,13 +704,20 @@ impl Scene {
     pub fn draw(&mut self, renderer: &mut Renderer, target: &wgpu::TextureView, now_ms: f64) -> DrawnFrame {
         self.frame_counter += 1;
         if let Some(timer) = &renderer.pass_timer {
-            // The clipmap's update, submitted before the frame, is timed with it.
+            // The upload's expansion and the clipmap's update, recorded before the frame's passes, are timed with it.
             timer.begin_frame();
         }
         let mut step = (self.clock)();
         self.take_feedback();
         self.stats.note_phase("feedback", &mut step, (self.clock)());
-        self.upload(renderer);
+        // One command buffer and one submit a frame: the upload's expansion,
+        // the clipmap's splats and the frame's passes. In a browser each
+        // encoder and submit is a call across to the GPU process, and a
+        // streaming frame made three.
+        let mut encoder =
+            renderer.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
+        let cap = self.upload_cap();
+        self.upload_into(renderer, &mut encoder, cap);
         self.stats.note_phase("upload", &mut step, (self.clock)());
         let settled = self.is_settled();
         let max_level = self.manifest.coarsest_level();
@@ -705,7 +727,7 @@ impl Scene {
             });
         self.stats.note_phase("draw set", &mut step, (self.clock)());
 
-        self.update_occupancy(renderer, &drawn, settled, now_ms);
+        self.update_occupancy(renderer, &mut encoder, &drawn, settled, now_ms);
         self.stats.note_phase("AO occupancy", &mut step, (self.clock)());
 
         let gpu = &self.gpu;
@@ -736,8 +758,6 @@ impl Scene {
         let tests = if self.occlusion_culling { self.occlusion_tests() } else { Vec::new() };
         self.stats.note_phase("occlusion tests", &mut step, (self.clock)());
         let webgpu_from = (self.clock)();
-        let mut encoder =
-            renderer.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
         renderer.encode_frame(&mut encoder, target, self.viewport, &params, &gpu_blocks);
         let occlusion = self.occlusion.get_or_insert_with(Occlusion::default);
         occlusion.prepare(&renderer.device, self.viewport, params.view_proj, tests, self.frame_counter);
@@ -926,12 +946,19 @@ impl Scene {
 
     /// Rebuilds and uploads the occupancy volume when its sources changed; at
     /// most every [`OCCUPANCY_REBUILD_MS`] while blocks are still streaming in.
-    fn update_occupancy(&mut self, renderer: &mut Renderer, drawn: &[BlockKey], settled: bool, now_ms: f64) {
+    fn update_occupancy(
+        &mut self,
+        renderer: &mut Renderer,
+        encoder: &mut wgpu::CommandEncoder,
+        drawn: &[BlockKey],
+        settled: bool,
+        now_ms: f64,
+    ) {
         if self.ao_strength <= 0.0 {
             return;
         }
         if renderer.ao.structure == AoStructure::Clipmap {
-            self.update_clipmap(renderer, drawn);
+            self.update_clipmap(renderer, encoder, drawn);
             return;
         }
         let sources = self.occupancy_sources(drawn, renderer.occupancy_cells());
@@ -968,7 +995,12 @@ impl Scene {
     /// frame (incremental: only scrolled-in slabs and blocks that arrived or
     /// left are splatted, on the GPU). Level k splats the drawn blocks cut at
     /// its cell's LOD level; the finest cell is the finest drawn voxel.
-    fn update_clipmap(&mut self, renderer: &mut Renderer, drawn: &[BlockKey]) {
+    fn update_clipmap(
+        &mut self,
+        renderer: &mut Renderer,
+        encoder: &mut wgpu::CommandEncoder,
+        drawn: &[BlockKey],
+    ) {
         let Some(finest) = drawn.iter().map(|k| k.level).min() else { return };
         let resolution = self.manifest.grid.resolution;
         let layout = ClipmapLayout::for_scene(resolution, 1u32 << finest.min(30), CLIP_CELLS);
@@ -977,7 +1009,7 @@ impl Scene {
         let eye = self.eye();
         let forward = view_forward(self.view_proj(), eye);
         let before = renderer.clipmap.counters;
-        renderer.update_clipmap(resolution, layout, (eye, forward), &sources, |k| self.block(k));
+        renderer.update_clipmap(encoder, resolution, layout, (eye, forward), &sources, |k| self.block(k));
         let after = renderer.clipmap.counters;
         self.stats.ao_clipmap_updates += (after.updates - before.updates) as u32;
         self.stats.ao_clipmap_splats += after.splats - before.splats;
