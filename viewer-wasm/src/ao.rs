@@ -37,7 +37,11 @@ pub struct AoSettings {
     pub cones: u32,
     /// Half-angle of each cone in degrees; `None`: asin(1/√cones), the cone
     /// whose projected disk has the area of its share (π/cones) of the
-    /// projected hemisphere.
+    /// projected hemisphere. The trace also keeps a cone no wider than a third
+    /// of its height above the tangent plane (so it never reads its own
+    /// surface), which caps the half-angle at atan(1/6) ≈ 9.5°: wider apertures
+    /// (the default ones included) change nothing (docs/ao-benchmark.md, "Eight
+    /// frames, not four").
     pub aperture_deg: Option<f32>,
     /// Step along a cone as a fraction of its diameter there.
     pub step: f32,
