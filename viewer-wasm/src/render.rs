@@ -342,7 +342,7 @@ impl Renderer {
 
     /// Brings the clipmap up to date (see [`OccupancyClipmap::update`]): only
     /// what changed since the last call is cleared and splatted, by compute
-    /// passes submitted here.
+    /// passes recorded into `encoder` (the caller's frame submits them).
     pub fn update_clipmap<'a>(
         &mut self,
         encoder: &mut wgpu::CommandEncoder,

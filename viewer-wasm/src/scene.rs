@@ -524,35 +524,11 @@ impl Scene {
         !self.awaiting_upload().is_empty()
     }
 
-    /// One frame's upload: needed decoded blocks, most needed first, up to the
-    /// per-frame byte cap, in one staging write and one compute pass, each
-    /// into pooled buffers the residency grants within the budget. Returns how
-    /// many blocks went up.
-    pub fn upload(&mut self, renderer: &Renderer) -> usize {
-        let cap = self.upload_cap();
-        self.upload_within(renderer, cap)
-    }
-
-    /// This frame's upload cap: the pacer's, or the whole upload buffer.
-    fn upload_cap(&self) -> u64 {
-        self.pacer.as_ref().map_or(UPLOAD_BYTES_PER_FRAME, UploadPacer::cap_bytes)
-    }
-
-    /// [`Scene::upload`] with a cap of `cap` bytes, submitted on its own: each
-    /// call rewrites the upload buffer, so its expansion must run before the next.
-    fn upload_within(&mut self, renderer: &Renderer, cap: u64) -> usize {
-        let mut encoder = renderer
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("upload blocks") });
-        let n = self.upload_into(renderer, &mut encoder, cap);
-        if n > 0 {
-            renderer.queue.submit([encoder.finish()]);
-        }
-        n
-    }
-
-    /// Records this frame's upload (at most `cap` bytes) into `encoder`, which
-    /// the caller submits before the upload buffer is written again.
+    /// One frame's upload: needed decoded blocks, most needed first, up to
+    /// `cap` bytes, in one staging write and one compute pass recorded into
+    /// `encoder`, each into pooled buffers the residency grants within the
+    /// budget. The caller submits `encoder` before the upload buffer is written
+    /// again. Returns how many blocks went up.
     fn upload_into(&mut self, renderer: &Renderer, encoder: &mut wgpu::CommandEncoder, cap: u64) -> usize {
         // Fixed targets first: they shrink the block budget the traversal plans within.
         self.residency.set_fixed_bytes(self.fixed_gpu_bytes(
@@ -657,7 +633,16 @@ impl Scene {
 
     /// Uploads until nothing needed waits (native loops; the browser uploads once per frame).
     pub fn upload_all(&mut self, renderer: &Renderer) {
-        while self.upload_within(renderer, UPLOAD_BYTES_PER_FRAME) > 0 {}
+        // Each batch rewrites the upload buffer, so each is submitted before the next.
+        loop {
+            let mut encoder = renderer
+                .device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("upload blocks") });
+            if self.upload_into(renderer, &mut encoder, UPLOAD_BYTES_PER_FRAME) == 0 {
+                return;
+            }
+            renderer.queue.submit([encoder.finish()]);
+        }
     }
 
     /// Paces each frame's upload to `budget_ms` of main thread ([`UploadPacer`]);
@@ -704,7 +689,8 @@ impl Scene {
     pub fn draw(&mut self, renderer: &mut Renderer, target: &wgpu::TextureView, now_ms: f64) -> DrawnFrame {
         self.frame_counter += 1;
         if let Some(timer) = &renderer.pass_timer {
-            // The upload's expansion and the clipmap's update, recorded before the frame's passes, are timed with it.
+            // The upload's expansion and the clipmap's update, recorded
+            // before the frame's passes, are timed with it.
             timer.begin_frame();
         }
         let mut step = (self.clock)();
@@ -716,7 +702,7 @@ impl Scene {
         // streaming frame made three.
         let mut encoder =
             renderer.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
-        let cap = self.upload_cap();
+        let cap = self.pacer.as_ref().map_or(UPLOAD_BYTES_PER_FRAME, UploadPacer::cap_bytes);
         self.upload_into(renderer, &mut encoder, cap);
         self.stats.note_phase("upload", &mut step, (self.clock)());
         let settled = self.is_settled();

@@ -98,9 +98,6 @@ pub struct Point {
     pub frames: u32,
 }
 
-/// Full or reduced resolution, one frame or `frames` accumulated, at the
-/// default cone setting, with two comparisons: accumulation without jitter,
-/// and plain bilinear upsampling.
 /// N of the accumulated points of the sweeps that have one: the first of
 /// `--frames`, else the viewer's own ([`AoSettings::default`]).
 fn accumulated_frames(frames: &[u32]) -> u32 {
@@ -111,10 +108,13 @@ fn accumulated_frames(frames: &[u32]) -> u32 {
         .clamp(1, voxstream_viewer::ao::MAX_TEMPORAL_FRAMES)
 }
 
+/// Full or reduced resolution, one frame or `frames` accumulated (default:
+/// the viewer's N and 16), at the default cone setting, with two
+/// comparisons: accumulation without jitter, and plain bilinear upsampling.
 fn sparse_temporal_sweep(frames: &[u32]) -> Vec<Point> {
+    use voxstream_viewer::ao::Upsample;
     let default_frames = [AoSettings::default().temporal_frames, 16];
     let frames = if frames.is_empty() { &default_frames[..] } else { frames };
-    use voxstream_viewer::ao::Upsample;
     let d = AoSettings {
         trace_downscale: 1,
         jitter: true,
