@@ -165,17 +165,24 @@ fn cone_axis_weights(dir: vec3<f32>) -> vec3<f32> {
 //   voxels fill the cell p lies in, and a trilinear sample reaches half a
 //   cell further, so a cone starting closer would see its own surface. The
 //   same c is the narrowest cone width.
-// - Width: the cone's diameter 2 * tan(aperture) * d picks the clipmap level
-//   or volume mip (fractional: quadrilinear), never finer than
-//   one cell, and never wider than the sample's height above p's tangent plane:
-//   a trilinear sample reaches about one cell around it, so a wider one would
-//   read the surface the cone starts from.
+// - Width: the cone's diameter D = 2 * tan(aperture) * d, never below one
+//   cell and never above a third of the sample's height above p's tangent
+//   plane (so it never reads the surface it starts from), picks the clipmap
+//   level or volume mip (fractional: quadrilinear) whose cells are D / 2: a
+//   trilinear sample's tent reaches one cell around it, so the cells read
+//   are those the cone's cross-section covers, not twice as far. (Cells of
+//   D spread a surface a whole D before it: a cone that ends at R or leaves
+//   the grid just short of a surface counted it, and a cone crossing a thin
+//   wall sampled only its tent's flanks: docs/ao-benchmark.md, "Cells of
+//   half the cone's width".)
 // - Opacity: a cell's value is its opacity to a ray crossing it (ao.rs), per
 //   axis in the clipmap, weighed by cone_axis_weights; a step of length s
 //   through cells of edge c has alpha_step = 1 - (1 - o)^(s / c).
 // - Empty-space skipping: where the level (mip) two coarser reads 0, the whole
 //   neighbourhood is empty and the cone jumps half of that level's cell.
-fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, base_cell: f32, cell: f32, max_mip: f32) -> f32 {
+// - Phase: the first step is `first_step` (0..1] of a step, so each cone's
+//   samples fall at its own jittered distances.
+fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, base_cell: f32, cell: f32, max_mip: f32, first_step: f32) -> f32 {
     let grid = frame.volume.x;
     let tan_half = frame.ao_cone.y;
     let step_fraction = frame.ao_cone.z;
@@ -200,8 +207,15 @@ fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, base_cell: f32, cell: 
         }
         let height = max(dot(s - p, n), cell);
         let diameter = clamp(2.0 * tan_half * d, cell, max(height / 3.0, cell));
-        let mip = clamp(log2(diameter / base_cell), 0.0, max_mip);
-        let step_len = max(step_fraction * diameter, 0.5 * cell);
+        // A trilinear sample of cells of edge c reads a tent reaching c from
+        // it: cells of half the diameter make that reach the cone's radius.
+        let mip = clamp(log2(diameter / base_cell) - 1.0, 0.0, max_mip);
+        var step_len = max(step_fraction * diameter, 0.5 * cell);
+        if step == 0u {
+            // The first sample stands for a part of its step, so the rest fall
+            // at a jittered phase (first_step_fraction).
+            step_len *= first_step;
+        }
         if skip && mip + 2.0 <= max_mip {
             let coarse = occupancy_at(s, mip + 2.0, vec3<f32>(1.0));
             if coarse.x <= 0.0 {
@@ -230,6 +244,18 @@ fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, base_cell: f32, cell: 
         t += step_len;
     }
     return occlusion;
+}
+
+// The fraction (0..1] of a step that the cones' first step takes: 1 without
+// jitter; with it, the frame's phase (frame.ao_mode.y; 0 in frame 0, whose
+// cones are then the fixed set's) moved by the texel's interleaved `turn`, so
+// that the temporal pass averages samples placed all along each cone instead
+// of at the same points of the cells every frame.
+fn first_step_fraction(turn: f32) -> f32 {
+    if frame.ao_mode.z < 0.5 {
+        return 1.0;
+    }
+    return 1.0 - fract(frame.ao_mode.y + 0.7548777 * turn);
 }
 
 // V(p, n) in [0, 1] at grid position `p` with unit normal `n`, the cone set
@@ -269,11 +295,12 @@ fn ambient_visibility(p: vec3<f32>, n_in: vec3<f32>, turn: f32) -> f32 {
     let t = cos(angle) * t0 + sin(angle) * b0;
     let b = cross(n, t);
     let cones = u32(frame.ao_cone.x);
+    let first_step = first_step_fraction(turn);
     var occluded = 0.0;
     for (var i = 0u; i < cones; i += 1u) {
         let a = frame.ao_dirs[i];
         let dir = normalize(t * a.x + b * a.y + n * a.z);
-        occluded += a.w * trace_cone(p, n, dir, base_cell, cell, max_mip);
+        occluded += a.w * trace_cone(p, n, dir, base_cell, cell, max_mip, first_step);
     }
     return clamp(1.0 - occluded, 0.0, 1.0);
 }

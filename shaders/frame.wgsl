@@ -37,6 +37,8 @@ struct Frame {
     ao_temporal: vec4<f32>,
     // x: 1 = the AO field mode: a pixel whose voxel carries the precomputed
     // field (G-buffer position.w = 2 + V) shows that V instead of cones.
+    // y: this frame's step phase (0..1), z: 1 = jitter where along each cone
+    // its samples fall (ao.wgsl, `first_step_fraction`).
     ao_mode: vec4<f32>,
 }
 

@@ -162,7 +162,7 @@ struct AoArgs {
     /// Cone half-angle in degrees (default: asin(1/sqrt(cones))).
     #[arg(long)]
     aperture_deg: Option<f32>,
-    /// Step along a cone as a fraction of its diameter (viewer default 1).
+    /// Step along a cone as a fraction of its diameter (viewer default 0.7).
     #[arg(long)]
     step: Option<f32>,
     /// Start offset along the normal, in finest occupancy cells (viewer default 1.5).

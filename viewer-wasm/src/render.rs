@@ -36,7 +36,9 @@ pub struct FrameUniform {
     pub ao_sparse: [f32; 4],
     /// Frames averaged (N), history valid, reject disoccluded history, interleaved sampling.
     pub ao_temporal: [f32; 4],
-    /// x: 1 = the AO field mode (G-buffer V where the voxel has a field), yzw: 0.
+    /// x: 1 = the AO field mode (G-buffer V where the voxel has a field),
+    /// y: this frame's step phase ([`crate::ao::ConeJitter`]), z: 1 = jitter
+    /// the first step along each cone, w: 0.
     pub ao_mode: [f32; 4],
 }
 
@@ -441,7 +443,12 @@ impl Renderer {
             prev_view_proj: state.prev_view_proj.to_cols_array(),
             ao_sparse: state.sparse,
             ao_temporal: state.temporal,
-            ao_mode: [if self.ao.mode == crate::ao::AoMode::Field { 1.0 } else { 0.0 }, 0.0, 0.0, 0.0],
+            ao_mode: [
+                if self.ao.mode == crate::ao::AoMode::Field { 1.0 } else { 0.0 },
+                jitter.step_phase as f32,
+                if self.ao.jitter { 1.0 } else { 0.0 },
+                0.0,
+            ],
         };
         self.queue.write_buffer(&self.frame_uniform, 0, bytemuck::bytes_of(&uniform));
         let depth = self.depth_view(width, height).clone();

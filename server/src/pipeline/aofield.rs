@@ -409,7 +409,8 @@ fn visibility(
             }
             let height = dot(add(s, p, -1.0), n).max(1.0);
             let diameter = (2.0 * cones.tan_half * d).clamp(1.0, (height / 3.0).max(1.0));
-            let mip = diameter.log2().clamp(0.0, max_mip);
+            // Cells of half the diameter, as the viewer's trace (shaders/ao.wgsl).
+            let mip = (diameter.log2() - 1.0).clamp(0.0, max_mip);
             let step = (cones.step * diameter).max(0.5);
             let o = mips.sample(s, mip);
             if o > 0.0 {

@@ -449,7 +449,9 @@ fn dump_pixels(
     Ok(())
 }
 
-fn camera_around(mesh: &crate::pipeline::read::TriangleMesh, inside: bool) -> CameraSpec {
+/// The benchmark's camera for a real scan: inside it (a fifth in from one end
+/// of its longest horizontal axis, looking along it) or around it.
+pub fn camera_around(mesh: &crate::pipeline::read::TriangleMesh, inside: bool) -> CameraSpec {
     let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
     for p in &mesh.positions {
         for a in 0..3 {
