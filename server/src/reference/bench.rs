@@ -205,10 +205,18 @@ fn mode_sweep(frames: &[u32]) -> Vec<Point> {
     ]
 }
 
-fn sweep() -> Vec<Point> {
-    // The cone tracer alone: full resolution, one frame, the fixed cone set.
+/// The cone tracer alone (full resolution, one frame, the fixed cone set) at
+/// each cone count, step, aperture and with skipping, after the viewer's
+/// default setting (`frames` accumulated) for where it sits among them.
+fn sweep(frames: &[u32]) -> Vec<Point> {
     let d = AoSettings { trace_downscale: 1, interleave: false, temporal_frames: 1, ..AoSettings::default() };
-    let mut points = Vec::new();
+    let n = accumulated_frames(frames);
+    let mut points = vec![Point {
+        label: format!("default ({n} frames)"),
+        settings: AoSettings::default(),
+        scale: 1,
+        frames: n,
+    }];
     for cones in [3, 5, 6, 8, 16] {
         points.push(Point {
             label: format!("{cones} cones"),
@@ -217,10 +225,10 @@ fn sweep() -> Vec<Point> {
             frames: 1,
         });
     }
-    for cones in [6, 16] {
+    for (cones, step) in [(6, 0.5), (16, 0.5), (6, 1.0)] {
         points.push(Point {
-            label: format!("{cones} cones, step 0.5"),
-            settings: AoSettings { cones, step: 0.5, ..d },
+            label: format!("{cones} cones, step {step}"),
+            settings: AoSettings { cones, step, ..d },
             scale: 1,
             frames: 1,
         });
@@ -524,7 +532,7 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
         views.push(View { name: name.to_string(), mesh, camera, shapes: None });
     }
     let points = match args.sweep {
-        Sweep::Cones => sweep(),
+        Sweep::Cones => sweep(&args.frames),
         Sweep::SparseTemporal => sparse_temporal_sweep(&args.frames),
         Sweep::Structure => structure_sweep(&args.frames),
         Sweep::Mode => mode_sweep(&args.frames),
