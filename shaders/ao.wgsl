@@ -180,8 +180,8 @@ fn cone_axis_weights(dir: vec3<f32>) -> vec3<f32> {
 //   through cells of edge c has alpha_step = 1 - (1 - o)^(s / c).
 // - Empty-space skipping: where the level (mip) two coarser reads 0, the whole
 //   neighbourhood is empty and the cone jumps half of that level's cell.
-// - Phase: the first step is `first_step` (0..1] of a step, so each cone's
-//   samples fall at its own jittered distances.
+// - Phase: the first step is `first_step` (0..1] of a step, so the samples
+//   fall at distances jittered per frame and texel (first_step_fraction).
 fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, base_cell: f32, cell: f32, max_mip: f32, first_step: f32) -> f32 {
     let grid = frame.volume.x;
     let tan_half = frame.ao_cone.y;

@@ -26,7 +26,7 @@ use std::path::{Path, PathBuf};
 
 use voxstream::pipeline::{BuildOptions, build_scene};
 use voxstream::reference::metrics::{Comparison, compare};
-use voxstream::reference::{AoParams, EPSILON_VOXELS, MeshBvh, reference_at};
+use voxstream::reference::{AoParams, MeshBvh, reference_at};
 use voxstream::render::{CameraSpec, RenderOutput, RenderRequest, render_view};
 use voxstream_viewer::ao::AoSettings;
 
@@ -55,11 +55,7 @@ fn passes(c: &Comparison) -> bool {
 }
 
 fn check(bvh: &MeshBvh, out: &RenderOutput, max_distance: f64) -> Comparison {
-    let params = AoParams {
-        max_distance,
-        falloff: out.info.ao.falloff,
-        epsilon: EPSILON_VOXELS * out.info.voxel_size,
-    };
+    let params = AoParams { max_distance, ..AoParams::of_render(&out.info) };
     let reference = reference_at(bvh, &out.position, &out.normal, &params, RAYS);
     // AO, reference and 5 × |AO − reference| from top to bottom: <target>/e2e/ao-cornell-*.png.
     let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).parent().expect("target").join("e2e");

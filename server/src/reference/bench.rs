@@ -15,7 +15,7 @@ use voxstream_viewer::ao::AoSettings;
 
 use crate::reference::analytic::{self, exact_error, exact_image};
 use crate::reference::metrics::compare;
-use crate::reference::{AoParams, EPSILON_VOXELS, MeshBvh, reference_at};
+use crate::reference::{AoParams, MeshBvh, reference_at};
 use crate::render::{CameraSpec, RenderRequest, render_view};
 
 #[derive(Debug, Clone, clap::Args)]
@@ -583,11 +583,7 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
             };
             let bvh = bvh.get_or_insert_with(|| MeshBvh::new(mesh, out.info.grid_origin));
             if !references.iter().any(|r| r.scale == point.scale) {
-                let params = AoParams {
-                    max_distance: out.info.ao.max_distance,
-                    falloff: out.info.ao.falloff,
-                    epsilon: EPSILON_VOXELS * out.info.voxel_size,
-                };
+                let params = AoParams::of_render(&out.info);
                 let reference = reference_at(bvh, &out.position, &out.normal, &params, args.rays);
                 let exact = view.shapes.as_ref().map(|s| exact_image(s, &out, 32));
                 let (pp, pn) = crate::reference::primary_hits(bvh, &out.info);

@@ -170,6 +170,18 @@ pub struct AoParams {
     pub epsilon: f64,
 }
 
+impl AoParams {
+    /// The R and λ a render recorded, and the start offset for its voxel size:
+    /// the reference for exactly that render's AO.
+    pub fn of_render(info: &RenderInfo) -> Self {
+        Self {
+            max_distance: info.ao.max_distance,
+            falloff: info.ao.falloff,
+            epsilon: EPSILON_VOXELS * info.voxel_size,
+        }
+    }
+}
+
 /// One pixel's reference.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Sample {
@@ -313,11 +325,7 @@ pub fn reference_command(
     };
     ensure!(!mesh.triangles.is_empty(), "{} has no triangles", mesh_path.display());
     let bvh = MeshBvh::new(&mesh, info.grid_origin);
-    let params = AoParams {
-        max_distance: info.ao.max_distance,
-        falloff: info.ao.falloff,
-        epsilon: EPSILON_VOXELS * info.voxel_size,
-    };
+    let params = AoParams::of_render(&info);
     let reference = reference_at(&bvh, &positions, &normals, &params, rays);
     let at_render_points = compare(&ao, &reference.v, &reference.variance, rays, info.width, info.height);
     write_file(&render_dir.join("reference.f32"), &crate::render::f32_bytes(&reference.v))?;
