@@ -108,6 +108,12 @@ fn accumulated_frames(frames: &[u32]) -> u32 {
         .clamp(1, voxstream_viewer::ao::MAX_TEMPORAL_FRAMES)
 }
 
+/// The viewer's default setting, its N frames accumulated (see [`accumulated_frames`]).
+fn default_point(frames: &[u32]) -> Point {
+    let n = accumulated_frames(frames);
+    Point { label: format!("default ({n} frames)"), settings: AoSettings::default(), scale: 1, frames: n }
+}
+
 /// Full or reduced resolution, one frame or `frames` accumulated (default:
 /// the viewer's N and 16), at the default cone setting, with two
 /// comparisons: accumulation without jitter, and plain bilinear upsampling.
@@ -210,13 +216,7 @@ fn mode_sweep(frames: &[u32]) -> Vec<Point> {
 /// default setting (`frames` accumulated) for where it sits among them.
 fn sweep(frames: &[u32]) -> Vec<Point> {
     let d = AoSettings { trace_downscale: 1, interleave: false, temporal_frames: 1, ..AoSettings::default() };
-    let n = accumulated_frames(frames);
-    let mut points = vec![Point {
-        label: format!("default ({n} frames)"),
-        settings: AoSettings::default(),
-        scale: 1,
-        frames: n,
-    }];
+    let mut points = vec![default_point(frames)];
     for cones in [3, 5, 6, 8, 16] {
         points.push(Point {
             label: format!("{cones} cones"),
@@ -536,15 +536,7 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
         Sweep::SparseTemporal => sparse_temporal_sweep(&args.frames),
         Sweep::Structure => structure_sweep(&args.frames),
         Sweep::Mode => mode_sweep(&args.frames),
-        Sweep::Default => {
-            let n = accumulated_frames(&args.frames);
-            vec![Point {
-                label: format!("default ({n} frames)"),
-                settings: AoSettings::default(),
-                scale: 1,
-                frames: n,
-            }]
-        }
+        Sweep::Default => vec![default_point(&args.frames)],
     };
     let mut rows = Vec::new();
     for view in &views {
