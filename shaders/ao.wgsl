@@ -11,8 +11,9 @@
 // front-to-back opacity alpha accumulates; a step adds
 // (1 - alpha) * alpha_step * w(d), d the distance from p to the sample (grid
 // units, the same units as R). Part of the trace pass's module (after
-// frame.wgsl, whose `frame`, `occupancy`, `occupancy_sampler`, `clipmap` and
-// `clipmap_cells` bindings it reads; ao_trace.wgsl calls `ambient_visibility`).
+// frame.wgsl, whose `frame`, `occupancy`, `occupancy_sampler`, `clipmap`,
+// `clip_texels` and `clip_sampler` bindings it reads; ao_trace.wgsl calls
+// `ambient_visibility`).
 
 // Edge of a level's cell in grid units.
 fn clip_cell_edge(level: u32) -> f32 {
@@ -54,53 +55,31 @@ fn clip_holds_within(level: u32, p: vec3<f32>, margin: f32) -> bool {
 // height above the surface is a few cells at most, then stay in the level.
 const CLIP_HOME_MARGIN: f32 = 12.0;
 
-// Opacity 0..1 of the cell at storage index `index` (toroidal slot of a
-// level) to a cone whose axes weigh `axis_weight` (cone_axis_weights), 0
-// where `known` is false: nothing lies outside the scene grid, and the slot of
-// a cell outside it may hold a cell from the level's other side. A cell holds
-// three words, its opacity to rays along x, y and z (clipmap.rs, voxel_axes).
-fn clip_load(index: u32, known: bool, axis_weight: vec3<f32>) -> f32 {
-    if !known {
-        return 0.0;
-    }
-    let at = index * 3u;
-    let o = vec3<f32>(f32(clipmap_cells[at]), f32(clipmap_cells[at + 1u]), f32(clipmap_cells[at + 2u]));
-    return min(dot(min(o / 4096.0, vec3<f32>(1.0)), axis_weight), 1.0);
-}
-
-// The two cells of a row along x (storage offset `zy` of its y and z, slots
-// `x`), blended by `fx`; `known_zy`, `kx`: which lie inside the scene grid.
-fn clip_row(zy: u32, x: vec2<u32>, known_zy: bool, kx: vec2<bool>, fx: f32, w: vec3<f32>) -> f32 {
-    return mix(clip_load(zy + x.x, known_zy && kx.x, w), clip_load(zy + x.y, known_zy && kx.y, w), fx);
-}
-
-// Trilinear opacity of one level at `p` (grid units). The two cells' toroidal slots along each
-// axis are found once per sample, by a mask, not by a modulo per cell: integer
-// modulo costs many instructions on a GPU, and 16 cells a quadrilinear sample
-// made it the trace's largest cost.
+// Trilinear opacity of one level at `p` (grid units) to a cone whose axes
+// weigh `w` (cone_axis_weights): one filtered read of the level's texels.
+//
+// - Cells outside the scene grid are empty: the read moves onto the grid's
+//   last cell centre along each axis where its footprint crosses a face, and
+//   is scaled by the tent weight the grid's cells had there, which is the
+//   trilinear sum with the outside cells at 0 (a slot outside the grid may
+//   hold a cell from the level's other side).
+// - The opacity is the axes' filtered opacities weighed by w, at most their
+//   filtered sum (the fourth channel): what each cell's own
+//   min(sum of weighed axes, 1) interpolates to wherever the cells agree on
+//   which bound applies, which a filtered read cannot do per cell. (Reading
+//   the cells one by one, 8 of them with 3 words each, cost 4-6 times as
+//   many loads: docs/ao-benchmark.md, "Filtered texels".)
 fn clip_trilinear(level: u32, p: vec3<f32>, w: vec3<f32>) -> f32 {
     let q = p / clip_cell_edge(level) - 0.5;
-    let base = floor(q);
-    let f = q - base;
-    let b = vec3<i32>(base);
-    let n = i32(clipmap.info.y);
-    let g = i32(clip_grid_cells(level));
-    // Levels have a power-of-two edge (OccupancyClipmap::new): the slot is a mask, negatives included.
-    let m0 = b & vec3<i32>(n - 1);
-    let m1 = select(m0 + vec3<i32>(1), vec3<i32>(0), m0 + vec3<i32>(1) == vec3<i32>(n));
-    let known0 = (b >= vec3<i32>(0)) & (b < vec3<i32>(g));
-    let known1 = (b >= vec3<i32>(-1)) & (b < vec3<i32>(g - 1));
-    let un = u32(n);
-    let first = level * un * un * un;
-    let x = vec2<u32>(u32(m0.x), u32(m1.x));
-    let y = vec2<u32>(u32(m0.y), u32(m1.y)) * un;
-    let z = vec2<u32>(u32(m0.z), u32(m1.z)) * un * un + vec2<u32>(first);
-    let kx = vec2<bool>(known0.x, known1.x);
-    let x00 = clip_row(z.x + y.x, x, known0.z && known0.y, kx, f.x, w);
-    let x10 = clip_row(z.x + y.y, x, known0.z && known1.y, kx, f.x, w);
-    let x01 = clip_row(z.y + y.x, x, known1.z && known0.y, kx, f.x, w);
-    let x11 = clip_row(z.y + y.y, x, known1.z && known1.y, kx, f.x, w);
-    return mix(mix(x00, x10, f.y), mix(x01, x11, f.y), f.z);
+    let g = clip_grid_cells(level);
+    let qc = clamp(q, vec3<f32>(0.0), vec3<f32>(g - 1.0));
+    let inside = max(vec3<f32>(1.0) - abs(q - qc), vec3<f32>(0.0));
+    // The slot, continuous (texel centres at +0.5), in the level's block.
+    let n = clipmap.info.y;
+    let slot = qc - n * floor(qc / n) + 0.5 + vec3<f32>(0.0, 0.0, f32(level) * (n + 1.0));
+    let size = vec3<f32>(n + 1.0, n + 1.0, (n + 1.0) * clipmap.info.x);
+    let texel = textureSampleLevel(clip_texels, clip_sampler, slot / size, 0.0);
+    return min(dot(texel.xyz, w), texel.w) * inside.x * inside.y * inside.z;
 }
 
 // Quadrilinear clipmap sample: trilinear in the levels floor(lod) and the next,

@@ -48,9 +48,11 @@ struct Frame {
 
 // The occupancy clipmap (viewer-wasm/src/clipmap.rs): `levels` cubes of N^3
 // cells, level k's cell edge finest * 2^k grid units, its region the cells
-// origins[k] .. origins[k] + N, cell w at slot w mod N (toroidal), its
-// opacity along x, y and z in three words of clipmap_cells from 3 * slot, as
-// fixed point (4096 = 1).
+// origins[k] .. origins[k] + N, cell w at slot w mod N (toroidal), texel
+// slot + (0, 0, k * (N + 1)) of clip_texels: its opacity along x, y and z,
+// and their sum, each clamped to 1; texel N of a level's block along an axis
+// repeats its slot 0, so a filtered read wraps as the slots do
+// (clipmap_texels.wgsl).
 struct Clipmap {
     // x: levels, y: cells per edge N, z: finest cell edge (grid units),
     // w: 1 = the AO traces the clipmap, 0 = the volume.
@@ -59,4 +61,5 @@ struct Clipmap {
 }
 
 @group(0) @binding(3) var<uniform> clipmap: Clipmap;
-@group(0) @binding(4) var<storage, read> clipmap_cells: array<u32>;
+@group(0) @binding(4) var clip_texels: texture_3d<f32>;
+@group(0) @binding(5) var clip_sampler: sampler;

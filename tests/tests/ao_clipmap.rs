@@ -7,13 +7,17 @@
 //!   cleared and re-splatted) and blocks arrive and leave (splatted in and
 //!   out), the clipmap equals the model built from scratch for the new state,
 //!   and an unchanged state costs no work;
-//! - negative control: the same sequence with the scroll's clear skipped
-//!   leaves stale cells and does not match.
+//! - each level's filterable texture, which the trace reads, holds every
+//!   cell's opacities (clipmap_texels.wgsl) after every update: only the
+//!   boxes an update changed are copied;
+//! - negative controls: the same sequence with the scroll's clear skipped
+//!   leaves stale cells and does not match; updates that skip the texture
+//!   copy leave textures that do not match their cells.
 
 use glam::Vec3;
 use voxstream_format::{BLOCK_SIZE, Block, BlockKey, PackedVoxel, oct_encode};
 use voxstream_viewer::clipmap::{ClipmapLayout, ClipmapModel, OccupancyClipmap};
-use voxstream_viewer::offscreen::{Gpu, read_clipmap_cells};
+use voxstream_viewer::offscreen::{Gpu, read_clipmap_cells, read_clipmap_texels};
 
 const GRID: u32 = 512;
 
@@ -71,11 +75,38 @@ fn model(layout: ClipmapLayout, state: &State) -> ClipmapModel {
     ClipmapModel::build(layout, &origins, &state.sources)
 }
 
-/// Cells that differ between the GPU and the model, over every level.
+/// Cells that differ between the GPU and the model, over every level; the
+/// level textures must hold the GPU's cells (`texel_mismatches`).
 fn mismatches(gpu: &Gpu, clipmap: &OccupancyClipmap, expected: &ClipmapModel) -> usize {
     let cells = read_clipmap_cells(&gpu.device, &gpu.queue, clipmap).expect("read back the clipmap");
     assert_eq!(cells.len(), expected.levels.len());
+    assert_eq!(texel_mismatches(gpu, clipmap), 0, "a level texture differs from its cells");
     cells.iter().zip(&expected.levels).map(|(a, b)| a.iter().zip(b).filter(|(x, y)| x != y).count()).sum()
+}
+
+/// Texels that differ (beyond half precision) from what the cell in their
+/// slot says (its three words: each axis's opacity and their sum, clamped to
+/// 1), the aprons (texel N of a level, which repeats slot 0) included.
+fn texel_mismatches(gpu: &Gpu, clipmap: &OccupancyClipmap) -> usize {
+    let cells = read_clipmap_cells(&gpu.device, &gpu.queue, clipmap).expect("read back the clipmap");
+    let texels = read_clipmap_texels(&gpu.device, &gpu.queue, clipmap).expect("read back the textures");
+    assert_eq!(cells.len(), texels.len());
+    let n = clipmap.layout().expect("built").cells as usize;
+    let mut wrong = 0;
+    for (words, level) in cells.iter().zip(&texels) {
+        assert_eq!(words.len(), n * n * n * 3);
+        assert_eq!(level.len(), (n + 1).pow(3));
+        for (i, t) in level.iter().enumerate() {
+            let [x, y, z] = [i % (n + 1), (i / (n + 1)) % (n + 1), i / (n + 1).pow(2)].map(|c| c % n);
+            let w = &words[((z * n + y) * n + x) * 3..][..3];
+            let o = [0, 1, 2].map(|a| (w[a] as f32 / 4096.0).min(1.0));
+            let want = [o[0], o[1], o[2], (o[0] + o[1] + o[2]).min(1.0)];
+            if want.iter().zip(t).any(|(a, b)| (a - b).abs() > 1e-3) {
+                wrong += 1;
+            }
+        }
+    }
+    wrong
 }
 
 #[test]
@@ -158,6 +189,15 @@ fn the_gpu_clipmap_matches_its_model_through_scrolls_arrivals_and_departures() {
     run(&gpu, &mut broken, layout, &all, &second);
     let wrong = mismatches(&gpu, &broken, &model(layout, &second));
     assert!(wrong > 100, "a scroll without its clear still matched ({wrong} cells differ)");
+
+    // Negative control: textures not copied after the first build fall behind their cells.
+    let mut stale = OccupancyClipmap::new(&gpu.device, layout.cells);
+    run(&gpu, &mut stale, layout, &all, &first);
+    assert_eq!(texel_mismatches(&gpu, &stale), 0, "first build");
+    stale.skip_texel_copy = true;
+    run(&gpu, &mut stale, layout, &all, &second);
+    let behind = texel_mismatches(&gpu, &stale);
+    assert!(behind > 100, "textures left behind still matched their cells ({behind} texels differ)");
 }
 
 #[test]

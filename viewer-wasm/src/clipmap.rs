@@ -22,6 +22,14 @@
 //!   z mod N) (toroidal addressing), so when a level moves only the cells
 //!   that newly enter it are cleared and splatted; the rest stay. A slot is
 //!   [`CELL_WORDS`] words: the cell's opacity to rays along x, y and z.
+//! - **Texels.** The splats add up in the buffer (WebGPU's atomics need
+//!   one); the trace reads a copy in one 3D texture ([`TEXEL_FORMAT`]), so
+//!   that a trilinear read is one filtered sample instead of eight cells of
+//!   three words (shaders/clipmap_texels.wgsl). Level k is the block of
+//!   (N + 1)³ texels from depth k·(N + 1), slot s at texel s, and texel N on
+//!   an axis repeats slot 0 (an apron), so a filtered read between slot N − 1
+//!   and the slot after it, 0 (toroidal), stays inside its level's block.
+//!   Each update copies, per level, the box around the cells it changed.
 //! - **Content.** A cell holds its surface opacity per axis as fixed point
 //!   ([`DENSITY_ONE`] = 1): each voxel of a source block adds, on each axis
 //!   it blocks ([`voxel_axes`]: those of its exposed faces), its level-0
@@ -61,8 +69,13 @@ pub const CELL_WORDS: u32 = 3;
 /// Bytes between dispatch records in the dispatch uniform buffer (the
 /// alignment of a dynamic uniform offset).
 const DISPATCH_STRIDE: u64 = 256;
-/// Invocations per workgroup of both compute shaders.
+/// Invocations per workgroup of the compute shaders.
 const WORKGROUP: u32 = 64;
+/// Format of the levels' filterable texture (clipmap_texels.wgsl): the three
+/// axes' opacities and their bound, at half precision (8 bytes a cell).
+pub const TEXEL_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
+/// Bytes a texel of [`TEXEL_FORMAT`] takes.
+pub const TEXEL_BYTES: u64 = 8;
 
 /// The clipmap's shape for one scene and view state.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -175,6 +188,24 @@ impl CellBox {
 
     fn intersects(&self, other: &CellBox) -> bool {
         (0..3).all(|a| self.min[a] < other.max[a] && other.min[a] < self.max[a])
+    }
+
+    fn intersection(&self, other: &CellBox) -> Option<CellBox> {
+        self.intersects(other).then(|| CellBox {
+            min: std::array::from_fn(|a| self.min[a].max(other.min[a])),
+            max: std::array::from_fn(|a| self.max[a].min(other.max[a])),
+        })
+    }
+
+    fn union(&self, other: &CellBox) -> CellBox {
+        CellBox {
+            min: std::array::from_fn(|a| self.min[a].min(other.min[a])),
+            max: std::array::from_fn(|a| self.max[a].max(other.max[a])),
+        }
+    }
+
+    fn size(&self) -> [u32; 3] {
+        std::array::from_fn(|a| (self.max[a] - self.min[a]).max(0) as u32)
     }
 }
 
@@ -341,12 +372,51 @@ pub struct ClipmapCounters {
     pub word_moves: u64,
 }
 
+/// The levels' filterable copy of their cells (clipmap_texels.wgsl), what
+/// the trace samples: `levels` blocks of (`cells` + 1)³ texels stacked in
+/// depth (a 1³ placeholder before the first layout).
+fn texel_atlas(device: &wgpu::Device, cells: u32, levels: u32) -> wgpu::Texture {
+    let edge = cells + 1;
+    device.create_texture(&wgpu::TextureDescriptor {
+        label: Some("clipmap texels"),
+        size: wgpu::Extent3d { width: edge, height: edge, depth_or_array_layers: edge * levels },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D3,
+        format: TEXEL_FORMAT,
+        usage: wgpu::TextureUsages::TEXTURE_BINDING
+            | wgpu::TextureUsages::STORAGE_BINDING
+            | wgpu::TextureUsages::COPY_SRC,
+        view_formats: &[],
+    })
+}
+
+/// One texel copy's parameters (`TexelDispatch` in clipmap_texels.wgsl).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct TexelRecord {
+    /// xyz: the box's first cell, w: the level.
+    box_min: [i32; 4],
+    /// xyz: the box's size in cells, w: cells per edge.
+    box_size: [u32; 4],
+}
+
 /// The clipmap on the GPU with its CPU bookkeeping.
 pub struct OccupancyClipmap {
     /// Cells per level edge.
     cells: u32,
     /// The levels of the current layout, cells³ u32 each (grown when a layout needs more).
     pub cells_buffer: wgpu::Buffer,
+    /// The levels' cells as one filterable texture ([`texel_atlas`]): the
+    /// trace reads it, the cells buffer is where the splats add up (atomics
+    /// need a buffer).
+    texels: wgpu::Texture,
+    texel_view: wgpu::TextureView,
+    /// Linear; the aprons make each level's wrap (toroidal addressing).
+    pub texel_sampler: wgpu::Sampler,
+    texel_pipeline: wgpu::ComputePipeline,
+    texel_layout: wgpu::BindGroupLayout,
+    texel_dispatch_buffer: wgpu::Buffer,
     /// [`ClipmapUniform`].
     pub uniform_buffer: wgpu::Buffer,
     layout: Option<ClipmapLayout>,
@@ -364,6 +434,8 @@ pub struct OccupancyClipmap {
     max_binding_words: u64,
     /// Test only: scrolls leave the newly exposed cells as they were (a deliberately wrong clipmap).
     pub skip_scroll_clear: bool,
+    /// Test only: updates leave the level textures as they were (textures behind their cells).
+    pub skip_texel_copy: bool,
 }
 
 fn layout_entry(binding: u32, ty: wgpu::BufferBindingType, dynamic: bool) -> wgpu::BindGroupLayoutEntry {
@@ -546,9 +618,45 @@ impl OccupancyClipmap {
                 layout_entry(2, wgpu::BufferBindingType::Storage { read_only: true }, false),
             ],
         });
+        let texel_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("clipmap texels"),
+            entries: &[
+                layout_entry(0, wgpu::BufferBindingType::Uniform, true),
+                layout_entry(1, wgpu::BufferBindingType::Storage { read_only: true }, false),
+                wgpu::BindGroupLayoutEntry {
+                    binding: 2,
+                    visibility: wgpu::ShaderStages::COMPUTE,
+                    ty: wgpu::BindingType::StorageTexture {
+                        access: wgpu::StorageTextureAccess::WriteOnly,
+                        format: TEXEL_FORMAT,
+                        view_dimension: wgpu::TextureViewDimension::D3,
+                    },
+                    count: None,
+                },
+            ],
+        });
+        let texels = texel_atlas(device, 0, 1);
+        let texel_view = texels.create_view(&Default::default());
+        let texel_sampler = device.create_sampler(&wgpu::SamplerDescriptor {
+            label: Some("clipmap texels"),
+            mag_filter: wgpu::FilterMode::Linear,
+            min_filter: wgpu::FilterMode::Linear,
+            ..Default::default()
+        });
         Self {
             cells,
             cells_buffer: Self::cells_buffer(device, 4),
+            texels,
+            texel_view,
+            texel_sampler,
+            texel_pipeline: compute_pipeline(
+                device,
+                &texel_layout,
+                shaders::CLIPMAP_TEXELS_WGSL,
+                "copy_texels",
+            ),
+            texel_layout,
+            texel_dispatch_buffer: Self::dispatch_buffer(device, MAX_CLIP_LEVELS as u64),
             uniform_buffer,
             layout: None,
             levels: Vec::new(),
@@ -571,6 +679,7 @@ impl OccupancyClipmap {
             counters: ClipmapCounters::default(),
             max_binding_words: device.limits().max_storage_buffer_binding_size / 4,
             skip_scroll_clear: false,
+            skip_texel_copy: false,
         }
     }
 
@@ -607,9 +716,24 @@ impl OccupancyClipmap {
         &self.levels
     }
 
-    /// Bytes of the cells buffer plus the source blocks' voxel words.
+    /// The levels' texture's view (the frame's bind group).
+    pub fn texel_view(&self) -> &wgpu::TextureView {
+        &self.texel_view
+    }
+
+    /// The levels' texture ([`texel_atlas`]).
+    pub fn texels(&self) -> &wgpu::Texture {
+        &self.texels
+    }
+
+    /// Bytes of the cells buffer, the levels' textures and the source blocks' voxel words.
     pub fn gpu_bytes(&self) -> u64 {
-        self.cells_buffer.size() + self.voxel_words_bytes()
+        self.cells_buffer.size() + self.texel_bytes() + self.voxel_words_bytes()
+    }
+
+    fn texel_bytes(&self) -> u64 {
+        let t = &self.texels;
+        t.width() as u64 * t.height() as u64 * t.depth_or_array_layers() as u64 * TEXEL_BYTES
     }
 
     fn voxel_words_bytes(&self) -> u64 {
@@ -623,7 +747,8 @@ impl OccupancyClipmap {
     pub fn budget_bytes(&self, grid_resolution: u32) -> u64 {
         let most = ClipmapLayout::for_scene(grid_resolution, 1, self.cells);
         let reserve = most.levels as u64 * most.level_words() * 4;
-        reserve.max(self.cells_buffer.size()) + self.voxel_words_bytes()
+        let texels = most.levels as u64 * (most.cells as u64 + 1).pow(3) * TEXEL_BYTES;
+        reserve.max(self.cells_buffer.size()) + texels.max(self.texel_bytes()) + self.voxel_words_bytes()
     }
 
     /// The trace's uniform: the layout and the levels' origins; `enabled`
@@ -676,6 +801,12 @@ impl OccupancyClipmap {
             let bytes = layout.levels as u64 * layout.level_words() * 4;
             if self.cells_buffer.size() < bytes {
                 self.cells_buffer = Self::cells_buffer(device, bytes);
+                replaced = true;
+            }
+            let edge = layout.cells + 1;
+            if self.texels.width() != edge || self.texels.depth_or_array_layers() != edge * layout.levels {
+                self.texels = texel_atlas(device, layout.cells, layout.levels);
+                self.texel_view = self.texels.create_view(&Default::default());
                 replaced = true;
             }
             self.layout = Some(layout);
@@ -747,6 +878,9 @@ impl OccupancyClipmap {
         }
         if !ops.is_empty() {
             self.encode(device, queue, encoder, layout, &ops, timer);
+            if !self.skip_texel_copy {
+                self.encode_texels(device, queue, encoder, layout, &ops);
+            }
             self.counters.updates += 1;
         }
         // Voxel words no level uses any more go (the commands above keep theirs alive).
@@ -856,6 +990,80 @@ impl OccupancyClipmap {
                     pass.dispatch_workgroups(level_groups, 1, 1);
                 }
             }
+        }
+    }
+}
+
+impl OccupancyClipmap {
+    /// Copies into the levels' texture the cells `ops` changed: per level
+    /// the box around them (a clear's whole region, a splat's block within
+    /// it), one dispatch a level, after the clears and splats.
+    fn encode_texels(
+        &self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        layout: ClipmapLayout,
+        ops: &[Op],
+    ) {
+        let mut dirty: Vec<Option<CellBox>> = vec![None; layout.levels as usize];
+        for op in ops {
+            let (level, changed) = match op {
+                Op::Clear { level, origin, .. } => (*level, Some(CellBox::region(*origin, layout.cells))),
+                Op::Splat { level, key, origin, .. } => (
+                    *level,
+                    block_cells(key, layout.cell(*level))
+                        .intersection(&CellBox::region(*origin, layout.cells)),
+                ),
+            };
+            if let (Some(changed), Some(slot)) = (changed, dirty.get_mut(level as usize)) {
+                *slot = Some(slot.map_or(changed, |d| d.union(&changed)));
+            }
+        }
+        let boxes: Vec<(u32, CellBox)> =
+            dirty.iter().enumerate().filter_map(|(k, d)| d.map(|d| (k as u32, d))).collect();
+        if boxes.is_empty() {
+            return;
+        }
+        let mut bytes = vec![0u8; boxes.len() * DISPATCH_STRIDE as usize];
+        for (i, (level, b)) in boxes.iter().enumerate() {
+            let size = b.size();
+            let record = TexelRecord {
+                box_min: [b.min[0], b.min[1], b.min[2], *level as i32],
+                box_size: [size[0], size[1], size[2], layout.cells],
+            };
+            let at = i * DISPATCH_STRIDE as usize;
+            bytes[at..at + size_of::<TexelRecord>()].copy_from_slice(bytemuck::bytes_of(&record));
+        }
+        queue.write_buffer(&self.texel_dispatch_buffer, 0, &bytes);
+        let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("clipmap texels"),
+            layout: &self.texel_layout,
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                        buffer: &self.texel_dispatch_buffer,
+                        offset: 0,
+                        size: wgpu::BufferSize::new(size_of::<TexelRecord>() as u64),
+                    }),
+                },
+                wgpu::BindGroupEntry { binding: 1, resource: self.cells_buffer.as_entire_binding() },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: wgpu::BindingResource::TextureView(&self.texel_view),
+                },
+            ],
+        });
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("clipmap texels"),
+            timestamp_writes: None,
+        });
+        pass.set_pipeline(&self.texel_pipeline);
+        for (i, (_, b)) in boxes.iter().enumerate() {
+            let [x, y, z] = b.size();
+            pass.set_bind_group(0, &group, &[(i as u64 * DISPATCH_STRIDE) as u32]);
+            pass.dispatch_workgroups((x * y * z).div_ceil(WORKGROUP), 1, 1);
         }
     }
 }

@@ -512,6 +512,49 @@ pub fn read_clipmap_cells(
     Ok((0..layout.levels as usize).map(|k| words[k * n..(k + 1) * n].to_vec()).collect())
 }
 
+/// The clipmap's texels as the GPU holds them: per level of the layout, its
+/// block of (cells + 1)³ texels (x: opacity along x, y, z, w: their bound),
+/// x fastest; texel i of the block holds the cell in slot i mod cells.
+pub fn read_clipmap_texels(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    clipmap: &crate::clipmap::OccupancyClipmap,
+) -> Result<Vec<Vec<[f32; 4]>>, OffscreenError> {
+    let Some(layout) = clipmap.layout() else { return Ok(Vec::new()) };
+    let texture = clipmap.texels();
+    let (edge, depth) = (texture.width(), texture.depth_or_array_layers());
+    let row = edge * crate::clipmap::TEXEL_BYTES as u32;
+    let padded = row.div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+    let staging = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("clipmap texels readback"),
+        size: padded as u64 * edge as u64 * depth as u64,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let mut encoder = device.create_command_encoder(&Default::default());
+    encoder.copy_texture_to_buffer(
+        texture.as_image_copy(),
+        wgpu::TexelCopyBufferInfo {
+            buffer: &staging,
+            layout: wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(padded),
+                rows_per_image: Some(edge),
+            },
+        },
+        wgpu::Extent3d { width: edge, height: edge, depth_or_array_layers: depth },
+    );
+    queue.submit([encoder.finish()]);
+    let bytes = map_and_read_on(device, &staging)?;
+    let texels: Vec<[f32; 4]> = bytes
+        .chunks_exact(padded as usize)
+        .flat_map(|r| r[..row as usize].chunks_exact(8))
+        .map(|t| std::array::from_fn(|c| half::f16::from_le_bytes([t[2 * c], t[2 * c + 1]]).to_f32()))
+        .collect();
+    let block = (layout.cells as usize + 1).pow(3);
+    Ok(texels.chunks_exact(block).take(layout.levels as usize).map(<[_]>::to_vec).collect())
+}
+
 /// Copies an Rgba8 texture back, dropping the row padding wgpu requires.
 fn read_texture(renderer: &Renderer, texture: &wgpu::Texture) -> Result<Vec<u8>, OffscreenError> {
     read_texture_bytes(renderer, texture, 4)

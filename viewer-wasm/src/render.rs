@@ -110,6 +110,25 @@ impl Renderer {
         expander.prime(&device, &queue);
         let block_layout = block_bind_group_layout(&device);
         // Compute too: the AO's trace, upsample and temporal passes bind the frame.
+        // The clipmap's texels and their sampler: only the trace reads them.
+        let clip_texels = [
+            wgpu::BindGroupLayoutEntry {
+                binding: 4,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Texture {
+                    sample_type: wgpu::TextureSampleType::Float { filterable: true },
+                    view_dimension: wgpu::TextureViewDimension::D3,
+                    multisampled: false,
+                },
+                count: None,
+            },
+            wgpu::BindGroupLayoutEntry {
+                binding: 5,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
+                count: None,
+            },
+        ];
         let frame_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("frame"),
             entries: &[
@@ -151,17 +170,10 @@ impl Renderer {
                     },
                     count: None,
                 },
-                wgpu::BindGroupLayoutEntry {
-                    binding: 4,
-                    visibility: wgpu::ShaderStages::FRAGMENT.union(wgpu::ShaderStages::COMPUTE),
-                    ty: wgpu::BindingType::Buffer {
-                        ty: wgpu::BufferBindingType::Storage { read_only: true },
-                        has_dynamic_offset: false,
-                        min_binding_size: wgpu::BufferSize::new(4),
-                    },
-                    count: None,
-                },
-            ],
+            ]
+            .into_iter()
+            .chain(clip_texels)
+            .collect::<Vec<_>>(),
         });
         let frame_uniform = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("frame"),
@@ -261,20 +273,18 @@ fn frame_bind_group(
     occupancy: &OccupancyTexture,
     clipmap: &OccupancyClipmap,
 ) -> wgpu::BindGroup {
-    device.create_bind_group(&wgpu::BindGroupDescriptor {
-        label: Some("frame"),
-        layout,
-        entries: &[
-            wgpu::BindGroupEntry { binding: 0, resource: uniform.as_entire_binding() },
-            wgpu::BindGroupEntry {
-                binding: 1,
-                resource: wgpu::BindingResource::TextureView(&occupancy.view),
-            },
-            wgpu::BindGroupEntry { binding: 2, resource: wgpu::BindingResource::Sampler(&occupancy.sampler) },
-            wgpu::BindGroupEntry { binding: 3, resource: clipmap.uniform_buffer.as_entire_binding() },
-            wgpu::BindGroupEntry { binding: 4, resource: clipmap.cells_buffer.as_entire_binding() },
-        ],
-    })
+    let entries = [
+        wgpu::BindGroupEntry { binding: 0, resource: uniform.as_entire_binding() },
+        wgpu::BindGroupEntry { binding: 1, resource: wgpu::BindingResource::TextureView(&occupancy.view) },
+        wgpu::BindGroupEntry { binding: 2, resource: wgpu::BindingResource::Sampler(&occupancy.sampler) },
+        wgpu::BindGroupEntry { binding: 3, resource: clipmap.uniform_buffer.as_entire_binding() },
+        wgpu::BindGroupEntry {
+            binding: 4,
+            resource: wgpu::BindingResource::TextureView(clipmap.texel_view()),
+        },
+        wgpu::BindGroupEntry { binding: 5, resource: wgpu::BindingResource::Sampler(&clipmap.texel_sampler) },
+    ];
+    device.create_bind_group(&wgpu::BindGroupDescriptor { label: Some("frame"), layout, entries: &entries })
 }
 
 fn attachment(view: &wgpu::TextureView, clear: wgpu::Color) -> Option<wgpu::RenderPassColorAttachment<'_>> {

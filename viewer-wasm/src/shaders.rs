@@ -13,6 +13,7 @@ pub const AO_TEMPORAL_WGSL: &str = include_str!("../../shaders/ao_temporal.wgsl"
 pub const AO_COMPOSITE_WGSL: &str = include_str!("../../shaders/ao_composite.wgsl");
 pub const CLIPMAP_CLEAR_WGSL: &str = include_str!("../../shaders/clipmap_clear.wgsl");
 pub const CLIPMAP_SPLAT_WGSL: &str = include_str!("../../shaders/clipmap_splat.wgsl");
+pub const CLIPMAP_TEXELS_WGSL: &str = include_str!("../../shaders/clipmap_texels.wgsl");
 
 /// Every file in `shaders/`, by name (a test checks that this list is complete).
 pub const SHADER_FILES: &[(&str, &str)] = &[
@@ -28,6 +29,7 @@ pub const SHADER_FILES: &[(&str, &str)] = &[
     ("depth_reduce.wgsl", DEPTH_REDUCE_WGSL),
     ("clipmap_clear.wgsl", CLIPMAP_CLEAR_WGSL),
     ("clipmap_splat.wgsl", CLIPMAP_SPLAT_WGSL),
+    ("clipmap_texels.wgsl", CLIPMAP_TEXELS_WGSL),
 ];
 
 /// The AO's full-screen passes, one shader (and one module) a pass, in frame order.
@@ -155,6 +157,8 @@ mod tests {
         assert_eq!(entry_points(&clear), vec![("clear_cells".to_string(), naga::ShaderStage::Compute)]);
         let splat = validate("clipmap_splat.wgsl", CLIPMAP_SPLAT_WGSL);
         assert_eq!(entry_points(&splat), vec![("splat_block".to_string(), naga::ShaderStage::Compute)]);
+        let texels = validate("clipmap_texels.wgsl", CLIPMAP_TEXELS_WGSL);
+        assert_eq!(entry_points(&texels), vec![("copy_texels".to_string(), naga::ShaderStage::Compute)]);
         let voxel = validate("frame.wgsl + voxel.wgsl", &voxel_module_source());
         assert_eq!(
             entry_points(&voxel),
