@@ -19,7 +19,7 @@ struct TexelDispatch {
 
 @group(0) @binding(0) var<uniform> dispatch: TexelDispatch;
 @group(0) @binding(1) var<storage, read> cells: array<u32>;
-@group(0) @binding(2) var texels: texture_storage_3d<rgba16float, write>;
+@group(0) @binding(2) var texels: texture_storage_3d<rgba8unorm, write>;
 
 @compute @workgroup_size(64)
 fn copy_texels(@builtin(global_invocation_id) id: vec3<u32>) {

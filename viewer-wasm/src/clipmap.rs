@@ -72,10 +72,13 @@ const DISPATCH_STRIDE: u64 = 256;
 /// Invocations per workgroup of the compute shaders.
 const WORKGROUP: u32 = 64;
 /// Format of the levels' filterable texture (clipmap_texels.wgsl): the three
-/// axes' opacities and their bound, at half precision (8 bytes a cell).
-pub const TEXEL_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
+/// axes' opacities and their bound, 8 bits each: the precision of the
+/// blocks' coverage the cells are splatted from. (Half floats, at twice the
+/// bytes, gave the same V to four digits on every benchmark view and traced
+/// 1.3 times slower on lavapipe: docs/ao-benchmark.md, "Filtered texels".)
+pub const TEXEL_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
 /// Bytes a texel of [`TEXEL_FORMAT`] takes.
-pub const TEXEL_BYTES: u64 = 8;
+pub const TEXEL_BYTES: u64 = 4;
 
 /// The clipmap's shape for one scene and view state.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]

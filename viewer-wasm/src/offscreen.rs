@@ -548,8 +548,8 @@ pub fn read_clipmap_texels(
     let bytes = map_and_read_on(device, &staging)?;
     let texels: Vec<[f32; 4]> = bytes
         .chunks_exact(padded as usize)
-        .flat_map(|r| r[..row as usize].chunks_exact(8))
-        .map(|t| std::array::from_fn(|c| half::f16::from_le_bytes([t[2 * c], t[2 * c + 1]]).to_f32()))
+        .flat_map(|r| r[..row as usize].chunks_exact(4))
+        .map(|t| std::array::from_fn(|c| t[c] as f32 / 255.0))
         .collect();
     let block = (layout.cells as usize + 1).pow(3);
     Ok(texels.chunks_exact(block).take(layout.levels as usize).map(<[_]>::to_vec).collect())
