@@ -800,6 +800,8 @@ impl OccupancyClipmap {
         let layout = ClipmapLayout { levels: layout.levels.clamp(1, MAX_CLIP_LEVELS), ..layout };
         let mut replaced = false;
         let mut ops = Vec::new();
+        // Levels that moved (or were rebuilt): (level, new region, cells kept).
+        let mut moved = Vec::new();
         if self.layout != Some(layout) {
             let bytes = layout.levels as u64 * layout.level_words() * 4;
             if self.cells_buffer.size() < bytes {
@@ -826,6 +828,7 @@ impl OccupancyClipmap {
                 old => {
                     // Cells still inside the old region hold the right sums: keep them.
                     let keep = old.map_or(CellBox::EMPTY, |o| CellBox::region(o, layout.cells));
+                    moved.push((k, region, keep));
                     if !(self.skip_scroll_clear && old.is_some()) {
                         ops.push(Op::Clear { level: k, origin, keep });
                     }
@@ -882,7 +885,8 @@ impl OccupancyClipmap {
         if !ops.is_empty() {
             self.encode(device, queue, encoder, layout, &ops, timer);
             if !self.skip_texel_copy {
-                self.encode_texels(device, queue, encoder, layout, &ops);
+                let boxes = texel_boxes(layout, &ops, &moved);
+                self.encode_texels(device, queue, encoder, layout.cells, &boxes, timer);
             }
             self.counters.updates += 1;
         }
@@ -998,42 +1002,30 @@ impl OccupancyClipmap {
 }
 
 impl OccupancyClipmap {
-    /// Copies into the levels' texture the cells `ops` changed: per level
-    /// the box around them (a clear's whole region, a splat's block within
-    /// it), one dispatch a level, after the clears and splats.
+    /// Copies the cells of `boxes` (level, cells: [`texel_boxes`]) into the
+    /// levels' texture, one dispatch a box, after the clears and splats.
     fn encode_texels(
-        &self,
+        &mut self,
         device: &wgpu::Device,
         queue: &wgpu::Queue,
         encoder: &mut wgpu::CommandEncoder,
-        layout: ClipmapLayout,
-        ops: &[Op],
+        cells: u32,
+        boxes: &[(u32, CellBox)],
+        timer: Option<&crate::pass_timer::PassTimer>,
     ) {
-        let mut dirty: Vec<Option<CellBox>> = vec![None; layout.levels as usize];
-        for op in ops {
-            let (level, changed) = match op {
-                Op::Clear { level, origin, .. } => (*level, Some(CellBox::region(*origin, layout.cells))),
-                Op::Splat { level, key, origin, .. } => (
-                    *level,
-                    block_cells(key, layout.cell(*level))
-                        .intersection(&CellBox::region(*origin, layout.cells)),
-                ),
-            };
-            if let (Some(changed), Some(slot)) = (changed, dirty.get_mut(level as usize)) {
-                *slot = Some(slot.map_or(changed, |d| d.union(&changed)));
-            }
-        }
-        let boxes: Vec<(u32, CellBox)> =
-            dirty.iter().enumerate().filter_map(|(k, d)| d.map(|d| (k as u32, d))).collect();
         if boxes.is_empty() {
             return;
+        }
+        if self.texel_dispatch_buffer.size() < boxes.len() as u64 * DISPATCH_STRIDE {
+            self.texel_dispatch_buffer =
+                Self::dispatch_buffer(device, (boxes.len() as u64).next_power_of_two());
         }
         let mut bytes = vec![0u8; boxes.len() * DISPATCH_STRIDE as usize];
         for (i, (level, b)) in boxes.iter().enumerate() {
             let size = b.size();
             let record = TexelRecord {
                 box_min: [b.min[0], b.min[1], b.min[2], *level as i32],
-                box_size: [size[0], size[1], size[2], layout.cells],
+                box_size: [size[0], size[1], size[2], cells],
             };
             let at = i * DISPATCH_STRIDE as usize;
             bytes[at..at + size_of::<TexelRecord>()].copy_from_slice(bytemuck::bytes_of(&record));
@@ -1060,7 +1052,7 @@ impl OccupancyClipmap {
         });
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("clipmap texels"),
-            timestamp_writes: None,
+            timestamp_writes: timer.and_then(|t| t.compute_writes("clipmap texels")),
         });
         pass.set_pipeline(&self.texel_pipeline);
         for (i, (_, b)) in boxes.iter().enumerate() {
@@ -1069,6 +1061,54 @@ impl OccupancyClipmap {
             pass.dispatch_workgroups((x * y * z).div_ceil(WORKGROUP), 1, 1);
         }
     }
+}
+
+/// The boxes of cells an update changes, per level, which the texels must
+/// copy: for each level in `moved` (level, region, cells kept) the slabs it
+/// newly exposed (its whole region on a rebuild), where its clear and its
+/// scroll's splats (`keep` set) write; and one box around the blocks
+/// splatted in or out of a level's unmoved cells (`keep` empty).
+fn texel_boxes(layout: ClipmapLayout, ops: &[Op], moved: &[(u32, CellBox, CellBox)]) -> Vec<(u32, CellBox)> {
+    let mut boxes: Vec<(u32, CellBox)> = moved
+        .iter()
+        .flat_map(|(k, region, keep)| exposed_slabs(region, keep).into_iter().map(|b| (*k, b)))
+        .collect();
+    let mut splats: Vec<Option<CellBox>> = vec![None; layout.levels as usize];
+    for op in ops {
+        if let Op::Splat { level, key, origin, keep, .. } = op
+            && *keep == CellBox::EMPTY
+        {
+            let changed =
+                block_cells(key, layout.cell(*level)).intersection(&CellBox::region(*origin, layout.cells));
+            if let (Some(changed), Some(slot)) = (changed, splats.get_mut(*level as usize)) {
+                *slot = Some(slot.map_or(changed, |d| d.union(&changed)));
+            }
+        }
+    }
+    boxes.extend(splats.into_iter().enumerate().filter_map(|(k, b)| b.map(|b| (k as u32, b))));
+    boxes
+}
+
+/// The cells of `region` outside `keep`, as at most six slabs (the whole
+/// region where `keep` misses it).
+fn exposed_slabs(region: &CellBox, keep: &CellBox) -> Vec<CellBox> {
+    if region.intersection(keep).is_none() {
+        return vec![*region];
+    }
+    let mut slabs = Vec::new();
+    for a in 0..3 {
+        if keep.min[a] > region.min[a] {
+            let mut slab = *region;
+            slab.max[a] = keep.min[a];
+            slabs.push(slab);
+        }
+        if keep.max[a] < region.max[a] {
+            let mut slab = *region;
+            slab.min[a] = keep.max[a];
+            slabs.push(slab);
+        }
+    }
+    slabs
 }
 
 /// The camera's view direction from a view-projection matrix (grid units):
@@ -1215,6 +1255,25 @@ mod tests {
         };
         let model = ClipmapModel::build(layout, &[[0, 0, 0]], &[vec![&solid]]);
         assert_eq!(model.levels[0][at..at + 3], [DENSITY_ONE; 3]);
+    }
+
+    #[test]
+    fn exposed_slabs_cover_exactly_the_cells_a_scroll_exposes() {
+        let region = CellBox::region([10, -4, 7], 16);
+        for shift in [[3, 0, 0], [-5, 2, 0], [1, -1, 15], [0, 0, 0], [20, 0, 0]] {
+            let keep = CellBox::region([10 - shift[0], -4 - shift[1], 7 - shift[2]], 16);
+            let slabs = exposed_slabs(&region, &keep);
+            for x in region.min[0]..region.max[0] {
+                for y in region.min[1]..region.max[1] {
+                    for z in region.min[2]..region.max[2] {
+                        let c = [x as i64, y as i64, z as i64];
+                        let in_slab = slabs.iter().any(|s| s.contains(c));
+                        assert_eq!(in_slab, !keep.contains(c), "cell {c:?}, shift {shift:?}");
+                    }
+                }
+            }
+            assert!(slabs.iter().all(|s| region.covers(s)), "a slab leaves the region: {slabs:?}");
+        }
     }
 
     #[test]
