@@ -110,25 +110,10 @@ impl Renderer {
         expander.prime(&device, &queue);
         let block_layout = block_bind_group_layout(&device);
         // Compute too: the AO's trace, upsample and temporal passes bind the frame.
+        let visible = wgpu::ShaderStages::FRAGMENT.union(wgpu::ShaderStages::COMPUTE);
+        let [occupancy, occupancy_sampler] = filtered_3d_entries(1, visible);
         // The clipmap's texels and their sampler: only the trace reads them.
-        let clip_texels = [
-            wgpu::BindGroupLayoutEntry {
-                binding: 4,
-                visibility: wgpu::ShaderStages::COMPUTE,
-                ty: wgpu::BindingType::Texture {
-                    sample_type: wgpu::TextureSampleType::Float { filterable: true },
-                    view_dimension: wgpu::TextureViewDimension::D3,
-                    multisampled: false,
-                },
-                count: None,
-            },
-            wgpu::BindGroupLayoutEntry {
-                binding: 5,
-                visibility: wgpu::ShaderStages::COMPUTE,
-                ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
-                count: None,
-            },
-        ];
+        let [clip_texels, clip_sampler] = filtered_3d_entries(4, wgpu::ShaderStages::COMPUTE);
         let frame_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("frame"),
             entries: &[
@@ -142,25 +127,11 @@ impl Renderer {
                     },
                     count: None,
                 },
-                wgpu::BindGroupLayoutEntry {
-                    binding: 1,
-                    visibility: wgpu::ShaderStages::FRAGMENT.union(wgpu::ShaderStages::COMPUTE),
-                    ty: wgpu::BindingType::Texture {
-                        sample_type: wgpu::TextureSampleType::Float { filterable: true },
-                        view_dimension: wgpu::TextureViewDimension::D3,
-                        multisampled: false,
-                    },
-                    count: None,
-                },
-                wgpu::BindGroupLayoutEntry {
-                    binding: 2,
-                    visibility: wgpu::ShaderStages::FRAGMENT.union(wgpu::ShaderStages::COMPUTE),
-                    ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
-                    count: None,
-                },
+                occupancy,
+                occupancy_sampler,
                 wgpu::BindGroupLayoutEntry {
                     binding: 3,
-                    visibility: wgpu::ShaderStages::FRAGMENT.union(wgpu::ShaderStages::COMPUTE),
+                    visibility: visible,
                     ty: wgpu::BindingType::Buffer {
                         ty: wgpu::BufferBindingType::Uniform,
                         has_dynamic_offset: false,
@@ -170,10 +141,9 @@ impl Renderer {
                     },
                     count: None,
                 },
-            ]
-            .into_iter()
-            .chain(clip_texels)
-            .collect::<Vec<_>>(),
+                clip_texels,
+                clip_sampler,
+            ],
         });
         let frame_uniform = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("frame"),
@@ -264,6 +234,28 @@ impl Renderer {
     pub fn ao_accumulating(&self) -> bool {
         self.ao_passes.accumulating()
     }
+}
+
+/// A filterable 3D texture at `binding` and its filtering sampler at the next binding.
+fn filtered_3d_entries(binding: u32, visibility: wgpu::ShaderStages) -> [wgpu::BindGroupLayoutEntry; 2] {
+    [
+        wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility,
+            ty: wgpu::BindingType::Texture {
+                sample_type: wgpu::TextureSampleType::Float { filterable: true },
+                view_dimension: wgpu::TextureViewDimension::D3,
+                multisampled: false,
+            },
+            count: None,
+        },
+        wgpu::BindGroupLayoutEntry {
+            binding: binding + 1,
+            visibility,
+            ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
+            count: None,
+        },
+    ]
 }
 
 fn frame_bind_group(
