@@ -420,6 +420,9 @@ pub struct OccupancyClipmap {
     texel_pipeline: wgpu::ComputePipeline,
     texel_layout: wgpu::BindGroupLayout,
     texel_dispatch_buffer: wgpu::Buffer,
+    /// The copy's bind group, kept while its buffers and texture stay (in a
+    /// browser each one made is a call across to the GPU process).
+    texel_group: Option<wgpu::BindGroup>,
     /// [`ClipmapUniform`].
     pub uniform_buffer: wgpu::Buffer,
     layout: Option<ClipmapLayout>,
@@ -660,6 +663,7 @@ impl OccupancyClipmap {
             ),
             texel_layout,
             texel_dispatch_buffer: Self::dispatch_buffer(device, MAX_CLIP_LEVELS as u64),
+            texel_group: None,
             uniform_buffer,
             layout: None,
             levels: Vec::new(),
@@ -806,11 +810,13 @@ impl OccupancyClipmap {
             let bytes = layout.levels as u64 * layout.level_words() * 4;
             if self.cells_buffer.size() < bytes {
                 self.cells_buffer = Self::cells_buffer(device, bytes);
+                self.texel_group = None;
                 replaced = true;
             }
             let edge = layout.cells + 1;
             if self.texels.width() != edge || self.texels.depth_or_array_layers() != edge * layout.levels {
                 self.texels = texel_atlas(device, layout.cells, layout.levels);
+                self.texel_group = None;
                 self.texel_view = self.texels.create_view(&Default::default());
                 replaced = true;
             }
@@ -1019,6 +1025,7 @@ impl OccupancyClipmap {
         if self.texel_dispatch_buffer.size() < boxes.len() as u64 * DISPATCH_STRIDE {
             self.texel_dispatch_buffer =
                 Self::dispatch_buffer(device, (boxes.len() as u64).next_power_of_two());
+            self.texel_group = None;
         }
         let mut bytes = vec![0u8; boxes.len() * DISPATCH_STRIDE as usize];
         for (i, (level, b)) in boxes.iter().enumerate() {
@@ -1031,24 +1038,26 @@ impl OccupancyClipmap {
             bytes[at..at + size_of::<TexelRecord>()].copy_from_slice(bytemuck::bytes_of(&record));
         }
         queue.write_buffer(&self.texel_dispatch_buffer, 0, &bytes);
-        let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("clipmap texels"),
-            layout: &self.texel_layout,
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                        buffer: &self.texel_dispatch_buffer,
-                        offset: 0,
-                        size: wgpu::BufferSize::new(size_of::<TexelRecord>() as u64),
-                    }),
-                },
-                wgpu::BindGroupEntry { binding: 1, resource: self.cells_buffer.as_entire_binding() },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: wgpu::BindingResource::TextureView(&self.texel_view),
-                },
-            ],
+        let group = self.texel_group.get_or_insert_with(|| {
+            device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("clipmap texels"),
+                layout: &self.texel_layout,
+                entries: &[
+                    wgpu::BindGroupEntry {
+                        binding: 0,
+                        resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                            buffer: &self.texel_dispatch_buffer,
+                            offset: 0,
+                            size: wgpu::BufferSize::new(size_of::<TexelRecord>() as u64),
+                        }),
+                    },
+                    wgpu::BindGroupEntry { binding: 1, resource: self.cells_buffer.as_entire_binding() },
+                    wgpu::BindGroupEntry {
+                        binding: 2,
+                        resource: wgpu::BindingResource::TextureView(&self.texel_view),
+                    },
+                ],
+            })
         });
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("clipmap texels"),
@@ -1057,7 +1066,7 @@ impl OccupancyClipmap {
         pass.set_pipeline(&self.texel_pipeline);
         for (i, (_, b)) in boxes.iter().enumerate() {
             let [x, y, z] = b.size();
-            pass.set_bind_group(0, &group, &[(i as u64 * DISPATCH_STRIDE) as u32]);
+            pass.set_bind_group(0, &*group, &[(i as u64 * DISPATCH_STRIDE) as u32]);
             pass.dispatch_workgroups((x * y * z).div_ceil(WORKGROUP), 1, 1);
         }
     }
