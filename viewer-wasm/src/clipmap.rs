@@ -957,12 +957,7 @@ impl OccupancyClipmap {
         if self.dispatch_buffer.size() < records.len() as u64 * DISPATCH_STRIDE {
             self.dispatch_buffer = Self::dispatch_buffer(device, (records.len() as u64).next_power_of_two());
         }
-        let mut bytes = vec![0u8; records.len() * DISPATCH_STRIDE as usize];
-        for (i, r) in records.iter().enumerate() {
-            let at = i * DISPATCH_STRIDE as usize;
-            bytes[at..at + size_of::<DispatchRecord>()].copy_from_slice(bytemuck::bytes_of(r));
-        }
-        queue.write_buffer(&self.dispatch_buffer, 0, &bytes);
+        queue.write_buffer(&self.dispatch_buffer, 0, &strided_records(&records));
         let record_binding = wgpu::BindingResource::Buffer(wgpu::BufferBinding {
             buffer: &self.dispatch_buffer,
             offset: 0,
@@ -1005,9 +1000,7 @@ impl OccupancyClipmap {
             }
         }
     }
-}
 
-impl OccupancyClipmap {
     /// Copies the cells of `boxes` (level, cells: [`texel_boxes`]) into the
     /// levels' texture, one dispatch a box, after the clears and splats.
     fn encode_texels(
@@ -1027,17 +1020,17 @@ impl OccupancyClipmap {
                 Self::dispatch_buffer(device, (boxes.len() as u64).next_power_of_two());
             self.texel_group = None;
         }
-        let mut bytes = vec![0u8; boxes.len() * DISPATCH_STRIDE as usize];
-        for (i, (level, b)) in boxes.iter().enumerate() {
-            let size = b.size();
-            let record = TexelRecord {
-                box_min: [b.min[0], b.min[1], b.min[2], *level as i32],
-                box_size: [size[0], size[1], size[2], cells],
-            };
-            let at = i * DISPATCH_STRIDE as usize;
-            bytes[at..at + size_of::<TexelRecord>()].copy_from_slice(bytemuck::bytes_of(&record));
-        }
-        queue.write_buffer(&self.texel_dispatch_buffer, 0, &bytes);
+        let records: Vec<TexelRecord> = boxes
+            .iter()
+            .map(|(level, b)| {
+                let size = b.size();
+                TexelRecord {
+                    box_min: [b.min[0], b.min[1], b.min[2], *level as i32],
+                    box_size: [size[0], size[1], size[2], cells],
+                }
+            })
+            .collect();
+        queue.write_buffer(&self.texel_dispatch_buffer, 0, &strided_records(&records));
         let group = self.texel_group.get_or_insert_with(|| {
             device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("clipmap texels"),
@@ -1070,6 +1063,15 @@ impl OccupancyClipmap {
             pass.dispatch_workgroups((x * y * z).div_ceil(WORKGROUP), 1, 1);
         }
     }
+}
+
+/// `records` one [`DISPATCH_STRIDE`] apart, as a dynamic uniform offset reads them.
+fn strided_records<T: bytemuck::Pod>(records: &[T]) -> Vec<u8> {
+    let mut bytes = vec![0u8; records.len() * DISPATCH_STRIDE as usize];
+    for (record, at) in records.iter().zip(bytes.chunks_exact_mut(DISPATCH_STRIDE as usize)) {
+        at[..size_of::<T>()].copy_from_slice(bytemuck::bytes_of(record));
+    }
+    bytes
 }
 
 /// The boxes of cells an update changes, per level, which the texels must
