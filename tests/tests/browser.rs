@@ -156,12 +156,39 @@ fn browser_renders_koala_matching_cpu_coverage() {
     let listener = rt.block_on(tokio::net::TcpListener::bind("127.0.0.1:0")).expect("bind 127.0.0.1:0");
     let addr = listener.local_addr().unwrap();
     let server = rt.spawn(async move { axum::serve(listener, router(state)).await });
-    let url = format!("http://{addr}/?scene={}", report.id);
+    // ?gpu-timing=1: the AO benchmark's Chromium times come from these timestamps.
+    let url = format!("http://{addr}/?scene={}&gpu-timing=1", report.id);
 
     // 3. Headless Chromium, with the checks below.
     render_and_check(&url, &artifacts_dir(), &report.scene_dir, true);
+    check_gpu_timing(&artifacts_dir().join("browser.json"), true);
     assert!(!server.is_finished(), "the server stopped during the browser run: {:?}", rt.block_on(server));
     server.abort();
+}
+
+/// With `?gpu-timing=1` the page's stats hold a drawn frame's GPU time per
+/// pass, the G-buffer draw and the AO trace among them, each finite and
+/// positive; without it, none.
+fn check_gpu_timing(browser_json: &Path, asked: bool) {
+    let result: Value = serde_json::from_slice(&std::fs::read(browser_json).unwrap()).unwrap();
+    let stats = &result["stats"];
+    let timed = &stats["gpuTimed"];
+    if !asked {
+        assert!(timed.is_null(), "GPU pass times without ?gpu-timing=1: {timed}");
+        return;
+    }
+    let passes = timed["passes"].as_array().unwrap_or_else(|| panic!("no GPU pass times: {stats}"));
+    let ms = |label: &str| passes.iter().find(|p| p["label"] == label).and_then(|p| p["ms"].as_f64());
+    for label in ["voxels", "cs_trace", "fs_composite"] {
+        let t = ms(label).unwrap_or_else(|| panic!("no {label} pass among {passes:?}"));
+        assert!(t.is_finite() && t > 0.0 && t < 60_000.0, "{label}: {t} ms");
+    }
+    let frame = timed["frame"].as_u64().unwrap_or(0);
+    assert!(
+        frame >= 1 && frame <= stats["framesDrawn"].as_u64().unwrap_or(0),
+        "timed frame {frame}: {stats}"
+    );
+    println!("GPU pass times (SwiftShader) of frame {frame}: {passes:?}");
 }
 
 /// Opens `url` in headless Chromium (tests/browser/e2e.mjs), waits for the ready marker and checks
@@ -662,6 +689,8 @@ fn browser_failed_blocks_are_reported_and_drawn_as_parents() {
     // Requests aborted because the view changed (occlusion feedback) are not failures.
     let failed = stats["blocksFailed"].as_u64().unwrap_or(0);
     assert!(failed > 0 && failed <= spoiled, "spoiled blocks are reported as failed: {stats}");
+    // Control for the koala test's pass times: this page did not ask for them.
+    check_gpu_timing(&out.join("browser.json"), false);
     let drawn: Vec<BlockKey> = result["view"]["drawnBlocks"]
         .as_array()
         .expect("drawnBlocks")

@@ -300,6 +300,23 @@ impl AoSettings {
         }
     }
 
+    /// These settings with the fields `patch` (a JSON object, the field names
+    /// of this struct) names replaced: the browser's `window.voxstream.set({aoSettings})`.
+    /// An unknown field or a value of the wrong type is an error naming it, and
+    /// nothing changes. Values in range are not checked here: the uniform
+    /// clamps every one ([`AoSettings::uniform_jittered`]).
+    pub fn patched(&self, patch: &serde_json::Value) -> Result<AoSettings, String> {
+        let fields =
+            patch.as_object().ok_or_else(|| format!("AO settings: expected an object, got {patch}"))?;
+        let mut merged = serde_json::to_value(self).map_err(|e| e.to_string())?;
+        let current = merged.as_object_mut().expect("a struct serializes to an object");
+        for (name, value) in fields {
+            let slot = current.get_mut(name).ok_or_else(|| format!("AO settings: no setting {name:?}"))?;
+            *slot = value.clone();
+        }
+        serde_json::from_value(merged).map_err(|e| format!("AO settings: {e}"))
+    }
+
     /// N of the temporal accumulation, in 1..=[`MAX_TEMPORAL_FRAMES`].
     pub fn accumulated_frames(&self) -> u32 {
         self.temporal_frames.clamp(1, MAX_TEMPORAL_FRAMES)
@@ -728,6 +745,25 @@ impl OccupancyTexture {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn a_patch_replaces_only_the_settings_it_names() {
+        let d = super::AoSettings::default();
+        let p = d.patched(&serde_json::json!({"cones": 16, "step": 0.5, "trace_downscale": 1})).unwrap();
+        assert_eq!((p.cones, p.step, p.trace_downscale), (16, 0.5, 1));
+        assert_eq!(
+            super::AoSettings { cones: d.cones, step: d.step, trace_downscale: d.trace_downscale, ..p },
+            d
+        );
+        let p = d.patched(&serde_json::json!({"mode": "field", "aperture_deg": null})).unwrap();
+        assert_eq!(p.mode, super::AoMode::Field);
+        // Controls: unknown names, wrong types and non-objects are errors naming the problem.
+        let e = d.patched(&serde_json::json!({"cone": 16})).unwrap_err();
+        assert!(e.contains("\"cone\""), "{e}");
+        let e = d.patched(&serde_json::json!({"step": "fast"})).unwrap_err();
+        assert!(e.contains("AO settings"), "{e}");
+        assert!(d.patched(&serde_json::json!([1])).is_err());
+    }
+
     use super::*;
     use voxstream_format::oct_encode;
 

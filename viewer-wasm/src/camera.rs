@@ -170,6 +170,49 @@ impl OrbitCamera {
         format!("{:.3},{:.3},{:.3},{:.5},{:.5},{:.3}", t.x, t.y, t.z, self.yaw, self.pitch, self.distance)
     }
 
+    /// Looks from `eye` at `target` (grid units, +Y up) with a vertical field
+    /// of view of `fov_y_deg`: the orbit then turns about `target`. `false`,
+    /// with the camera unchanged, where the two points coincide or anything is
+    /// not finite or the angle is outside (0, 180).
+    pub fn look_at(&mut self, eye: Vec3, target: Vec3, fov_y_deg: f32) -> bool {
+        let offset = eye - target;
+        let distance = offset.length();
+        if !(eye.is_finite() && target.is_finite() && distance.is_finite() && distance > 0.0)
+            || !(fov_y_deg > 0.0 && fov_y_deg < 180.0)
+        {
+            return false;
+        }
+        let d = offset / distance;
+        self.target = target;
+        self.distance = distance;
+        // Straight up or down has no yaw; the pitch clamp keeps the view's up defined.
+        self.yaw = d.x.atan2(d.z);
+        self.pitch = d.y.clamp(-1.0, 1.0).asin().clamp(-MAX_PITCH, MAX_PITCH);
+        self.fov_y = fov_y_deg.to_radians();
+        true
+    }
+
+    /// Applies `eye x,y,z,target x,y,z,fov_y_deg` given in a scene's source
+    /// coordinates (a camera.json's eye, target and fov_y_deg, as the viewer's
+    /// `?camera=` takes them) for the grid frame `origin`, `voxel_size`. The
+    /// points are moved into grid units in f64 first, so georeferenced
+    /// coordinates keep their precision. `false` (camera unchanged) unless
+    /// there are exactly seven numbers that [`OrbitCamera::look_at`] accepts.
+    pub fn apply_source_look_at(&mut self, text: &str, origin: [f64; 3], voxel_size: f64) -> bool {
+        let v: Vec<f64> = text.split(',').map_while(|x| x.trim().parse().ok()).collect();
+        if v.len() != 7 || text.split(',').count() != 7 || !(voxel_size > 0.0) {
+            return false;
+        }
+        let to_grid = |p: &[f64]| {
+            Vec3::new(
+                ((p[0] - origin[0]) / voxel_size) as f32,
+                ((p[1] - origin[1]) / voxel_size) as f32,
+                ((p[2] - origin[2]) / voxel_size) as f32,
+            )
+        };
+        self.look_at(to_grid(&v[0..3]), to_grid(&v[3..6]), v[6] as f32)
+    }
+
     /// Applies a view from [`OrbitCamera::to_url`]; anything malformed leaves the camera as it is.
     pub fn apply_url(&mut self, text: &str) -> bool {
         let v: Vec<f32> = text.split(',').filter_map(|x| x.trim().parse().ok()).collect();
@@ -188,6 +231,45 @@ impl OrbitCamera {
 mod tests {
     use super::*;
     use glam::Vec4;
+
+    #[test]
+    fn look_at_puts_the_eye_and_target_where_asked() {
+        let mut cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(100.0));
+        let (eye, target) = (Vec3::new(10.0, 30.0, -40.0), Vec3::new(50.0, 20.0, 60.0));
+        assert!(cam.look_at(eye, target, 60.0));
+        assert!((cam.eye() - eye).length() < 1e-3, "{:?}", cam.eye());
+        assert!((cam.target - target).length() < 1e-6);
+        assert!((cam.forward() - (target - eye).normalize()).length() < 1e-5);
+        assert!((cam.fov_y - 60f32.to_radians()).abs() < 1e-6);
+        // The view matrix maps the target onto the view axis.
+        let t = cam.view().transform_point3(target);
+        assert!(t.x.abs() < 1e-3 && t.y.abs() < 1e-3 && t.z < 0.0, "{t:?}");
+        // Controls: degenerate input is refused and leaves the camera as it was.
+        let before = cam;
+        assert!(!cam.look_at(eye, eye, 60.0));
+        assert!(!cam.look_at(eye, Vec3::new(f32::NAN, 0.0, 0.0), 60.0));
+        assert!(!cam.look_at(eye, target, 180.0));
+        assert_eq!(cam, before);
+    }
+
+    #[test]
+    fn a_source_look_at_lands_in_grid_units() {
+        let mut cam = OrbitCamera::framing(Vec3::ZERO, Vec3::splat(256.0));
+        // A georeferenced frame: origin 1e6 away, 0.5-unit voxels.
+        let origin = [1.0e6, 2.0e6, -3.0e6];
+        let text = "1000010,2000020,-2999990, 1000050,2000020,-2999990, 45";
+        assert!(cam.apply_source_look_at(text, origin, 0.5));
+        assert!((cam.eye() - Vec3::new(20.0, 40.0, 20.0)).length() < 1e-3, "{:?}", cam.eye());
+        assert!((cam.target - Vec3::new(100.0, 40.0, 20.0)).length() < 1e-3);
+        assert!((cam.fov_y - 45f32.to_radians()).abs() < 1e-6);
+        // Controls: six numbers, a word among them, eight numbers, a zero voxel.
+        let before = cam;
+        assert!(!cam.apply_source_look_at("1,2,3,4,5,6", origin, 0.5));
+        assert!(!cam.apply_source_look_at("1,2,x,4,5,6,45", origin, 0.5));
+        assert!(!cam.apply_source_look_at("1,2,3,4,5,6,45,1", origin, 0.5));
+        assert!(!cam.apply_source_look_at(text, origin, 0.0));
+        assert_eq!(cam, before);
+    }
 
     #[test]
     fn look_keeps_the_eye_and_fly_moves_along_the_view() {

@@ -1,8 +1,11 @@
 //! GPU time of each pass of a frame, from timestamp queries, on devices that
-//! have them (native Vulkan, lavapipe included; the browser does not ask for
-//! the feature). A frame's timed passes write a timestamp as they begin and
-//! end; [`PassTimer::resolve`] copies them into a mappable buffer at the end of
-//! the frame's encoder, and a native caller reads them once the GPU is idle.
+//! have them (native Vulkan, lavapipe included; the browser with `?gpu-timing=1`).
+//! A frame's timed passes write a timestamp as they begin and end;
+//! [`PassTimer::resolve`] copies them into a mappable buffer at the end of the
+//! frame's encoder. A native caller reads them once the GPU is idle
+//! ([`PassTimer::read`]); the browser maps the buffer asynchronously after the
+//! submit ([`PassTimer::after_submit`]) and skips timing the frames drawn while
+//! a read is under way, so no frame ever waits for one.
 //!
 //! Why timestamps and not the wall clock around a frame: on a real GPU the AO
 //! passes take well under a millisecond, less than the CPU's own cost of
@@ -10,6 +13,7 @@
 //! there.
 
 use std::cell::{Cell, RefCell};
+use std::rc::Rc;
 
 /// Passes a frame can time (a query pair each).
 pub const MAX_TIMED_PASSES: u32 = 16;
@@ -19,20 +23,35 @@ pub struct PassTimer {
     query_set: wgpu::QuerySet,
     resolve: wgpu::Buffer,
     readback: wgpu::Buffer,
-    /// Nanoseconds per timestamp tick (read natively; the browser never makes a timer).
-    #[cfg_attr(target_arch = "wasm32", allow(dead_code))]
+    /// Nanoseconds per timestamp tick.
     period_ns: f64,
     /// This frame's timed passes, in the order their pairs were handed out.
     labels: RefCell<Vec<&'static str>>,
     /// Passes resolved into `readback` by the last frame (its labels' prefix).
     resolved: Cell<u32>,
+    /// The frame being recorded (the caller's number, from `begin_frame`).
+    #[cfg_attr(not(target_arch = "wasm32"), allow(dead_code))]
+    frame: Cell<u64>,
+    /// Browser: `readback` is being mapped; frames resolve nothing meanwhile.
+    mapping: Rc<Cell<bool>>,
+    /// Browser: the last frame read back asynchronously.
+    latest: Rc<RefCell<Option<TimedFrame>>>,
 }
 
 /// One pass's GPU time.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct PassTime {
     pub label: &'static str,
     pub ms: f64,
+}
+
+/// The pass times of one frame, read back in the browser.
+#[derive(Debug, Clone, PartialEq, Default, serde::Serialize)]
+#[serde(rename_all = "camelCase")]
+pub struct TimedFrame {
+    /// The number `begin_frame` was given for it.
+    pub frame: u64,
+    pub passes: Vec<PassTime>,
 }
 
 impl PassTimer {
@@ -67,12 +86,17 @@ impl PassTimer {
             period_ns: queue.get_timestamp_period() as f64,
             labels: RefCell::new(Vec::new()),
             resolved: Cell::new(0),
+            frame: Cell::new(0),
+            mapping: Rc::new(Cell::new(false)),
+            latest: Rc::new(RefCell::new(None)),
         })
     }
 
-    /// Forgets the last frame's passes: the next pairs start at 0.
-    pub fn begin_frame(&self) {
+    /// Forgets the last frame's passes: the next pairs start at 0. `frame`
+    /// numbers the frame for [`PassTimer::latest`].
+    pub fn begin_frame(&self, frame: u64) {
         self.labels.borrow_mut().clear();
+        self.frame.set(frame);
     }
 
     /// The next query pair for a pass named `label`; `None` once every pair is taken.
@@ -105,7 +129,8 @@ impl PassTimer {
 
     /// Copies this frame's timestamps to the readback buffer (last in the frame's encoder).
     pub fn resolve(&self, encoder: &mut wgpu::CommandEncoder) {
-        let passes = self.labels.borrow().len() as u32;
+        // A mapped (or mapping) buffer cannot be copied into: this frame goes untimed.
+        let passes = if self.mapping.get() { 0 } else { self.labels.borrow().len() as u32 };
         self.resolved.set(passes);
         if passes == 0 {
             return;
@@ -118,6 +143,46 @@ impl PassTimer {
             0,
             2 * passes as u64 * wgpu::QUERY_SIZE as u64,
         );
+    }
+
+    /// Browser: after the submit of a frame that [`PassTimer::resolve`]d,
+    /// maps the readback buffer; when the GPU is done the times become
+    /// [`PassTimer::latest`]. Native: nothing (use [`PassTimer::read`]).
+    pub fn after_submit(&self) {
+        #[cfg(target_arch = "wasm32")]
+        {
+            let passes = self.resolved.replace(0) as usize;
+            if passes == 0 {
+                return;
+            }
+            self.mapping.set(true);
+            let labels: Vec<&'static str> = self.labels.borrow()[..passes].to_vec();
+            let (frame, period_ns) = (self.frame.get(), self.period_ns);
+            let (mapping, latest, buffer) =
+                (self.mapping.clone(), self.latest.clone(), self.readback.clone());
+            self.readback.slice(..).map_async(wgpu::MapMode::Read, move |result| {
+                if result.is_ok() {
+                    let ticks: Option<Vec<u64>> = buffer.get_mapped_range(..).ok().map(|bytes| {
+                        bytes
+                            .chunks_exact(8)
+                            .take(2 * passes)
+                            .map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes")))
+                            .collect()
+                    });
+                    buffer.unmap();
+                    if let Some(ticks) = ticks {
+                        let passes = ticks_to_times(&ticks, &labels, period_ns);
+                        *latest.borrow_mut() = Some(TimedFrame { frame, passes });
+                    }
+                }
+                mapping.set(false);
+            });
+        }
+    }
+
+    /// The last frame read back by [`PassTimer::after_submit`] (browser).
+    pub fn latest(&self) -> Option<TimedFrame> {
+        self.latest.borrow().clone()
     }
 
     /// The last resolved frame's pass times, in pass order (native: blocks

@@ -688,10 +688,11 @@ impl Scene {
     /// submits it. `now_ms` paces occupancy rebuilds while streaming.
     pub fn draw(&mut self, renderer: &mut Renderer, target: &wgpu::TextureView, now_ms: f64) -> DrawnFrame {
         self.frame_counter += 1;
+        self.stats.frames_drawn = self.frame_counter;
         if let Some(timer) = &renderer.pass_timer {
             // The upload's expansion and the clipmap's update, recorded
             // before the frame's passes, are timed with it.
-            timer.begin_frame();
+            timer.begin_frame(self.frame_counter);
         }
         let mut step = (self.clock)();
         self.take_feedback();
@@ -755,6 +756,9 @@ impl Scene {
         }
         renderer.queue.submit([encoder.finish()]);
         occlusion.after_submit();
+        if let Some(timer) = &renderer.pass_timer {
+            timer.after_submit();
+        }
         self.stats.note_webgpu((self.clock)() - webgpu_from);
 
         self.stats.blocks_drawn = drawn.len() as u32;

@@ -7,6 +7,11 @@ use serde::Serialize;
 pub struct Stats {
     /// Time of the last frame from the start of its encoding until the GPU finished it.
     pub frame_ms: f64,
+    /// Frames drawn so far (the number the last one had).
+    pub frames_drawn: u64,
+    /// GPU time of each pass of the last frame timed (browser with
+    /// `?gpu-timing=1` on an adapter with timestamp queries; `null` otherwise).
+    pub gpu_timed: Option<crate::pass_timer::TimedFrame>,
     pub blocks_drawn: u32,
     /// Bytes of block, page and manifest responses received so far.
     pub bytes_fetched: u64,

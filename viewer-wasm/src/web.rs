@@ -223,9 +223,20 @@ async fn run() -> Result<(), String> {
         })
         .await
         .map_err(|e| format!("no WebGPU adapter: {e}"))?;
+    // ?gpu-timing=1: timestamp queries around each pass, read back into
+    // window.voxstream.stats().gpuTimed (the AO benchmark's Chromium times).
+    let mut required_features = wgpu::Features::empty();
+    if url_param("gpu-timing").as_deref() == Some("1") {
+        if adapter.features().contains(wgpu::Features::TIMESTAMP_QUERY) {
+            required_features |= wgpu::Features::TIMESTAMP_QUERY;
+        } else {
+            log("voxstream: ?gpu-timing=1 but the adapter has no timestamp queries");
+        }
+    }
     let (device, queue) = adapter
         .request_device(&wgpu::DeviceDescriptor {
             label: Some("voxstream"),
+            required_features,
             required_limits: wgpu::Limits::default().using_resolution(adapter.limits()),
             ..Default::default()
         })
@@ -285,6 +296,14 @@ async fn run() -> Result<(), String> {
     if let Some(v) = url_param("view") {
         if !scene.camera.apply_url(&v) {
             log(&format!("voxstream: ignoring ?view={v}"));
+        }
+    }
+    // ?camera=eye x,y,z,target x,y,z,fov: a look-at view in the scene's source
+    // coordinates (camera.json's eye, target and fov_y_deg; +Y up).
+    if let Some(text) = url_param("camera") {
+        let grid = &scene.manifest.grid;
+        if !scene.camera.apply_source_look_at(&text, grid.origin, grid.voxel_size) {
+            log(&format!("voxstream: ignoring ?camera={text} (expected 7 numbers: eye, target, fov_y_deg)"));
         }
     }
     // Level changes cross-fade over 250 ms; ?fade=0 makes them pop, ?fade=1000 slows them.
@@ -663,7 +682,9 @@ impl App {
         self.camera_moved();
     }
 
-    /// `window.voxstream.set({px, budget, ao, aoStructure, aoMode, occlusion, fly})`: the panel's settings.
+    /// `window.voxstream.set({px, budget, ao, aoStructure, aoMode, aoSettings, occlusion, fly})`:
+    /// the panel's settings (`aoSettings`: any fields of [`crate::ao::AoSettings`]).
+    /// Every call draws a frame, so `set({})` asks for one.
     fn apply_settings(&mut self, settings: &serde_json::Value) {
         if let Some(px) = settings["px"].as_f64().filter(|v| (0.25..=64.0).contains(v)) {
             self.scene.select_params.max_error_pixels = px as f32;
@@ -683,6 +704,12 @@ impl App {
             Some("cone") => self.renderer.ao.mode = crate::ao::AoMode::Cone,
             Some("field") => self.renderer.ao.mode = crate::ao::AoMode::Field,
             _ => {}
+        }
+        if let Some(patch) = settings.get("aoSettings") {
+            match self.renderer.ao.patched(patch) {
+                Ok(ao) => self.renderer.ao = ao,
+                Err(e) => log(&format!("voxstream: {e}")),
+            }
         }
         if let Some(on) = settings["occlusion"].as_bool() {
             self.scene.occlusion_culling = on;
@@ -816,8 +843,11 @@ fn json_to_js(value: &serde_json::Value) -> JsValue {
 fn install_js_api() -> Result<(), String> {
     let api = js_sys::Object::new();
     let stats = Closure::<dyn Fn() -> JsValue>::new(|| {
-        with_app(|app| json_to_js(&serde_json::to_value(&app.scene.stats).unwrap_or_default()))
-            .unwrap_or(JsValue::NULL)
+        with_app(|app| {
+            app.scene.stats.gpu_timed = app.renderer.pass_timer.as_ref().and_then(|t| t.latest());
+            json_to_js(&serde_json::to_value(&app.scene.stats).unwrap_or_default())
+        })
+        .unwrap_or(JsValue::NULL)
     });
     let view = Closure::<dyn Fn() -> JsValue>::new(|| {
         with_app(|app| {

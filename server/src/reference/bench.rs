@@ -69,6 +69,17 @@ pub struct AoBenchArgs {
     /// --time-only: the reference needs the mesh).
     #[arg(long, value_name = "DIR")]
     pub scene_cache: Option<PathBuf>,
+    /// Also time every view and point in headless Chromium (SwiftShader
+    /// WebGPU, timestamp queries): the viewer served from this binary draws
+    /// each, driven by --browser-script. Needs node, the harness's packages
+    /// and Chromium (scripts/setup.sh).
+    #[arg(long)]
+    pub browser: bool,
+    #[arg(long, default_value = "tests/browser/ao-bench.mjs")]
+    pub browser_script: PathBuf,
+    /// With --browser: the viewer's files (default: the one built into this binary).
+    #[arg(long, value_name = "DIR")]
+    pub web: Option<PathBuf>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -274,6 +285,21 @@ pub struct Row {
     pub gpu_frame_no_ao_ms: Option<f64>,
     /// Each pass's GPU time in the frame with AO.
     pub gpu_passes_ms: Option<Vec<crate::render::PassMs>>,
+    /// The same view and point drawn by the viewer in Chromium (`--browser`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub chromium: Option<super::chromium::ChromiumTimes>,
+}
+
+impl Row {
+    /// GPU AO ÷ GPU frame without AO (timestamp queries), natively.
+    fn gpu_ratio(&self) -> Option<f64> {
+        self.gpu_ao_ms.zip(self.gpu_frame_no_ao_ms).map(|(a, f)| a / f)
+    }
+
+    /// The same in Chromium.
+    fn chromium_ratio(&self) -> Option<f64> {
+        self.chromium.as_ref().and_then(|c| c.ao_over_frame)
+    }
 }
 
 /// One image scale's reference: scale, the points, V, one-ray variance, exact V
@@ -368,13 +394,19 @@ impl Row {
             gpu_ao_ms: t.gpu_ao_ms,
             gpu_frame_no_ao_ms: t.gpu_frame_no_ao_ms,
             gpu_passes_ms: t.gpu_passes_ms.clone(),
+            chromium: None,
         }
     }
 }
 
 /// `--time-only`: ao-timing.md (every view and point: wall-clock frames, and
 /// each pass's GPU time where the adapter has timestamps) and the JSON.
-fn write_timing(args: &AoBenchArgs, rows: &[Row], skipped: &[String]) -> anyhow::Result<()> {
+fn write_timing(
+    args: &AoBenchArgs,
+    rows: &[Row],
+    skipped: &[String],
+    browser: Option<&str>,
+) -> anyhow::Result<()> {
     use std::fmt::Write;
     let adapter = voxstream_viewer::offscreen::Gpu::shared().map(|g| g.adapter_name()).unwrap_or_default();
     let mut s = String::new();
@@ -387,19 +419,44 @@ fn write_timing(args: &AoBenchArgs, rows: &[Row], skipped: &[String]) -> anyhow:
     if !skipped.is_empty() {
         writeln!(s, "Views skipped: {}.\n", skipped.join("; "))?;
     }
+    if let Some(browser) = browser {
+        writeln!(s, "{}\n", chromium_note(browser))?;
+    }
+    writeln!(s, "## Means over the views\n")?;
+    writeln!(s, "| setting | views | GPU AO / frame | Chromium AO / frame |")?;
+    writeln!(s, "|---|---:|---:|---:|")?;
+    let mut labels: Vec<&str> = Vec::new();
+    for r in rows {
+        if !labels.contains(&r.point.as_str()) {
+            labels.push(&r.point);
+        }
+    }
+    for label in labels {
+        let of = |f: &dyn Fn(&Row) -> Option<f64>| {
+            let v: Vec<f64> = rows.iter().filter(|r| r.point == label).filter_map(f).collect();
+            (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+        };
+        let views = rows.iter().filter(|r| r.point == label).count();
+        writeln!(
+            s,
+            "| {label} | {views} | {} | {} |",
+            fmt_opt(of(&Row::gpu_ratio), 2),
+            fmt_opt(of(&Row::chromium_ratio), 2)
+        )?;
+    }
+    writeln!(s, "\n## Every view and setting\n")?;
     writeln!(
         s,
-        "| view | setting | size | frame ms | no-AO frame ms | GPU AO ms | GPU frame without AO ms | GPU AO / frame | GPU passes with AO (ms) |"
+        "| view | setting | size | frame ms | no-AO frame ms | GPU AO ms | GPU frame without AO ms | GPU AO / frame | Chromium GPU AO ms | Chromium GPU frame without AO ms | Chromium AO / frame | GPU passes with AO (ms) |"
     )?;
-    writeln!(s, "|---|---|---|---:|---:|---:|---:|---:|---|")?;
+    writeln!(s, "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|")?;
     for r in rows {
-        let ratio = r.gpu_ao_ms.zip(r.gpu_frame_no_ao_ms).map(|(a, f)| a / f);
         let passes = r.gpu_passes_ms.as_ref().map_or("—".to_string(), |p| {
             p.iter().map(|x| format!("{} {:.3}", x.pass, x.ms)).collect::<Vec<_>>().join(", ")
         });
         writeln!(
             s,
-            "| {} | {} | {}×{} | {:.2} | {:.2} | {} | {} | {} | {} |",
+            "| {} | {} | {}×{} | {:.2} | {:.2} | {} | {} | {} | {} | {} | {} | {} |",
             r.view,
             r.point,
             r.width,
@@ -408,7 +465,10 @@ fn write_timing(args: &AoBenchArgs, rows: &[Row], skipped: &[String]) -> anyhow:
             r.frame_no_ao_ms,
             fmt_opt(r.gpu_ao_ms, 3),
             fmt_opt(r.gpu_frame_no_ao_ms, 3),
-            fmt_opt(ratio, 2),
+            fmt_opt(r.gpu_ratio(), 2),
+            fmt_opt(r.chromium.as_ref().map(|c| c.ao_ms), 3),
+            fmt_opt(r.chromium.as_ref().map(|c| c.frame_no_ao_ms), 3),
+            fmt_opt(r.chromium_ratio(), 2),
             passes
         )?;
     }
@@ -422,11 +482,19 @@ fn write_timing(args: &AoBenchArgs, rows: &[Row], skipped: &[String]) -> anyhow:
             "width": args.width,
             "height": args.height,
             "timing_runs": args.timing_runs,
+            "browser": browser,
             "skipped": skipped,
             "rows": rows,
         }))?
     );
     Ok(())
+}
+
+/// What the Chromium columns are.
+fn chromium_note(browser: &str) -> String {
+    format!(
+        "Chromium columns (`--browser`): the viewer itself in headless {browser} (SwiftShader: WebGPU on the CPU), the same view, size and setting, each pass timed by WebGPU timestamp queries (`?gpu-timing=1`); medians of the same number of frames. `Chromium AO / frame` = the AO passes (trace, upsample, temporal) ÷ every timed pass of the frame without AO, as natively. The viewer draws what its own traversal picks (occlusion culling on), which may differ from the native render's blocks."
+    )
 }
 
 /// Writes one render's per-pixel arrays beside the reference's (`--dump-dir`).
@@ -539,9 +607,15 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
         Sweep::Default => vec![default_point(&args.frames)],
     };
     let mut rows = Vec::new();
+    let mut built = Vec::new();
     for view in &views {
         eprintln!("ao-bench: {} ...", view.name);
         let scene_dir = scene_for(view, args, &store)?;
+        built.push(super::chromium::BrowserView {
+            name: view.name.clone(),
+            scene_dir: scene_dir.clone(),
+            camera: view.camera,
+        });
         let mesh = if args.time_only { None } else { Some(crate::pipeline::read::read_mesh(&view.mesh)?.0) };
         let mut bvh: Option<MeshBvh> = None;
         // Reference per image scale, at the default render's points.
@@ -622,12 +696,38 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
             );
         }
     }
+    let mut browser = None;
+    if args.browser {
+        eprintln!("ao-bench: Chromium ...");
+        let (adapter, times) = super::chromium::time_in_chromium(
+            &built,
+            &points,
+            args.width,
+            args.height,
+            args.timing_runs,
+            &args.browser_script,
+            args.web.as_deref(),
+        )?;
+        for t in times {
+            if let Some(r) = rows.iter_mut().find(|r| r.view == t.view && r.point == t.point) {
+                r.chromium = Some(t);
+            }
+        }
+        browser = Some(adapter);
+    }
     std::fs::create_dir_all(&args.out_dir)?;
     if args.time_only {
-        return write_timing(args, &rows, &skipped);
+        return write_timing(args, &rows, &skipped, browser.as_deref());
     }
     let summary = summarize(&points, &rows);
-    write_markdown(&args.out_dir.join("ao-benchmark.md"), args, &rows, &summary, &skipped)?;
+    write_markdown(
+        &args.out_dir.join("ao-benchmark.md"),
+        args,
+        &rows,
+        &summary,
+        &skipped,
+        browser.as_deref(),
+    )?;
     write_pareto_png(&args.out_dir.join("ao-pareto.png"), &summary)?;
     let adapter = voxstream_viewer::offscreen::Gpu::shared().map(|g| g.adapter_name()).unwrap_or_default();
     println!(
@@ -652,6 +752,8 @@ pub struct Summary {
     pub mean_rmse: f64,
     pub mean_abs_bias: f64,
     pub mean_ssim: f64,
+    /// Over the views Chromium timed (`--browser`).
+    pub mean_chromium_ao_over_frame: Option<f64>,
     pub pareto: bool,
 }
 
@@ -669,6 +771,10 @@ fn summarize(points: &[Point], rows: &[Row]) -> Vec<Summary> {
                 mean_rmse: mean(&|x| x.rmse),
                 mean_abs_bias: mean(&|x| x.bias.abs()),
                 mean_ssim: mean(&|x| x.ssim),
+                mean_chromium_ao_over_frame: {
+                    let c: Vec<f64> = r.iter().filter_map(|x| x.chromium_ratio()).collect();
+                    (!c.is_empty()).then(|| c.iter().sum::<f64>() / c.len() as f64)
+                },
                 pareto: false,
             }
         })
@@ -694,6 +800,7 @@ fn write_markdown(
     rows: &[Row],
     summary: &[Summary],
     skipped: &[String],
+    browser: Option<&str>,
 ) -> anyhow::Result<()> {
     use std::fmt::Write;
     let adapter = voxstream_viewer::offscreen::Gpu::shared().map(|g| g.adapter_name()).unwrap_or_default();
@@ -711,17 +818,26 @@ fn write_markdown(
     if !skipped.is_empty() {
         writeln!(s, "Views skipped: {}.\n", skipped.join("; "))?;
     }
+    if let Some(browser) = browser {
+        writeln!(s, "{}\n", chromium_note(browser))?;
+    }
+    // The Chromium column only where it was measured.
+    let chromium =
+        |v: Option<f64>| if browser.is_some() { format!(" {} |", fmt_opt(v, 2)) } else { String::new() };
+    let (chromium_head, chromium_rule) =
+        if browser.is_some() { (" Chromium AO/frame |", "---:|") } else { ("", "") };
     writeln!(s, "## Summary (means over the views; * = on the Pareto front of time against RMSE)\n")?;
-    writeln!(s, "| setting | frame ms | AO/frame | RMSE | abs bias | SSIM |")?;
-    writeln!(s, "|---|---:|---:|---:|---:|---:|")?;
+    writeln!(s, "| setting | frame ms | AO/frame |{chromium_head} RMSE | abs bias | SSIM |")?;
+    writeln!(s, "|---|---:|---:|{chromium_rule}---:|---:|---:|")?;
     for x in summary {
         writeln!(
             s,
-            "| {}{} | {:.1} | {:.2} | {:.4} | {:.4} | {:.3} |",
+            "| {}{} | {:.1} | {:.2} |{} {:.4} | {:.4} | {:.3} |",
             x.point,
             if x.pareto { " *" } else { "" },
             x.mean_frame_ms,
             x.mean_ao_over_frame,
+            chromium(x.mean_chromium_ao_over_frame),
             x.mean_rmse,
             x.mean_abs_bias,
             x.mean_ssim
@@ -730,13 +846,13 @@ fn write_markdown(
     writeln!(s, "\n## Every view and setting\n")?;
     writeln!(
         s,
-        "| view | setting | size | frames | frame ms | no-AO ms | AO/frame | RMSE | bias | SSIM | eq. rays | exact MAE | RMSE vs ray-traced view | bias vs ray-traced view |"
+        "| view | setting | size | frames | frame ms | no-AO ms | AO/frame |{chromium_head} RMSE | bias | SSIM | eq. rays | exact MAE | RMSE vs ray-traced view | bias vs ray-traced view |"
     )?;
-    writeln!(s, "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")?;
+    writeln!(s, "|---|---|---|---:|---:|---:|---:|{chromium_rule}---:|---:|---:|---:|---:|---:|---:|")?;
     for r in rows {
         writeln!(
             s,
-            "| {} | {} | {}×{} | {} | {:.1} | {:.1} | {:.2} | {:.4} | {:+.4} | {:.3} | {} | {} | {:.4} | {:+.4} |",
+            "| {} | {} | {}×{} | {} | {:.1} | {:.1} | {:.2} |{} {:.4} | {:+.4} | {:.3} | {} | {} | {:.4} | {:+.4} |",
             r.view,
             r.point,
             r.width,
@@ -745,6 +861,7 @@ fn write_markdown(
             r.frame_ms,
             r.frame_no_ao_ms,
             r.ao_over_frame,
+            chromium(r.chromium_ratio()),
             r.rmse,
             r.bias,
             r.ssim,

@@ -14,6 +14,7 @@
 
 pub mod analytic;
 pub mod bench;
+pub mod chromium;
 pub mod metrics;
 
 use std::path::Path;
