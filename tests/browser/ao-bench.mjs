@@ -11,7 +11,8 @@
 //   "views":  [{"name", "scene", "camera": [ex,ey,ez, tx,ty,tz, fov_y_deg]}],  source units
 //   "points": [{"label", "settings": {AoSettings fields}, "scale", "frames"}]
 // }
-// out.json: {"adapter", "rows": [{"view", "point", "width", "height", "passes_ms": [{pass, ms}],
+// out.json: {"adapter", "rows": [{"view", "point", "width", "height", "eye_grid" (the page's eye, grid
+//   units), "passes_ms": [{pass, ms}],
 //   "passes_no_ao_ms": [...], "ao_ms", "frame_no_ao_ms", "ao_over_frame", "wall_ms", "wall_no_ao_ms"}]}
 // where ao_ms sums the AO passes (trace, upsample, temporal) of the frame with AO and
 // frame_no_ao_ms every timed pass of the frame without: the ratio `voxstream ao-bench` reports
@@ -23,7 +24,7 @@
 import { readFileSync, writeFileSync } from 'node:fs';
 import { chromiumExecutable, launchPage, startSession } from './chromium.mjs';
 
-// The AO's own passes (server/src/render/mod.rs AO_PASSES).
+// The AO's own passes (viewer-wasm/src/shaders.rs AoPass::AO_ONLY).
 const AO_PASSES = ['cs_trace', 'cs_upsample', 'cs_temporal'];
 
 function die(msg) {
@@ -116,12 +117,13 @@ try {
       url.searchParams.set('fade', '0');
       // The page's own bars take part of the window: grow the window until the canvas draws w×h.
       let viewport = { width: w, height: h };
+      let drawn;
       for (let attempt = 0; ; attempt++) {
         await page.setViewportSize(viewport);
         await page.goto(url.toString());
         await page.waitForFunction(() => document.body.dataset.ready === '1', null, { timeout: 600000 });
         if (pageErrors.length) throw new Error(`page error: ${pageErrors[0]}`);
-        const drawn = await page.evaluate(() => window.voxstream.view());
+        drawn = await page.evaluate(() => window.voxstream.view());
         if (drawn.width === w && drawn.height === h) break;
         if (attempt === 2) throw new Error(`the canvas draws ${drawn.width}x${drawn.height}, not ${w}x${h}`);
         viewport = { width: viewport.width + w - drawn.width, height: viewport.height + h - drawn.height };
@@ -152,6 +154,7 @@ try {
           point: point.label,
           width: w,
           height: h,
+          eye_grid: drawn.camera.eye,
           passes_ms: passes,
           passes_no_ao_ms: passesNoAo,
           ao_ms: aoMs,

@@ -702,3 +702,66 @@ fn browser_failed_blocks_are_reported_and_drawn_as_parents() {
     assert!(drawn.iter().any(|k| k.level == 1), "no parent stands in for the failed blocks: {drawn:?}");
     server.abort();
 }
+
+/// `voxstream ao-bench --browser`'s driver (server/src/reference/chromium.rs and
+/// tests/browser/ao-bench.mjs): the page opens at the camera asked for
+/// (`?camera=`, source units), each point's settings reach the renderer
+/// (`set({aoSettings})`: the half-resolution accumulated default runs the
+/// upsample and temporal passes, the full-resolution single frame neither), and
+/// every pass time is a positive GPU time.
+#[test]
+fn ao_bench_times_each_point_in_chromium() {
+    use voxstream::reference::bench::{Point, camera_around};
+    use voxstream::reference::chromium::{BrowserView, time_in_chromium};
+    use voxstream_viewer::ao::AoSettings;
+    let root = workspace_root();
+    require(
+        &root.join("tests/browser/node_modules/playwright-core/package.json"),
+        "install the harness dependencies: bash scripts/setup.sh (npm ci in tests/browser)",
+    );
+    let store = tempfile::tempdir().expect("temp store");
+    let mesh_path = root.join("data/koala.obj");
+    let report = build_scene(
+        &mesh_path,
+        store.path(),
+        &BuildOptions { resolution: Resolution::Explicit(256), ..Default::default() },
+    )
+    .expect("build_scene(data/koala.obj)");
+    let mesh = voxstream::pipeline::read::read_mesh(&mesh_path).expect("read koala").0;
+    let camera = camera_around(&mesh, false);
+    let full =
+        AoSettings { trace_downscale: 1, interleave: false, temporal_frames: 1, ..AoSettings::default() };
+    let points = vec![
+        Point { label: "default".into(), settings: AoSettings::default(), scale: 1, frames: 2 },
+        Point { label: "full res".into(), settings: full, scale: 1, frames: 1 },
+    ];
+    let views = [BrowserView { name: "koala".into(), scene_dir: report.scene_dir.clone(), camera }];
+    let (adapter, rows) =
+        time_in_chromium(&views, &points, 96, 64, 2, &root.join("tests/browser/ao-bench.mjs"), None)
+            .expect("the Chromium timing run");
+    println!("{adapter}: {rows:#?}");
+    assert_eq!(rows.len(), 2, "{rows:?}");
+    let manifest: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(report.scene_dir.join("manifest.json")).unwrap()).unwrap();
+    let origin = json_f32_array::<3>(&manifest["grid"]["origin"], "grid.origin");
+    let voxel = manifest["grid"]["voxel_size"].as_f64().unwrap();
+    let eye: [f64; 3] = std::array::from_fn(|a| (camera.eye[a] - origin[a] as f64) / voxel);
+    let has = |r: &voxstream::reference::chromium::ChromiumTimes, pass: &str| {
+        r.passes_ms.iter().any(|p| p.pass == pass)
+    };
+    for r in &rows {
+        assert_eq!((r.width, r.height), (96, 64), "{r:?}");
+        let off = (0..3).map(|a| (r.eye_grid[a] - eye[a]).powi(2)).sum::<f64>().sqrt();
+        assert!(off < 0.5, "eye {:?} (grid units) vs {eye:?} asked", r.eye_grid);
+        assert!(r.ao_ms > 0.0 && r.frame_no_ao_ms > 0.0, "{r:?}");
+        assert!(r.passes_ms.iter().all(|p| p.ms.is_finite() && p.ms >= 0.0), "{r:?}");
+        assert!(has(r, "cs_trace") && has(r, "voxels"), "{r:?}");
+        assert!(r.ao_over_frame.is_some_and(|x| x.is_finite() && x > 0.0), "{r:?}");
+    }
+    let (default, full) = (&rows[0], &rows[1]);
+    assert!(has(default, "cs_upsample") && has(default, "cs_temporal"), "{default:?}");
+    assert!(
+        !has(full, "cs_upsample") && !has(full, "cs_temporal"),
+        "the full-res point's settings were not applied: {full:?}"
+    );
+}

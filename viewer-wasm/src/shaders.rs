@@ -60,6 +60,15 @@ impl AoPass {
         }
     }
 
+    /// The passes that run only with AO on (the composite runs without it
+    /// too): their GPU time is what the AO costs a frame.
+    pub const AO_ONLY: [AoPass; 3] = [AoPass::Trace, AoPass::Upsample, AoPass::Temporal];
+
+    /// Whether a timed pass's label is one of [`AoPass::AO_ONLY`].
+    pub fn is_ao_only_label(label: &str) -> bool {
+        Self::AO_ONLY.iter().any(|p| p.entry_point() == label)
+    }
+
     /// Whether the pass runs in compute (every pass but the composite).
     pub fn is_compute(self) -> bool {
         self != AoPass::Composite

@@ -120,6 +120,16 @@ impl Stats {
             self.resident_bytes as f64 / (1 << 20) as f64,
             self.budget_bytes as f64 / (1 << 20) as f64,
         );
+        if let Some(t) = &self.gpu_timed {
+            let sum = |ao: bool| {
+                t.passes
+                    .iter()
+                    .filter(|p| crate::shaders::AoPass::is_ao_only_label(p.label) == ao)
+                    .map(|p| p.ms)
+                    .sum::<f64>()
+            };
+            s.push_str(&format!(" · GPU time {:.1} ms + AO {:.1} ms", sum(false), sum(true)));
+        }
         if let Some(e) = &self.last_error {
             s.push_str(&format!(" · {} error(s), last: {e}", self.errors));
         }
@@ -144,7 +154,7 @@ mod tests {
         };
         let v: serde_json::Value = serde_json::to_value(&s).unwrap();
         let keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
-        assert_eq!(keys.len(), 30);
+        assert_eq!(keys.len(), 32);
         for k in [
             "frameMs",
             "blocksDrawn",
@@ -168,6 +178,8 @@ mod tests {
             "ownTasksOver4ms",
             "longestTraversalMs",
             "longestPhasesMs",
+            "framesDrawn",
+            "gpuTimed",
         ] {
             assert!(keys.contains(&k), "missing {k}");
         }
@@ -185,6 +197,18 @@ mod tests {
         // Control: the WebGPU time does not leak into the next task.
         s.note_main_thread_task("frame", 6.0);
         assert_eq!((s.longest_own_task_ms, s.longest_own_task_kind, s.own_tasks_over_4ms), (6.0, "frame", 2));
+    }
+
+    #[test]
+    fn gpu_pass_times_show_in_the_line_split_into_the_ao_and_the_rest() {
+        use crate::pass_timer::{PassTime, TimedFrame};
+        let mut s = Stats::default();
+        assert!(!s.line().contains("GPU time"));
+        let passes = [("voxels", 2.0), ("cs_trace", 0.5), ("cs_upsample", 0.25), ("fs_composite", 1.0)]
+            .map(|(label, ms)| PassTime { label, ms })
+            .to_vec();
+        s.gpu_timed = Some(TimedFrame { frame: 7, passes });
+        assert!(s.line().contains("GPU time 3.0 ms + AO 0.8 ms"), "{}", s.line());
     }
 
     #[test]

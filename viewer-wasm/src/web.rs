@@ -483,6 +483,7 @@ impl App {
     fn frame_done(&mut self, frame_number: u64, started: f64, complete: bool) {
         let done = now_ms();
         self.scene.stats.frame_ms = done - started;
+        self.scene.stats.gpu_timed = self.renderer.pass_timer.as_ref().and_then(|t| t.latest());
         if self.scene.stats.first_image_ms == 0.0 && self.scene.stats.blocks_drawn > 0 {
             self.scene.stats.first_image_ms = done - self.start_ms;
         }

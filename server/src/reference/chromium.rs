@@ -26,13 +26,15 @@ pub struct BrowserView {
     pub camera: CameraSpec,
 }
 
-/// One view and point as Chromium drew it.
+/// One view and point as Chromium drew it (a row of the script's output).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ChromiumTimes {
     pub view: String,
     pub point: String,
     pub width: u32,
     pub height: u32,
+    /// The eye the page reported, in grid units (the camera asked for, converted by the page).
+    pub eye_grid: [f64; 3],
     /// GPU ms of the AO passes in the frame with AO (medians per pass, summed).
     pub ao_ms: f64,
     /// GPU ms of every timed pass of the frame without AO.
@@ -46,25 +48,11 @@ pub struct ChromiumTimes {
     pub passes_ms: Vec<PassMs>,
 }
 
-/// What the script writes.
+/// What the script writes (its rows also carry `passes_no_ao_ms`, not kept).
 #[derive(Deserialize)]
 struct ScriptOutput {
     adapter: Option<String>,
-    rows: Vec<ScriptRow>,
-}
-
-#[derive(Deserialize)]
-struct ScriptRow {
-    view: String,
-    point: String,
-    width: u32,
-    height: u32,
-    passes_ms: Vec<PassMs>,
-    ao_ms: f64,
-    frame_no_ao_ms: f64,
-    ao_over_frame: Option<f64>,
-    wall_ms: Option<f64>,
-    wall_no_ao_ms: Option<f64>,
+    rows: Vec<ChromiumTimes>,
 }
 
 /// Chromium's times for every view and point, and the adapter it named.
@@ -130,21 +118,5 @@ pub fn time_in_chromium(
     }
     let out: ScriptOutput = serde_json::from_slice(&std::fs::read(&out_path)?)
         .with_context(|| format!("reading {}", out_path.display()))?;
-    let rows = out
-        .rows
-        .into_iter()
-        .map(|r| ChromiumTimes {
-            passes_ms: r.passes_ms,
-            view: r.view,
-            point: r.point,
-            width: r.width,
-            height: r.height,
-            ao_ms: r.ao_ms,
-            frame_no_ao_ms: r.frame_no_ao_ms,
-            ao_over_frame: r.ao_over_frame,
-            wall_ms: r.wall_ms,
-            wall_no_ao_ms: r.wall_no_ao_ms,
-        })
-        .collect();
-    Ok((out.adapter.unwrap_or_default(), rows))
+    Ok((out.adapter.unwrap_or_default(), out.rows))
 }

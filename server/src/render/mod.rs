@@ -245,10 +245,6 @@ pub struct PassMs {
     pub ms: f64,
 }
 
-/// The passes whose GPU time is the AO's (the AO's own full-screen passes; the
-/// composite runs with AO off too).
-pub const AO_PASSES: [&str; 3] = ["cs_trace", "cs_upsample", "cs_temporal"];
-
 impl Timings {
     /// Timings of a frame with AO and one without, timed by `with` and `without`.
     pub fn from_frames(
@@ -263,9 +259,12 @@ impl Timings {
         };
         let gpu_passes_ms = listed(with);
         let gpu_passes_no_ao_ms = listed(without);
-        let gpu_ao_ms = gpu_passes_ms
-            .as_ref()
-            .map(|p| p.iter().filter(|x| AO_PASSES.contains(&x.pass.as_str())).map(|x| x.ms).sum());
+        let gpu_ao_ms = gpu_passes_ms.as_ref().map(|p| {
+            p.iter()
+                .filter(|x| voxstream_viewer::shaders::AoPass::is_ao_only_label(&x.pass))
+                .map(|x| x.ms)
+                .sum()
+        });
         let gpu_frame_no_ao_ms = gpu_passes_no_ao_ms.as_ref().map(|p| p.iter().map(|x| x.ms).sum());
         let (w, wo) = (with.cpu_ms, without.cpu_ms);
         Timings {
