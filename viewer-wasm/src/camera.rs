@@ -177,9 +177,13 @@ impl OrbitCamera {
     pub fn look_at(&mut self, eye: Vec3, target: Vec3, fov_y_deg: f32) -> bool {
         let offset = eye - target;
         let distance = offset.length();
-        if !(eye.is_finite() && target.is_finite() && distance.is_finite() && distance > 0.0)
-            || !(fov_y_deg > 0.0 && fov_y_deg < 180.0)
-        {
+        let valid = eye.is_finite()
+            && target.is_finite()
+            && distance.is_finite()
+            && distance > 0.0
+            && fov_y_deg > 0.0
+            && fov_y_deg < 180.0;
+        if !valid {
             return false;
         }
         let d = offset / distance;
@@ -200,7 +204,8 @@ impl OrbitCamera {
     /// there are exactly seven numbers that [`OrbitCamera::look_at`] accepts.
     pub fn apply_source_look_at(&mut self, text: &str, origin: [f64; 3], voxel_size: f64) -> bool {
         let v: Vec<f64> = text.split(',').map_while(|x| x.trim().parse().ok()).collect();
-        if v.len() != 7 || text.split(',').count() != 7 || !(voxel_size > 0.0) {
+        let voxel_ok = voxel_size.is_finite() && voxel_size > 0.0;
+        if v.len() != 7 || text.split(',').count() != 7 || !voxel_ok {
             return false;
         }
         let to_grid = |p: &[f64]| {
