@@ -38,6 +38,14 @@ fn require(path: &Path, fix: &str) {
     assert!(path.exists(), "{} is missing: {fix}", path.display());
 }
 
+/// The node harness's packages (playwright-core) are installed.
+fn require_harness(root: &Path) {
+    require(
+        &root.join("tests/browser/node_modules/playwright-core/package.json"),
+        "install the harness dependencies: bash scripts/setup.sh (npm ci in tests/browser)",
+    );
+}
+
 /// Runs `cmd`, echoing and collecting its stdout+stderr lines; kills it after `timeout`.
 /// Returns (success, collected output).
 fn run_with_timeout(mut cmd: Command, timeout: Duration) -> (bool, String) {
@@ -120,10 +128,7 @@ fn browser_renders_koala_matching_cpu_coverage() {
     require(&web.join("index.html"), "build the viewer bundle first: bash scripts/build-web.sh");
     let script = root.join("tests/browser/e2e.mjs");
     require(&script, "the browser harness is part of the repository");
-    require(
-        &root.join("tests/browser/node_modules/playwright-core/package.json"),
-        "install the harness dependencies: bash scripts/setup.sh (npm ci in tests/browser)",
-    );
+    require_harness(&root);
 
     // 1. Scene: data/koala.obj -> temp store.
     let store = tempfile::tempdir().expect("temp store");
@@ -372,10 +377,7 @@ fn upload_page_builds_and_opens_scene() {
     }
     let script = root.join("tests/browser/upload.mjs");
     require(&script, "the upload harness is part of the repository");
-    require(
-        &root.join("tests/browser/node_modules/playwright-core/package.json"),
-        "install the harness dependencies: bash scripts/setup.sh (npm ci in tests/browser)",
-    );
+    require_harness(&root);
     let mesh = root.join("data/koala.obj");
 
     // The server as `voxstream serve` runs it (jobs, uploads, recovery), at a low default
@@ -534,10 +536,7 @@ fn upload_page_builds_and_opens_scene() {
 #[test]
 fn static_publish_renders_in_chromium() {
     let root = workspace_root();
-    require(
-        &root.join("tests/browser/node_modules/playwright-core/package.json"),
-        "install the harness dependencies: bash scripts/setup.sh (npm ci in tests/browser)",
-    );
+    require_harness(&root);
     let dir = tempfile::tempdir().expect("temp dir");
     let store = dir.path().join("store");
     let report = build_scene(&root.join("data/koala.obj"), &store, &BuildOptions::default())
@@ -715,10 +714,7 @@ fn ao_bench_times_each_point_in_chromium() {
     use voxstream::reference::chromium::{BrowserView, time_in_chromium};
     use voxstream_viewer::ao::AoSettings;
     let root = workspace_root();
-    require(
-        &root.join("tests/browser/node_modules/playwright-core/package.json"),
-        "install the harness dependencies: bash scripts/setup.sh (npm ci in tests/browser)",
-    );
+    require_harness(&root);
     let store = tempfile::tempdir().expect("temp store");
     let mesh_path = root.join("data/koala.obj");
     let report = build_scene(

@@ -745,17 +745,17 @@ impl OccupancyTexture {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+    use voxstream_format::oct_encode;
+
     #[test]
     fn a_patch_replaces_only_the_settings_it_names() {
-        let d = super::AoSettings::default();
+        let d = AoSettings::default();
         let p = d.patched(&serde_json::json!({"cones": 16, "step": 0.5, "trace_downscale": 1})).unwrap();
         assert_eq!((p.cones, p.step, p.trace_downscale), (16, 0.5, 1));
-        assert_eq!(
-            super::AoSettings { cones: d.cones, step: d.step, trace_downscale: d.trace_downscale, ..p },
-            d
-        );
+        assert_eq!(AoSettings { cones: d.cones, step: d.step, trace_downscale: d.trace_downscale, ..p }, d);
         let p = d.patched(&serde_json::json!({"mode": "field", "aperture_deg": null})).unwrap();
-        assert_eq!(p.mode, super::AoMode::Field);
+        assert_eq!(p.mode, AoMode::Field);
         // Controls: unknown names, wrong types and non-objects are errors naming the problem.
         let e = d.patched(&serde_json::json!({"cone": 16})).unwrap_err();
         assert!(e.contains("\"cone\""), "{e}");
@@ -763,9 +763,6 @@ mod tests {
         assert!(e.contains("AO settings"), "{e}");
         assert!(d.patched(&serde_json::json!([1])).is_err());
     }
-
-    use super::*;
-    use voxstream_format::oct_encode;
 
     #[test]
     fn a_volume_built_from_a_worker_payload_equals_the_direct_build() {

@@ -203,9 +203,11 @@ impl OrbitCamera {
     /// coordinates keep their precision. `false` (camera unchanged) unless
     /// there are exactly seven numbers that [`OrbitCamera::look_at`] accepts.
     pub fn apply_source_look_at(&mut self, text: &str, origin: [f64; 3], voxel_size: f64) -> bool {
-        let v: Vec<f64> = text.split(',').map_while(|x| x.trim().parse().ok()).collect();
+        let Ok(v) = text.split(',').map(|x| x.trim().parse::<f64>()).collect::<Result<Vec<_>, _>>() else {
+            return false;
+        };
         let voxel_ok = voxel_size.is_finite() && voxel_size > 0.0;
-        if v.len() != 7 || text.split(',').count() != 7 || !voxel_ok {
+        if v.len() != 7 || !voxel_ok {
             return false;
         }
         let to_grid = |p: &[f64]| {

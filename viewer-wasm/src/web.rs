@@ -483,7 +483,7 @@ impl App {
     fn frame_done(&mut self, frame_number: u64, started: f64, complete: bool) {
         let done = now_ms();
         self.scene.stats.frame_ms = done - started;
-        self.scene.stats.gpu_timed = self.renderer.pass_timer.as_ref().and_then(|t| t.latest());
+        self.take_gpu_times();
         if self.scene.stats.first_image_ms == 0.0 && self.scene.stats.blocks_drawn > 0 {
             self.scene.stats.first_image_ms = done - self.start_ms;
         }
@@ -502,6 +502,12 @@ impl App {
             ));
         }
         self.show_stats();
+    }
+
+    /// The last frame the pass timer read back, into the stats (it arrives
+    /// asynchronously: both the stats line and `stats()` take it when they read).
+    fn take_gpu_times(&mut self) {
+        self.scene.stats.gpu_timed = self.renderer.pass_timer.as_ref().and_then(|t| t.latest());
     }
 
     fn show_stats(&self) {
@@ -845,7 +851,7 @@ fn install_js_api() -> Result<(), String> {
     let api = js_sys::Object::new();
     let stats = Closure::<dyn Fn() -> JsValue>::new(|| {
         with_app(|app| {
-            app.scene.stats.gpu_timed = app.renderer.pass_timer.as_ref().and_then(|t| t.latest());
+            app.take_gpu_times();
             json_to_js(&serde_json::to_value(&app.scene.stats).unwrap_or_default())
         })
         .unwrap_or(JsValue::NULL)

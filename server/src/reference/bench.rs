@@ -404,6 +404,7 @@ impl Row {
 fn write_timing(
     args: &AoBenchArgs,
     rows: &[Row],
+    summary: &[Summary],
     skipped: &[String],
     browser: Option<&str>,
 ) -> anyhow::Result<()> {
@@ -425,23 +426,14 @@ fn write_timing(
     writeln!(s, "## Means over the views\n")?;
     writeln!(s, "| setting | views | GPU AO / frame | Chromium AO / frame |")?;
     writeln!(s, "|---|---:|---:|---:|")?;
-    let mut labels: Vec<&str> = Vec::new();
-    for r in rows {
-        if !labels.contains(&r.point.as_str()) {
-            labels.push(&r.point);
-        }
-    }
-    for label in labels {
-        let of = |f: &dyn Fn(&Row) -> Option<f64>| {
-            let v: Vec<f64> = rows.iter().filter(|r| r.point == label).filter_map(f).collect();
-            (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
-        };
-        let views = rows.iter().filter(|r| r.point == label).count();
+    for x in summary {
         writeln!(
             s,
-            "| {label} | {views} | {} | {} |",
-            fmt_opt(of(&Row::gpu_ratio), 2),
-            fmt_opt(of(&Row::chromium_ratio), 2)
+            "| {} | {} | {} | {} |",
+            x.point,
+            x.views,
+            fmt_opt(x.mean_gpu_ao_over_frame, 2),
+            fmt_opt(x.mean_chromium_ao_over_frame, 2)
         )?;
     }
     writeln!(s, "\n## Every view and setting\n")?;
@@ -716,10 +708,10 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
         browser = Some(adapter);
     }
     std::fs::create_dir_all(&args.out_dir)?;
-    if args.time_only {
-        return write_timing(args, &rows, &skipped, browser.as_deref());
-    }
     let summary = summarize(&points, &rows);
+    if args.time_only {
+        return write_timing(args, &rows, &summary, &skipped, browser.as_deref());
+    }
     write_markdown(
         &args.out_dir.join("ao-benchmark.md"),
         args,
@@ -752,8 +744,12 @@ pub struct Summary {
     pub mean_rmse: f64,
     pub mean_abs_bias: f64,
     pub mean_ssim: f64,
+    /// GPU AO ÷ GPU frame without AO, over the views the adapter timed.
+    pub mean_gpu_ao_over_frame: Option<f64>,
     /// Over the views Chromium timed (`--browser`).
     pub mean_chromium_ao_over_frame: Option<f64>,
+    /// Views with a row for this point.
+    pub views: usize,
     pub pareto: bool,
 }
 
@@ -764,6 +760,11 @@ fn summarize(points: &[Point], rows: &[Row]) -> Vec<Summary> {
             let r: Vec<&Row> = rows.iter().filter(|r| r.point == p.label).collect();
             let n = r.len().max(1) as f64;
             let mean = |f: &dyn Fn(&Row) -> f64| r.iter().map(|x| f(x)).sum::<f64>() / n;
+            // Over the views that have the value.
+            let mean_some = |f: &dyn Fn(&Row) -> Option<f64>| {
+                let v: Vec<f64> = r.iter().filter_map(|x| f(x)).collect();
+                (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+            };
             Summary {
                 point: p.label.clone(),
                 mean_frame_ms: mean(&|x| x.frame_ms),
@@ -771,10 +772,9 @@ fn summarize(points: &[Point], rows: &[Row]) -> Vec<Summary> {
                 mean_rmse: mean(&|x| x.rmse),
                 mean_abs_bias: mean(&|x| x.bias.abs()),
                 mean_ssim: mean(&|x| x.ssim),
-                mean_chromium_ao_over_frame: {
-                    let c: Vec<f64> = r.iter().filter_map(|x| x.chromium_ratio()).collect();
-                    (!c.is_empty()).then(|| c.iter().sum::<f64>() / c.len() as f64)
-                },
+                mean_gpu_ao_over_frame: mean_some(&Row::gpu_ratio),
+                mean_chromium_ao_over_frame: mean_some(&Row::chromium_ratio),
+                views: r.len(),
                 pareto: false,
             }
         })
