@@ -10,7 +10,10 @@
 //!    bounds overlap. A full buffer (one chunk's worth) becomes a segment in
 //!    the bin store; when all buffers together pass their share of the
 //!    budget, every buffer is flushed. Segments of one block stay in input
-//!    order.
+//!    order. When the whole stream is in memory, nothing is copied: each
+//!    block gets the places of its triangles in the stream (4 bytes a
+//!    triangle and block, against a record's 36–84), and the stream itself
+//!    becomes the bins' store ([`BlockTriangles::Places`]).
 //! 3. **Voxelize** ([`voxelize_bin`]): one block's segments, read one at a
 //!    time into a reused dense brick, so a block costs one brick and one
 //!    segment however many triangles it has. The pipeline runs blocks in the
@@ -267,25 +270,66 @@ const BUFFER_ENTRY_BYTES: usize = std::mem::size_of::<BinBuffer>() + 32;
 /// Segment ids take the low bits of an index entry, the block's Morton code the rest.
 const SEGMENT_BITS: u32 = 34;
 
-/// The bins: for each non-empty block, its segments in the bin store, in input order.
+/// A triangle's place in a resident stream: `chunk << PLACE_CHUNK_SHIFT | record`.
+const PLACE_CHUNK_SHIFT: u32 = 14;
+const _: () = assert!(MAX_CHUNK_TRIANGLES == 1 << PLACE_CHUNK_SHIFT, "a record index fills the low bits");
+
+/// The most chunks a stream may have for its triangles' places to fit a u32.
+const MAX_PLACED_CHUNKS: usize = 1 << (32 - PLACE_CHUNK_SHIFT);
+
+/// Pass 2's result over a stream held whole in memory: the stream is the
+/// bins' store, and each block lists the places of its triangles in it.
+struct PlaceLists {
+    /// Per block, in Morton order: its Morton code and its range of `places`.
+    blocks: Vec<(u64, std::ops::Range<usize>)>,
+    /// Each block's triangles' places, in input order.
+    places: Vec<u32>,
+}
+
+/// One block's triangles, as [`Bins::blocks`] gives them to [`voxelize_bin`].
+#[derive(Debug, Clone, Copy)]
+pub enum BlockTriangles<'a> {
+    /// Index entries of its segments in the bin store, in input order.
+    Segments(&'a [u64]),
+    /// Places of its triangles in the resident stream, in input order.
+    Places(&'a [u32]),
+}
+
+/// The bins: for each non-empty block, its triangles in input order, either
+/// as segments of copied records in the bin store or as places in the
+/// stream, which is then the store.
 pub struct Bins {
     pub store: ChunkStore,
     pub layout: RecordLayout,
     /// `block_morton << SEGMENT_BITS | segment`, sorted: blocks in Morton
-    /// order, each block's segments in input order.
+    /// order, each block's segments in input order. Empty with `places`.
     index: Vec<u64>,
+    places: Option<PlaceLists>,
     /// Triangles that became degenerate or non-finite in grid units.
     pub skipped: u64,
     pub triangles: u64,
 }
 
 impl Bins {
-    /// The non-empty level-0 blocks in Morton order, each with its index entries.
-    pub fn blocks(&self) -> impl Iterator<Item = (BlockKey, &[u64])> {
-        self.index.chunk_by(|a, b| a >> SEGMENT_BITS == b >> SEGMENT_BITS).map(|segs| {
-            let c = block_coord(segs[0] >> SEGMENT_BITS);
-            (BlockKey::new(0, c[0], c[1], c[2]), segs)
-        })
+    /// The non-empty level-0 blocks in Morton order, each with its triangles.
+    pub fn blocks(&self) -> impl Iterator<Item = (BlockKey, BlockTriangles<'_>)> {
+        let key = |m: u64| {
+            let c = block_coord(m);
+            BlockKey::new(0, c[0], c[1], c[2])
+        };
+        let segments = self
+            .index
+            .chunk_by(|a, b| a >> SEGMENT_BITS == b >> SEGMENT_BITS)
+            .map(move |segs| (key(segs[0] >> SEGMENT_BITS), BlockTriangles::Segments(segs)));
+        let places = self.places.iter().flat_map(move |p| {
+            p.blocks.iter().map(move |(m, range)| (key(*m), BlockTriangles::Places(&p.places[range.clone()])))
+        });
+        segments.chain(places)
+    }
+
+    /// Whether the blocks list places in the resident stream (no records were copied).
+    pub fn placed(&self) -> bool {
+        self.places.is_some()
     }
 
     pub fn block_count(&self) -> usize {
@@ -294,7 +338,11 @@ impl Bins {
 
     /// Memory the index holds while the blocks are voxelized (it grows with the input).
     pub fn index_bytes(&self) -> usize {
-        self.index.capacity() * 8 + self.store.index_bytes()
+        let places = self.places.as_ref().map_or(0, |p| {
+            p.places.capacity() * 4
+                + p.blocks.capacity() * std::mem::size_of::<(u64, std::ops::Range<usize>)>()
+        });
+        self.index.capacity() * 8 + places + self.store.index_bytes()
     }
 }
 
@@ -483,12 +531,52 @@ impl Binner {
     }
 }
 
+/// The blocks a chunk's triangles reach, in first-hit order: each block's
+/// slot found through a map, the last hit cached (neighbouring triangles
+/// mostly share a block).
+#[derive(Default)]
+struct BlockSlots {
+    lookup: FxHashMap<u64, usize>,
+    last: Option<(u64, usize)>,
+}
+
+impl BlockSlots {
+    /// Calls `f` with the Morton code and slot in `blocks` of every block in
+    /// the closed range `blo..=bhi`; a block seen first gets `new(m)` pushed.
+    fn each<T>(
+        &mut self,
+        (blo, bhi): ([u32; 3], [u32; 3]),
+        blocks: &mut Vec<T>,
+        new: impl Fn(u64) -> T,
+        mut f: impl FnMut(&mut T),
+    ) {
+        for bz in blo[2]..=bhi[2] {
+            for by in blo[1]..=bhi[1] {
+                for bx in blo[0]..=bhi[0] {
+                    let m = block_morton([bx, by, bz]);
+                    let i = match self.last {
+                        Some((k, i)) if k == m => i,
+                        _ => {
+                            let i = *self.lookup.entry(m).or_insert_with(|| {
+                                blocks.push(new(m));
+                                blocks.len() - 1
+                            });
+                            self.last = Some((m, i));
+                            i
+                        }
+                    };
+                    f(&mut blocks[i]);
+                }
+            }
+        }
+    }
+}
+
 /// Groups one stream chunk's records by block (on a worker thread).
 fn group_chunk(layout: RecordLayout, raw: &[u8], frame: &GridFrame) -> Placed {
     let rec = layout.size();
     let mut blocks: Vec<(u64, Vec<u8>, Bounds)> = Vec::new();
-    let mut lookup: FxHashMap<u64, usize> = FxHashMap::default();
-    let mut last: Option<(u64, usize)> = None;
+    let mut slots = BlockSlots::default();
     let (mut triangles, mut skipped, mut records) = (0u64, 0u64, 0usize);
     for record in raw.chunks_exact(rec) {
         let Some((blo, bhi, bounds)) = place(layout, record, frame) else {
@@ -503,29 +591,108 @@ fn group_chunk(layout: RecordLayout, raw: &[u8], frame: &GridFrame) -> Placed {
         if records > LOCAL_RECORDS {
             return Placed::Raw(raw.to_vec());
         }
-        for bz in blo[2]..=bhi[2] {
-            for by in blo[1]..=bhi[1] {
-                for bx in blo[0]..=bhi[0] {
-                    let m = block_morton([bx, by, bz]);
-                    let i = match last {
-                        Some((k, i)) if k == m => i,
-                        _ => {
-                            let i = *lookup.entry(m).or_insert_with(|| {
-                                blocks.push((m, Vec::new(), Bounds::EMPTY));
-                                blocks.len() - 1
-                            });
-                            last = Some((m, i));
-                            i
-                        }
-                    };
-                    let b = &mut blocks[i];
-                    b.1.extend_from_slice(record);
-                    b.2.union(&bounds);
-                }
-            }
-        }
+        slots.each(
+            (blo, bhi),
+            &mut blocks,
+            |m| (m, Vec::new(), Bounds::EMPTY),
+            |b| {
+                b.1.extend_from_slice(record);
+                b.2.union(&bounds);
+            },
+        );
     }
     Placed::Grouped(Grouped { blocks, triangles, skipped })
+}
+
+/// One chunk's triangles' places grouped by the blocks they overlap (blocks
+/// in first-hit order); `None` when they make more places than `cap`.
+struct ChunkPlaces {
+    blocks: Vec<(u64, Vec<u32>)>,
+    places: usize,
+    triangles: u64,
+    skipped: u64,
+}
+
+fn place_chunk(
+    layout: RecordLayout,
+    raw: &[u8],
+    chunk: usize,
+    frame: &GridFrame,
+    cap: usize,
+) -> Option<ChunkPlaces> {
+    let mut out = ChunkPlaces { blocks: Vec::new(), places: 0, triangles: 0, skipped: 0 };
+    let mut slots = BlockSlots::default();
+    for (r, record) in raw.chunks_exact(layout.size()).enumerate() {
+        let Some((blo, bhi, _)) = place(layout, record, frame) else {
+            out.skipped += 1;
+            continue;
+        };
+        out.triangles += 1;
+        // Counted before any is pushed: one large triangle can reach millions of blocks.
+        let places: usize = (0..3).map(|a| (bhi[a] - blo[a] + 1) as usize).fold(1, usize::saturating_mul);
+        out.places = out.places.saturating_add(places);
+        if out.places > cap {
+            return None;
+        }
+        let at = (chunk as u32) << PLACE_CHUNK_SHIFT | r as u32;
+        slots.each((blo, bhi), &mut out.blocks, |m| (m, Vec::new()), |b| b.1.push(at));
+    }
+    Some(out)
+}
+
+/// Pass 2 over a stream held whole in memory: every chunk's places grouped
+/// on all cores, then laid out block by block (Morton order), each block's
+/// in input order. `None` (the stream untouched) when the places would take
+/// more than `limit` bytes, grouped and laid out together.
+fn place_lists(
+    stream: &ChunkStore,
+    layout: RecordLayout,
+    frame: &GridFrame,
+    limit: usize,
+) -> Result<Option<(PlaceLists, u64, u64)>, BuildError> {
+    // Grouped and laid out, each place is held twice for a moment.
+    let cap = limit / 8;
+    let grouped: Option<Vec<ChunkPlaces>> = (0..stream.len())
+        .into_par_iter()
+        .map(|id| {
+            let raw = stream.resident_records(id).expect("every chunk is resident");
+            place_chunk(layout, raw, id, frame, cap)
+        })
+        .collect();
+    let Some(grouped) = grouped else { return Ok(None) };
+    let total: usize = grouped.iter().map(|g| g.places).sum();
+    if total > cap {
+        return Ok(None);
+    }
+    let mut counts: FxHashMap<u64, usize> = FxHashMap::default();
+    for g in &grouped {
+        for (m, list) in &g.blocks {
+            *counts.entry(*m).or_default() += list.len();
+        }
+    }
+    let mut mortons: Vec<u64> = counts.keys().copied().collect();
+    mortons.sort_unstable();
+    let mut blocks = Vec::with_capacity(mortons.len());
+    let mut start = 0;
+    for m in mortons {
+        let n = counts[&m];
+        counts.insert(m, start);
+        blocks.push((m, start..start + n));
+        start += n;
+    }
+    // `counts` now holds each block's next free place.
+    let mut places = vec![0u32; total];
+    let (mut triangles, mut skipped) = (0, 0);
+    for g in grouped {
+        triangles += g.triangles;
+        skipped += g.skipped;
+        for (m, list) in g.blocks {
+            let at = counts.get_mut(&m).expect("counted");
+            places[*at..*at + list.len()].copy_from_slice(&list);
+            *at += list.len();
+        }
+    }
+    Ok(Some((PlaceLists { blocks, places }, triangles, skipped)))
 }
 
 /// Pass 2: bins the stream's triangles by the 64³ blocks they overlap.
@@ -544,6 +711,15 @@ pub fn bin_triangles(
     opts: &BuildOptions,
     progress: &ProgressSink,
 ) -> Result<Bins, BuildError> {
+    if stream.all_resident() && stream.len() <= MAX_PLACED_CHUNKS {
+        opts.check_cancelled()?;
+        if let Some((places, triangles, skipped)) = place_lists(stream, layout, frame, resident)? {
+            progress.stage(Stage::Voxelize, 0.3);
+            // The stream is the store now; the caller keeps an empty one.
+            let store = std::mem::replace(stream, ChunkStore::new(spill_path, 0));
+            return Ok(Bins { store, layout, index: Vec::new(), places: Some(places), skipped, triangles });
+        }
+    }
     let mut binner = Binner {
         layout,
         store: ChunkStore::new(spill_path, resident),
@@ -606,7 +782,7 @@ pub fn bin_triangles(
     let Binner { store, mut index, triangles, skipped, .. } = binner;
     index.sort_unstable();
     index.shrink_to_fit();
-    Ok(Bins { store, layout, index, skipped, triangles })
+    Ok(Bins { store, layout, index, places: None, skipped, triangles })
 }
 
 /// Pass 3 for one block: voxelizes its segments (in input order) into a
@@ -614,29 +790,149 @@ pub fn bin_triangles(
 pub fn voxelize_bin(
     bins: &Bins,
     key: BlockKey,
-    index: &[u64],
+    triangles: BlockTriangles,
     frame: &GridFrame,
     topology: Topology,
 ) -> Result<Option<LodBlock>, BuildError> {
     let res = frame.resolution as i64;
     let rec = bins.layout.size();
     with_block_voxelizer(|vox| -> Result<_, BuildError> {
-        for &entry in index {
-            let segment = (entry & ((1 << SEGMENT_BITS) - 1)) as usize;
-            bins.store
-                .with_records(segment, |raw| {
-                    for record in raw.chunks_exact(rec) {
-                        let (tri, color) = bins.layout.decode(record);
-                        // Valid: pass 2 binned only triangles that `to_grid` accepted,
-                        // and the same arithmetic gives the same grid triangle here.
-                        let g = to_grid_unchecked(tri, frame);
-                        vox.add(key, &g, bins.layout.color.then_some(color), res, topology);
+        let mut add = |record: &[u8]| {
+            let (tri, color) = bins.layout.decode(record);
+            // Valid: pass 2 binned only triangles that `to_grid` accepted,
+            // and the same arithmetic gives the same grid triangle here.
+            let g = to_grid_unchecked(tri, frame);
+            vox.add(key, &g, bins.layout.color.then_some(color), res, topology);
+        };
+        match triangles {
+            BlockTriangles::Segments(index) => {
+                for &entry in index {
+                    let segment = (entry & ((1 << SEGMENT_BITS) - 1)) as usize;
+                    bins.store
+                        .with_records(segment, |raw| {
+                            raw.chunks_exact(rec).for_each(&mut add);
+                            Ok(())
+                        })
+                        .map_err(temp_err)?;
+                }
+            }
+            BlockTriangles::Places(places) => {
+                let (mut chunk, mut raw) = (usize::MAX, &[][..]);
+                for &at in places {
+                    let (c, r) =
+                        ((at >> PLACE_CHUNK_SHIFT) as usize, (at & ((1 << PLACE_CHUNK_SHIFT) - 1)) as usize);
+                    if c != chunk {
+                        raw = bins
+                            .store
+                            .resident_records(c)
+                            .ok_or_else(|| BuildError::Temp(format!("stream chunk {c} is not in memory")))?;
+                        chunk = c;
                     }
-                    Ok(())
-                })
-                .map_err(temp_err)?;
+                    let record = raw
+                        .get(r * rec..(r + 1) * rec)
+                        .ok_or_else(|| BuildError::Temp(format!("stream chunk {c} has no record {r}")))?;
+                    add(record);
+                }
+            }
         }
         let voxels = vox.finish_map(|voxel| LodVoxel { voxel, solid: 1, error: 0.0 });
         Ok((!voxels.is_empty()).then_some(LodBlock { key, voxels }))
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pipeline::Resolution;
+    use crate::pipeline::voxelize::choose_resolution;
+
+    /// 40,000 triangles of three sizes: slivers inside one voxel, and ones
+    /// across block faces and corners, with colours.
+    fn triangles() -> Vec<SourceTriangle> {
+        let mut out = Vec::new();
+        let mut s = 1u64;
+        let mut rnd = || {
+            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (s >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for i in 0..40_000 {
+            let size = [0.002, 0.02, 0.3][i % 3];
+            let a = [rnd(), rnd(), rnd()];
+            let tri = [
+                a,
+                [a[0] + size * rnd(), a[1] + size * rnd(), a[2]],
+                [a[0], a[1] + size * rnd(), a[2] + size],
+            ];
+            out.push((tri, [rnd() as f32, 0.5, 0.25]));
+        }
+        out
+    }
+
+    fn stream(dir: &Path, tris: &[SourceTriangle]) -> (ChunkStore, RecordLayout, GridFrame) {
+        let mut tick = || Ok(());
+        let mut sink = StreamSink::new(ChunkStore::new(&dir.join("stream.vxt"), 1 << 30), &mut tick);
+        sink.begin(RecordLayout { f64_positions: false, color: true }).unwrap();
+        sink.triangles(tris).unwrap();
+        sink.finish().unwrap();
+        let (frame, _) = choose_resolution(&sink.bounds, Resolution::Explicit(256), None, 256, 0).unwrap();
+        (sink.store, sink.layout, frame)
+    }
+
+    fn bin(dir: &Path, tris: &[SourceTriangle], resident: usize) -> (Bins, GridFrame) {
+        let (mut store, layout, frame) = stream(dir, tris);
+        let progress = ProgressSink::new(&|_| {});
+        let limits = (resident, 1 << 20, 64 << 20);
+        let bins = bin_triangles(
+            &mut store,
+            layout,
+            &frame,
+            &dir.join("bins.vxt"),
+            limits,
+            &BuildOptions::default(),
+            &progress,
+        )
+        .unwrap();
+        (bins, frame)
+    }
+
+    /// Fails if a resident stream is not binned by places, if a budget too
+    /// small for the places does not fall back to copied segments, or if the
+    /// two give any block other voxels (the order of a block's triangles
+    /// decides the sums' rounding, so an order change shows).
+    #[test]
+    fn places_in_the_stream_bin_like_copied_segments() {
+        let dir = tempfile::tempdir().unwrap();
+        let tris = triangles();
+        let (placed, frame) = bin(dir.path(), &tris, 64 << 20);
+        let small = dir.path().join("small");
+        std::fs::create_dir(&small).unwrap();
+        let (copied, _) = bin(&small, &tris, 4 << 10);
+        assert!(placed.placed() && !copied.placed());
+        assert!(copied.store.spilled_bytes() > 0, "the small budget spills segments");
+        assert_eq!((placed.triangles, placed.skipped), (copied.triangles, copied.skipped));
+        let a: Vec<_> = placed.blocks().collect();
+        let b: Vec<_> = copied.blocks().collect();
+        assert_eq!(a.iter().map(|x| x.0).collect::<Vec<_>>(), b.iter().map(|x| x.0).collect::<Vec<_>>());
+        assert!(a.len() > 8, "the triangles reach many blocks: {}", a.len());
+        for ((key, pa), (_, pb)) in a.into_iter().zip(b) {
+            let va = voxelize_bin(&placed, key, pa, &frame, Topology::Conservative).unwrap();
+            let vb = voxelize_bin(&copied, key, pb, &frame, Topology::Conservative).unwrap();
+            assert_eq!(va.map(|b| b.voxels), vb.map(|b| b.voxels), "block {key:?}");
+        }
+    }
+
+    /// Fails if a place that points past its chunk panics instead of failing the build.
+    #[test]
+    fn a_place_outside_the_stream_is_an_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let (bins, frame) = bin(dir.path(), &triangles(), 64 << 20);
+        let (key, _) = bins.blocks().next().unwrap();
+        // Three chunks: two full ones and 40,000 − 32,768 records in the last.
+        assert_eq!(bins.store.len(), 3);
+        for bad in [3u32 << PLACE_CHUNK_SHIFT, 2 << PLACE_CHUNK_SHIFT | 7_232] {
+            let err =
+                voxelize_bin(&bins, key, BlockTriangles::Places(&[bad]), &frame, Topology::Conservative);
+            assert!(matches!(err, Err(BuildError::Temp(_))), "{bad}: {err:?}");
+        }
+    }
 }

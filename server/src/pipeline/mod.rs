@@ -389,13 +389,13 @@ impl Level0 {
 fn level0_block(
     bins: &bin::Bins,
     key: voxstream_format::BlockKey,
-    index: &[u64],
+    triangles: bin::BlockTriangles,
     frame: &voxstream_format::GridFrame,
     topology: Topology,
     levels: u8,
     field: Option<&aofield::AoField>,
 ) -> Result<Option<Level0>, BuildError> {
-    let Some(mut block) = bin::voxelize_bin(bins, key, index, frame, topology)? else {
+    let Some(mut block) = bin::voxelize_bin(bins, key, triangles, frame, topology)? else {
         return Ok(None);
     };
     mark_exposed_faces_lod(&mut block);
@@ -633,7 +633,7 @@ fn produce(
 
     struct Slot<'b> {
         key: voxstream_format::BlockKey,
-        index: &'b [u64],
+        triangles: bin::BlockTriangles<'b>,
         done: Option<Result<Option<Level0>, BuildError>>,
     }
     let levels = level_count(frame.resolution);
@@ -654,9 +654,9 @@ fn produce(
     };
     loop {
         opts.check_cancelled()?;
-        window.extend(blocks.by_ref().take(window_len - window.len()).map(|(key, index)| Slot {
+        window.extend(blocks.by_ref().take(window_len - window.len()).map(|(key, triangles)| Slot {
             key,
-            index,
+            triangles,
             done: None,
         }));
         if window.is_empty() {
@@ -678,7 +678,7 @@ fn produce(
                 }
                 started.fetch_add(1, Ordering::Relaxed);
                 let result = opts.check_cancelled().and_then(|()| {
-                    level0_block(bins, slot.key, slot.index, frame, opts.topology, levels, field)
+                    level0_block(bins, slot.key, slot.triangles, frame, opts.topology, levels, field)
                 });
                 let real = match &result {
                     Ok(Some(l0)) => l0.bytes(),
@@ -844,6 +844,7 @@ pub fn build_scene_reporting(
         bin_segments = bins.store.len(),
         bin_spilled_bytes = bins.store.spilled_bytes(),
         bin_index_bytes = bins.index_bytes(),
+        bin_placed = bins.placed(),
         "build: bin done"
     );
     drop(stream_store);

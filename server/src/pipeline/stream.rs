@@ -412,6 +412,20 @@ impl ChunkStore {
         Some(std::mem::take(&mut self.resident[i]))
     }
 
+    /// Resident chunk `id`'s records, lent as they lie; `None` for a spilled
+    /// or taken one.
+    pub fn resident_records(&self, id: usize) -> Option<&[u8]> {
+        match self.chunks.get(id) {
+            Some(Location::Memory(i)) => Some(&self.resident[*i]),
+            _ => None,
+        }
+    }
+
+    /// Whether every chunk is in memory (none spilled or taken).
+    pub fn all_resident(&self) -> bool {
+        self.chunks.iter().all(|c| matches!(c, Location::Memory(_)))
+    }
+
     /// Chunk `id`'s records, copied.
     pub fn read(&self, id: usize) -> Result<Vec<u8>, ChunkError> {
         self.with_records(id, |raw| Ok(raw.to_vec()))
