@@ -3,8 +3,8 @@
 //!
 //! 1. **Stream** ([`StreamSink`]): the reader pushes triangles; valid ones
 //!    (finite, non-zero area) are packed into chunks whose headers carry
-//!    their bounds, invalid ones are counted and dropped. The union of the
-//!    chunk bounds gives the grid frame.
+//!    their bounds when they spill, invalid ones are counted and dropped. The
+//!    union of the valid triangles' bounds gives the grid frame.
 //! 2. **Bin** ([`bin_triangles`]): chunks are read back in order and every
 //!    triangle's record is appended to the buffer of each 64³ block its
 //!    bounds overlap. A full buffer (one chunk's worth) becomes a segment in
@@ -65,6 +65,8 @@ pub type SourceTriangle = ([[f64; 3]; 3], [f32; 3]);
 pub struct EncodedPiece {
     pub bytes: Vec<u8>,
     pub bins: Vec<u16>,
+    /// Of the valid triangles, as their records hold them.
+    pub bounds: Bounds,
     pub valid: u64,
     pub invalid: u64,
 }
@@ -74,6 +76,7 @@ impl EncodedPiece {
         Self {
             bytes: Vec::with_capacity(triangles * layout.size()),
             bins: Vec::with_capacity(triangles * 3),
+            bounds: Bounds::EMPTY,
             valid: 0,
             invalid: 0,
         }
@@ -85,6 +88,7 @@ impl EncodedPiece {
         if valid_triangle(tri) {
             layout.encode(&mut self.bytes, tri, color);
             EdgeHistogram::bins(tri, &mut self.bins);
+            self.bounds.add_triangle(&layout.stored(tri));
             self.valid += 1;
         } else {
             self.invalid += 1;
@@ -99,7 +103,7 @@ impl EncodedPiece {
 pub struct StreamSink<'a> {
     pub store: ChunkStore,
     pub layout: RecordLayout,
-    /// Bounds of every valid triangle (the union of the chunks' bounds).
+    /// Bounds of every valid triangle, as the records hold them.
     pub bounds: Bounds,
     pub triangles: u64,
     pub skipped: u64,
@@ -132,7 +136,7 @@ impl<'a> StreamSink<'a> {
     }
 
     /// Queues the current chunk; every [`PENDING_CHUNKS`] (and at the end) they
-    /// get their bounds and are encoded together, on all cores.
+    /// are stored together (those that spill encoded on all cores).
     fn flush(&mut self, last: bool) -> Result<(), IngestError> {
         if !self.raw.is_empty() {
             let raw = std::mem::replace(
@@ -142,23 +146,8 @@ impl<'a> StreamSink<'a> {
             self.pending.push(raw);
         }
         if self.pending.len() >= PENDING_CHUNKS || (last && !self.pending.is_empty()) {
-            let layout = self.layout;
-            // From the records: they hold the source values exactly (f32 only for f32 sources).
-            let items: Vec<(Vec<u8>, Bounds)> = std::mem::take(&mut self.pending)
-                .into_par_iter()
-                .map(|raw| {
-                    let mut b = Bounds::EMPTY;
-                    for r in raw.chunks_exact(layout.size()) {
-                        b.add_triangle(&layout.decode(r).0);
-                    }
-                    (raw, b)
-                })
-                .collect();
-            for (_, b) in &items {
-                self.bounds.union(b);
-            }
             self.store
-                .push_many(layout, items)
+                .push_many(self.layout, std::mem::take(&mut self.pending))
                 .map_err(|e| IngestError::Invalid(format!("temporary triangle stream: {e}")))?;
         }
         (self.on_tick)()
@@ -188,8 +177,9 @@ impl<'a> StreamSink<'a> {
             self.push_batch(&gathered)?;
         }
         let chunk_bytes = MAX_CHUNK_TRIANGLES * self.layout.size();
-        for EncodedPiece { bytes, bins, valid, invalid } in pieces {
+        for EncodedPiece { bytes, bins, bounds, valid, invalid } in pieces {
             self.edges.count(&bins);
+            self.bounds.union(&bounds);
             self.triangles += valid;
             self.skipped += invalid;
             let mut at = 0;
@@ -261,7 +251,6 @@ impl TriangleSink for StreamSink<'_> {
 struct BinBuffer {
     morton: u64,
     raw: Vec<u8>,
-    bounds: Bounds,
 }
 
 /// Bookkeeping bytes of one active buffer (entry, map slot), counted against the buffer share.
@@ -366,8 +355,8 @@ pub const BIN_CHUNK_BYTES: usize = 2 * (HEADER_LEN + MAX_CHUNK_TRIANGLES * MAX_R
 /// One stream chunk's valid records grouped by the blocks they overlap:
 /// blocks in first-hit order, each block's records in input order.
 struct Grouped {
-    /// (block Morton code, records, bounds of their triangles)
-    blocks: Vec<(u64, Vec<u8>, Bounds)>,
+    /// (block Morton code, records)
+    blocks: Vec<(u64, Vec<u8>)>,
     triangles: u64,
     skipped: u64,
 }
@@ -389,8 +378,8 @@ struct Binner {
     buffered: usize,
     buffer_limit: usize,
     index: Vec<u64>,
-    /// Full buffers wait here (block, records, bounds) and are encoded together.
-    pending: Vec<(u64, Vec<u8>, Bounds)>,
+    /// Full buffers wait here (block, records) and are stored together.
+    pending: Vec<(u64, Vec<u8>)>,
     /// Emptied stream chunks, each a segment's full capacity, for new buffers
     /// to fill: memory already touched, where a fresh buffer costs a page
     /// fault every 4 KiB.
@@ -399,38 +388,26 @@ struct Binner {
     skipped: u64,
 }
 
-fn records_bounds(layout: RecordLayout, records: &[u8]) -> Bounds {
-    let mut b = Bounds::EMPTY;
-    for r in records.chunks_exact(layout.size()) {
-        b.add_triangle(&layout.decode(r).0);
-    }
-    b
-}
-
-/// Where one triangle goes: its block range (closed) and source bounds; `None` when invalid in grid units.
+/// Where one triangle goes: its block range (closed); `None` when invalid in grid units.
 #[inline]
-fn place(layout: RecordLayout, record: &[u8], frame: &GridFrame) -> Option<([u32; 3], [u32; 3], Bounds)> {
+fn place(layout: RecordLayout, record: &[u8], frame: &GridFrame) -> Option<([u32; 3], [u32; 3])> {
     let (tri, _) = layout.decode(record);
     let g = to_grid(tri, frame)?;
-    let (lo, hi) = block_range(&g, frame.resolution as i64);
-    let mut bounds = Bounds::EMPTY;
-    bounds.add_triangle(&tri);
-    Some((lo, hi, bounds))
+    Some(block_range(&g, frame.resolution as i64))
 }
 
 impl Binner {
-    fn take(b: &mut BinBuffer, pending: &mut Vec<(u64, Vec<u8>, Bounds)>) {
+    fn take(b: &mut BinBuffer, pending: &mut Vec<(u64, Vec<u8>)>) {
         if !b.raw.is_empty() {
             // Moved out, not cleared: idle blocks must not keep their high-water capacity.
-            pending.push((b.morton, std::mem::take(&mut b.raw), std::mem::take(&mut b.bounds)));
+            pending.push((b.morton, std::mem::take(&mut b.raw)));
         }
     }
 
     fn drain(&mut self) -> Result<(), BuildError> {
-        let items: Vec<(Vec<u8>, Bounds)> =
-            self.pending.iter_mut().map(|(_, r, b)| (std::mem::take(r), *b)).collect();
+        let items: Vec<Vec<u8>> = self.pending.iter_mut().map(|(_, r)| std::mem::take(r)).collect();
         let ids = self.store.push_many(self.layout, items).map_err(temp_err)?;
-        for ((m, _, _), id) in self.pending.drain(..).zip(ids) {
+        for ((m, _), id) in self.pending.drain(..).zip(ids) {
             if id as u64 >= 1 << SEGMENT_BITS {
                 return Err(BuildError::Temp(format!("more than 2^{SEGMENT_BITS} bin segments")));
             }
@@ -451,10 +428,10 @@ impl Binner {
         Ok(())
     }
 
-    /// Appends whole records of block `m` (`bounds`: their triangles'),
+    /// Appends whole records of block `m`,
     /// storing a buffer as a segment when it is full and flushing every
     /// buffer as soon as they pass their limit, as one record at a time would.
-    fn append(&mut self, m: u64, records: &[u8], bounds: &Bounds) -> Result<(), BuildError> {
+    fn append(&mut self, m: u64, records: &[u8]) -> Result<(), BuildError> {
         let rec = self.layout.size();
         let full = MAX_CHUNK_TRIANGLES * rec;
         let mut rest = records;
@@ -462,7 +439,7 @@ impl Binner {
             let i = match self.lookup.get(&m) {
                 Some(&i) => i,
                 None => {
-                    self.buffers.push(BinBuffer { morton: m, raw: Vec::new(), bounds: Bounds::EMPTY });
+                    self.buffers.push(BinBuffer { morton: m, raw: Vec::new() });
                     self.buffered += BUFFER_ENTRY_BYTES;
                     self.lookup.insert(m, self.buffers.len() - 1);
                     self.buffers.len() - 1
@@ -480,11 +457,6 @@ impl Binner {
             let take = (full - buf.raw.len()).min(allowed).min(rest.len());
             let (now, later) = rest.split_at(take);
             buf.raw.extend_from_slice(now);
-            if now.len() == records.len() {
-                buf.bounds.union(bounds);
-            } else {
-                buf.bounds.union(&records_bounds(self.layout, now));
-            }
             self.buffered += take;
             rest = later;
             if buf.raw.len() >= full {
@@ -506,13 +478,13 @@ impl Binner {
             Placed::Grouped(g) => {
                 self.triangles += g.triangles;
                 self.skipped += g.skipped;
-                for (m, records, bounds) in &g.blocks {
-                    self.append(*m, records, bounds)?;
+                for (m, records) in &g.blocks {
+                    self.append(*m, records)?;
                 }
             }
             Placed::Raw(raw) => {
                 for record in raw.chunks_exact(self.layout.size()) {
-                    let Some((blo, bhi, bounds)) = place(self.layout, record, frame) else {
+                    let Some((blo, bhi)) = place(self.layout, record, frame) else {
                         self.skipped += 1;
                         continue;
                     };
@@ -520,7 +492,7 @@ impl Binner {
                     for bz in blo[2]..=bhi[2] {
                         for by in blo[1]..=bhi[1] {
                             for bx in blo[0]..=bhi[0] {
-                                self.append(block_morton([bx, by, bz]), record, &bounds)?;
+                                self.append(block_morton([bx, by, bz]), record)?;
                             }
                         }
                     }
@@ -575,11 +547,11 @@ impl BlockSlots {
 /// Groups one stream chunk's records by block (on a worker thread).
 fn group_chunk(layout: RecordLayout, raw: &[u8], frame: &GridFrame) -> Placed {
     let rec = layout.size();
-    let mut blocks: Vec<(u64, Vec<u8>, Bounds)> = Vec::new();
+    let mut blocks: Vec<(u64, Vec<u8>)> = Vec::new();
     let mut slots = BlockSlots::default();
     let (mut triangles, mut skipped, mut records) = (0u64, 0u64, 0usize);
     for record in raw.chunks_exact(rec) {
-        let Some((blo, bhi, bounds)) = place(layout, record, frame) else {
+        let Some((blo, bhi)) = place(layout, record, frame) else {
             skipped += 1;
             continue;
         };
@@ -591,15 +563,7 @@ fn group_chunk(layout: RecordLayout, raw: &[u8], frame: &GridFrame) -> Placed {
         if records > LOCAL_RECORDS {
             return Placed::Raw(raw.to_vec());
         }
-        slots.each(
-            (blo, bhi),
-            &mut blocks,
-            |m| (m, Vec::new(), Bounds::EMPTY),
-            |b| {
-                b.1.extend_from_slice(record);
-                b.2.union(&bounds);
-            },
-        );
+        slots.each((blo, bhi), &mut blocks, |m| (m, Vec::new()), |b| b.1.extend_from_slice(record));
     }
     Placed::Grouped(Grouped { blocks, triangles, skipped })
 }
@@ -623,7 +587,7 @@ fn place_chunk(
     let mut out = ChunkPlaces { blocks: Vec::new(), places: 0, triangles: 0, skipped: 0 };
     let mut slots = BlockSlots::default();
     for (r, record) in raw.chunks_exact(layout.size()).enumerate() {
-        let Some((blo, bhi, _)) = place(layout, record, frame) else {
+        let Some((blo, bhi)) = place(layout, record, frame) else {
             out.skipped += 1;
             continue;
         };

@@ -93,6 +93,13 @@ impl RecordLayout {
     }
 
     /// Decodes one record of exactly [`Self::size`] bytes.
+    /// A triangle's corners as its record holds them (f32-rounded unless
+    /// the layout keeps f64): what [`Self::decode`] gives back.
+    #[inline]
+    pub fn stored(self, tri: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
+        if self.f64_positions { *tri } else { tri.map(|p| p.map(|c| c as f32 as f64)) }
+    }
+
     pub fn decode(self, rec: &[u8]) -> ([[f64; 3]; 3], [f32; 3]) {
         let mut tri = [[0.0; 3]; 3];
         let w = if self.f64_positions { 8 } else { 4 };
@@ -139,6 +146,15 @@ impl Bounds {
         for p in tri {
             self.union(&Bounds { min: *p, max: *p });
         }
+    }
+
+    /// The bounds of records' triangles.
+    pub fn of_records(layout: RecordLayout, records: &[u8]) -> Bounds {
+        let mut b = Bounds::EMPTY;
+        for r in records.chunks_exact(layout.size()) {
+            b.add_triangle(&layout.decode(r).0);
+        }
+        b
     }
 
     pub fn union(&mut self, other: &Bounds) {
@@ -291,32 +307,29 @@ impl ChunkStore {
     /// order): each buffer itself while resident (no CPU spent on a copy or on
     /// compression), lz4 when spilled (fewer bytes to write and read), the
     /// spilled ones compressed on all cores.
-    pub fn push_many(
-        &mut self,
-        layout: RecordLayout,
-        items: Vec<(Vec<u8>, Bounds)>,
-    ) -> Result<Vec<usize>, ChunkError> {
+    pub fn push_many(&mut self, layout: RecordLayout, items: Vec<Vec<u8>>) -> Result<Vec<usize>, ChunkError> {
         use rayon::prelude::*;
         enum Stored {
             Resident(Vec<u8>),
             Spilled(Vec<u8>),
         }
         let mut resident = self.resident_bytes;
-        let kept: Vec<(Vec<u8>, Bounds, bool)> = items
+        let kept: Vec<(Vec<u8>, bool)> = items
             .into_iter()
-            .map(|(raw, bounds)| {
+            .map(|raw| {
                 let keep = self.fits(resident, raw.len());
                 if keep {
                     resident += HEADER_LEN + raw.len();
                 }
-                (raw, bounds, keep)
+                (raw, keep)
             })
             .collect();
+        // Only a spilled chunk's header holds its bounds; a resident one is its records alone.
         let stored: Vec<Stored> = kept
             .into_par_iter()
-            .map(|(raw, bounds, keep)| match keep {
+            .map(|(raw, keep)| match keep {
                 true => Stored::Resident(raw),
-                false => Stored::Spilled(encode_chunk(layout, &raw, &bounds)),
+                false => Stored::Spilled(encode_chunk(layout, &raw, &Bounds::of_records(layout, &raw))),
             })
             .collect();
         stored
@@ -506,7 +519,7 @@ mod tests {
         for k in 0..5 {
             let mut raw = Vec::new();
             layout.encode(&mut raw, &tri(k as f64), [0.0; 3]);
-            assert_eq!(store.push_many(layout, vec![(raw.clone(), Bounds::EMPTY)]).unwrap(), vec![k]);
+            assert_eq!(store.push_many(layout, vec![raw.clone()]).unwrap(), vec![k]);
             chunks.push(raw);
         }
         assert!(store.spilled_bytes() > 0 && dir.path().join("spill").exists());
