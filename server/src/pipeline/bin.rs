@@ -388,6 +388,11 @@ struct Binner {
     skipped: u64,
 }
 
+/// Blocks in the closed range `blo..=bhi` (saturating: a range can hold more than a usize counts).
+fn blocks_in((blo, bhi): ([u32; 3], [u32; 3])) -> usize {
+    (0..3).map(|a| (bhi[a] - blo[a] + 1) as usize).fold(1, usize::saturating_mul)
+}
+
 /// Where one triangle goes: its block range (closed); `None` when invalid in grid units.
 #[inline]
 fn place(layout: RecordLayout, record: &[u8], frame: &GridFrame) -> Option<([u32; 3], [u32; 3])> {
@@ -556,10 +561,7 @@ fn group_chunk(layout: RecordLayout, raw: &[u8], frame: &GridFrame) -> Placed {
             continue;
         };
         triangles += 1;
-        let copies = ((bhi[0] - blo[0] + 1) as usize)
-            .saturating_mul((bhi[1] - blo[1] + 1) as usize)
-            .saturating_mul((bhi[2] - blo[2] + 1) as usize);
-        records = records.saturating_add(copies);
+        records = records.saturating_add(blocks_in((blo, bhi)));
         if records > LOCAL_RECORDS {
             return Placed::Raw(raw.to_vec());
         }
@@ -569,7 +571,7 @@ fn group_chunk(layout: RecordLayout, raw: &[u8], frame: &GridFrame) -> Placed {
 }
 
 /// One chunk's triangles' places grouped by the blocks they overlap (blocks
-/// in first-hit order); `None` when they make more places than `cap`.
+/// in first-hit order, each block's places in input order).
 struct ChunkPlaces {
     blocks: Vec<(u64, Vec<u32>)>,
     places: usize,
@@ -577,6 +579,7 @@ struct ChunkPlaces {
     skipped: u64,
 }
 
+/// [`ChunkPlaces`] of stream chunk `chunk`; `None` when they pass `cap` places.
 fn place_chunk(
     layout: RecordLayout,
     raw: &[u8],
@@ -593,8 +596,7 @@ fn place_chunk(
         };
         out.triangles += 1;
         // Counted before any is pushed: one large triangle can reach millions of blocks.
-        let places: usize = (0..3).map(|a| (bhi[a] - blo[a] + 1) as usize).fold(1, usize::saturating_mul);
-        out.places = out.places.saturating_add(places);
+        out.places = out.places.saturating_add(blocks_in((blo, bhi)));
         if out.places > cap {
             return None;
         }

@@ -92,7 +92,6 @@ impl RecordLayout {
         out.extend_from_slice(&rec[..at]);
     }
 
-    /// Decodes one record of exactly [`Self::size`] bytes.
     /// A triangle's corners as its record holds them (f32-rounded unless
     /// the layout keeps f64): what [`Self::decode`] gives back.
     #[inline]
@@ -100,6 +99,7 @@ impl RecordLayout {
         if self.f64_positions { *tri } else { tri.map(|p| p.map(|c| c as f32 as f64)) }
     }
 
+    /// Decodes one record of exactly [`Self::size`] bytes.
     pub fn decode(self, rec: &[u8]) -> ([[f64; 3]; 3], [f32; 3]) {
         let mut tri = [[0.0; 3]; 3];
         let w = if self.f64_positions { 8 } else { 4 };
