@@ -1131,14 +1131,22 @@ impl VertexTable {
         Self { positions, colors: has_color.then(|| Vec::with_capacity(capacity)) }
     }
 
-    /// Appends one vertex as read: the only conversion, in memory or spilled.
-    fn push(&mut self, v: &VertexRecord) {
+    /// Appends vertices as read: the only conversion, in memory or spilled.
+    /// On all cores, because this is where the table's fresh pages are first
+    /// touched, and the reading thread alone held the read up behind them.
+    fn extend(&mut self, batch: &[VertexRecord]) {
+        use rayon::prelude::*;
+        const MIN: usize = 4096;
         match &mut self.positions {
-            Positions::F32(p) => p.push(v.p.map(|c| c as f32)),
-            Positions::F64(p) => p.push(v.p),
+            Positions::F32(p) => {
+                p.par_extend(batch.par_iter().with_min_len(MIN).map(|v| v.p.map(|c| c as f32)))
+            }
+            Positions::F64(p) => p.par_extend(batch.par_iter().with_min_len(MIN).map(|v| v.p)),
         }
         if let Some(c) = &mut self.colors {
-            c.push(v.c.map(|x| if x.is_nan() { 0 } else { (x.clamp(0.0, 1.0) * 255.0).round() as u8 }));
+            c.par_extend(batch.par_iter().with_min_len(MIN).map(|v| {
+                v.c.map(|x| if x.is_nan() { 0 } else { (x.clamp(0.0, 1.0) * 255.0).round() as u8 })
+            }));
         }
     }
 
@@ -1462,7 +1470,7 @@ fn read_vertices<R: BufRead + Send>(
                 BATCH.min(def.count - start),
                 &mut batch,
             )?;
-            batch.iter().for_each(|v| table.push(v));
+            table.extend(&batch);
             sink.tick()?;
         }
         return Ok(Table::Memory(table));
@@ -1479,7 +1487,7 @@ fn read_vertices<R: BufRead + Send>(
     for start in (0..def.count).step_by(BATCH) {
         input.read_vertex_batch(&parser, def, &decoder, start, BATCH.min(def.count - start), &mut batch)?;
         chunk.clear();
-        batch.iter().for_each(|v| chunk.push(v));
+        chunk.extend(&batch);
         bytes.clear();
         chunk.write_records(&mut bytes);
         out.write_all(&bytes).map_err(spill_err)?;
