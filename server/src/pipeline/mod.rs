@@ -826,8 +826,10 @@ pub fn build_scene_reporting(
         None => None,
     };
 
-    // Pass 2: bin by block.
+    // Pass 2: bin by block. Binning by places moves the stream into the bins,
+    // so its size is logged as it was.
     progress.stage(Stage::Voxelize, 0.0);
+    let (stream_chunks, stream_spilled_bytes) = (stream_store.len(), stream_store.spilled_bytes());
     let bins = bin::bin_triangles(
         &mut stream_store,
         layout,
@@ -839,8 +841,8 @@ pub fn build_scene_reporting(
     )?;
     tracing::debug!(
         seconds = start.elapsed().as_secs_f64(),
-        stream_chunks = stream_store.len(),
-        stream_spilled_bytes = stream_store.spilled_bytes(),
+        stream_chunks,
+        stream_spilled_bytes,
         bin_segments = bins.store.len(),
         bin_spilled_bytes = bins.store.spilled_bytes(),
         bin_index_bytes = bins.index_bytes(),
