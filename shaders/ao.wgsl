@@ -283,3 +283,22 @@ fn ambient_visibility(p: vec3<f32>, n_in: vec3<f32>, turn: f32) -> f32 {
     }
     return clamp(1.0 - occluded, 0.0, 1.0);
 }
+
+// The turn (a fraction of a full turn) of the cone set at image cell `cell`:
+// with interleaved sampling on, interleaved gradient noise, so neighbouring
+// cells (which the upsample and the eye average) see different cone sets.
+fn interleaved_turn(cell: vec2<i32>) -> f32 {
+    if frame.ao_temporal.w < 0.5 {
+        return 0.0;
+    }
+    return fract(52.9829189 * fract(dot(vec2<f32>(cell), vec2<f32>(0.06711056, 0.00583715))));
+}
+
+// V at a G-buffer surface (screen.wgsl's `Surface`): the voxel's precomputed
+// AO field in the field mode where it has one, else the cones turned by `turn`.
+fn surface_visibility(s: Surface, turn: f32) -> f32 {
+    if frame.ao_mode.x > 0.5 && s.field >= 0.0 && frame.volume.w > 0.0 {
+        return s.field;
+    }
+    return ambient_visibility(s.position, s.normal, turn);
+}

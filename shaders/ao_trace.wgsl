@@ -26,16 +26,5 @@ fn trace_texel(texel: vec2<i32>) -> vec4<f32> {
     if !s.surface {
         return vec4<f32>(1.0, 0.0, 0.0, 1.0);
     }
-    // The AO field mode: the voxel's precomputed V where it has one.
-    if frame.ao_mode.x > 0.5 && s.field >= 0.0 && frame.volume.w > 0.0 {
-        return vec4<f32>(s.field, 0.0, 0.0, 1.0);
-    }
-    // Interleaved sampling: each texel turns the frame's cone set further by
-    // its own interleaved-gradient-noise fraction, so neighbouring texels (which
-    // the upsample and the eye average) see different cone sets.
-    var turn = 0.0;
-    if frame.ao_temporal.w > 0.5 {
-        turn = fract(52.9829189 * fract(dot(vec2<f32>(texel), vec2<f32>(0.06711056, 0.00583715))));
-    }
-    return vec4<f32>(ambient_visibility(s.position, s.normal, turn), 0.0, 0.0, 1.0);
+    return vec4<f32>(surface_visibility(s, interleaved_turn(texel)), 0.0, 0.0, 1.0);
 }

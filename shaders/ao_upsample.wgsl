@@ -8,10 +8,19 @@
 //
 // the plane distance being |(p_s - p) . n|: zero for samples on the pixel's
 // own plane however it is tilted, large across a depth discontinuity; the
-// normal term rejects samples across a crease. When no texel matches (a
-// feature thinner than f pixels) the most alike one is taken.
-// frame.ao_sparse.w = 0 turns the surface terms off: plain bilinear
-// upsampling, which blurs across edges (the comparison).
+// normal term rejects samples across a crease.
+//
+// Where the texels of the pixel's own surface hold under RETRACE_BELOW of its
+// bilinear weight (a depth edge, a crease, a feature thinner than f pixels),
+// the pixel is traced itself (frame.ao_sparse.w = 2, the default): the few
+// texels left, or the most alike texel of another surface, stood in for it
+// badly. Such pixels are the edges', a small share at full-screen sizes.
+// frame.ao_sparse.w = 1: the bilateral blend alone (a pixel no texel matches
+// takes the most alike one); 0: plain bilinear upsampling, which blurs
+// across edges (comparisons). Module: frame.wgsl, screen.wgsl, ao.wgsl, this.
+
+// viewer-wasm/src/ao.rs `RETRACE_BELOW` holds the same number.
+const RETRACE_BELOW: f32 = 0.25;
 
 @group(1) @binding(0) var gbuffer_position: texture_2d<f32>;
 @group(1) @binding(1) var gbuffer_normal: texture_2d<f32>;
@@ -65,6 +74,9 @@ fn upsample_pixel(pixel: vec2<i32>) -> vec4<f32> {
         }
         sum += w * v;
         weight_sum += w;
+    }
+    if frame.ao_sparse.w > 1.5 && weight_sum < RETRACE_BELOW {
+        return vec4<f32>(surface_visibility(here, interleaved_turn(pixel)), 0.0, 0.0, 1.0);
     }
     if weight_sum > 1e-6 {
         return vec4<f32>(sum / weight_sum, 0.0, 0.0, 1.0);

@@ -219,8 +219,11 @@ enum StructureArg {
 
 #[derive(Clone, Copy, clap::ValueEnum)]
 enum UpsampleArg {
-    /// Joint bilateral: bilinear weights times depth and normal likeness.
+    /// Joint bilateral: bilinear weights times depth and normal likeness; a
+    /// pixel no traced texel around it matches is traced itself.
     Bilateral,
+    /// Joint bilateral without tracing the pixels it cannot match (comparison).
+    BilateralOnly,
     /// Plain bilinear (blurs across depth edges; for comparison).
     Bilinear,
 }
@@ -269,6 +272,7 @@ impl AoArgs {
             trace_downscale: self.ao_downscale.unwrap_or(d.trace_downscale),
             upsample: match self.ao_upsample {
                 UpsampleArg::Bilateral => voxstream_viewer::ao::Upsample::Bilateral,
+                UpsampleArg::BilateralOnly => voxstream_viewer::ao::Upsample::BilateralOnly,
                 UpsampleArg::Bilinear => voxstream_viewer::ao::Upsample::Bilinear,
             },
             jitter: !self.no_jitter,

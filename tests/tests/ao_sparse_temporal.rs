@@ -7,6 +7,9 @@
 //!   silhouette of a plate in front of a wall, half-resolution AO upsampled
 //!   bilaterally stays close to the full-resolution trace; the control, plain
 //!   bilinear upsampling, blurs the wall's dark contact shadow onto the plate;
+//! - a pixel whose surface no traced texel around it shares is traced
+//!   itself: on fins one or two pixels wide it then equals the full-resolution
+//!   trace; the control, the bilateral blend alone, misses those pixels;
 //! - accumulating jittered frames lowers the error against the exact values on
 //!   the sphere on a plane; the control, the same accumulation without jitter,
 //!   averages identical frames and changes nothing;
@@ -46,6 +49,19 @@ fn plate_before_wall() -> AnalyticScene {
         ],
         camera([0.5, 1.3, 2.0], [0.0, 1.0, 0.0]),
     )
+}
+
+/// A comb: thin fins 0.3 deep standing out of a wall, 0.1 apart, seen
+/// head-on. Each fin's front is a line one or two pixels wide, open to the
+/// front (V near 1), between strips of wall deep in the fins' shadow: at half
+/// resolution some of its pixels have no traced texel on a fin at all.
+fn comb_on_wall() -> AnalyticScene {
+    let mut shapes = vec![rect([-2.0, -0.5, 0.0], [4.0, 0.0, 0.0], [0.0, 3.0, 0.0])];
+    for i in 0..8 {
+        let x = -0.35 + 0.1 * i as f64;
+        shapes.push(rect([x, 0.5, 0.0], [0.0, 0.0, 0.3], [0.0, 1.0, 0.0]));
+    }
+    analytic::scene_from_shapes("comb_on_wall", shapes, camera([0.0, 1.0, 2.0], [0.0, 1.0, 0.0]))
 }
 
 fn build(scene: &AnalyticScene, store: &Path) -> PathBuf {
@@ -143,6 +159,54 @@ fn bilateral_upsampling_keeps_a_depth_edge_sharp() {
     for out in [&bilateral, &bilinear] {
         assert!(out.ao.iter().all(|v| v.is_nan() || (0.0..=1.0).contains(v)));
     }
+}
+
+#[test]
+fn pixels_no_traced_texel_matches_are_traced_themselves() {
+    let store = tempfile::tempdir().unwrap();
+    let scene = comb_on_wall();
+    let dir = build(&scene, store.path());
+    // Fixed cones and no interleaving: a pixel traced by the upsample sees
+    // exactly the cones the full-resolution trace gave it.
+    let fixed = AoSettings { jitter: false, interleave: false, ..AoSettings::default() };
+    let full = render(&dir, scene.camera, AoSettings { trace_downscale: 1, ..fixed }, 1);
+    let retrace = render(&dir, scene.camera, AoSettings { trace_downscale: 2, ..fixed }, 1);
+    // Control: the same upsample without tracing the pixels it cannot match.
+    let blend_only = render(
+        &dir,
+        scene.camera,
+        AoSettings { trace_downscale: 2, upsample: Upsample::BilateralOnly, ..fixed },
+        1,
+    );
+    let edges = depth_edge_pixels(&full, 0.05);
+    assert!(edges.len() > 40, "only {} depth-edge pixels: the scene does not show its edge", edges.len());
+    let same_as_full = |out: &RenderOutput, i: usize| (out.ao[i] - full.ao[i]).abs() < 1e-4;
+    // Pixels the blend got wrong that the re-trace got exactly.
+    let mended = edges
+        .iter()
+        .filter(|&&i| same_as_full(&retrace, i) && (blend_only.ao[i] - full.ao[i]).abs() > 0.02)
+        .count();
+    let retrace_error = mean_abs_difference(&retrace, &full, &edges);
+    let blend_error = mean_abs_difference(&blend_only, &full, &edges);
+    println!(
+        "{} edge pixels: mean |V(1/2 res) − V(full res)|: re-tracing {retrace_error:.4}, blend only {blend_error:.4}; \
+         {mended} pixels the blend missed by > 0.02 traced exactly",
+        edges.len()
+    );
+    assert!(mended >= 5, "only {mended} edge pixels were traced where the blend could not match them");
+    assert!(
+        retrace_error < 0.8 * blend_error,
+        "re-tracing ({retrace_error:.4}) should follow the full-resolution trace at the edge better than the blend alone ({blend_error:.4})"
+    );
+    // Away from the edges the two agree: only unmatched pixels are traced.
+    let interior: Vec<usize> =
+        (0..full.ao.len()).filter(|&i| full.ao[i].is_finite() && !edges.contains(&i)).collect();
+    let moved = interior.iter().filter(|&&i| (retrace.ao[i] - blend_only.ao[i]).abs() > 1e-6).count();
+    assert!(
+        moved * 10 < interior.len(),
+        "{moved} of {} pixels away from the depth edges changed: the upsample traces more than the pixels it cannot match",
+        interior.len()
+    );
 }
 
 #[test]

@@ -131,11 +131,27 @@ impl AoStructure {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Upsample {
-    /// Joint bilateral: bilinear weights times depth (plane distance) and normal likeness.
+    /// Joint bilateral: bilinear weights times depth (plane distance) and
+    /// normal likeness; a pixel whose surface no traced texel around it shares
+    /// (their likeness-weighted share of the bilinear weight under
+    /// [`RETRACE_BELOW`]) is traced itself.
     Bilateral,
+    /// Joint bilateral without tracing: a pixel no texel matches takes the
+    /// most alike one (comparison: the upsample before re-tracing).
+    BilateralOnly,
     /// Plain bilinear (comparison: it blurs across depth edges).
     Bilinear,
 }
+
+/// The share of a pixel's bilinear weight that must fall on traced texels of
+/// its own surface for [`Upsample::Bilateral`] to blend them; below it the
+/// pixel is traced itself. At a depth edge or a crease the texels of the other
+/// side get no weight, and the few of the pixel's own side (or, with none, the
+/// most alike texel of another surface) stood in for it: on the benchmark's
+/// real views most of the upsample's error lay in those pixels
+/// (docs/ao-benchmark.md, "Tracing the pixels the upsample cannot match").
+/// `shaders/ao_upsample.wgsl` holds the same number.
+pub const RETRACE_BELOW: f32 = 0.25;
 
 /// Most frames the temporal accumulation averages.
 pub const MAX_TEMPORAL_FRAMES: u32 = 256;
@@ -837,6 +853,18 @@ mod tests {
         let fixed = AoSettings { jitter: false, ..AoSettings::default() };
         assert_eq!(fixed.jitter_for_frame(5), ConeJitter::NONE);
         assert_ne!(AoSettings::default().jitter_for_frame(5), ConeJitter::NONE);
+    }
+
+    #[test]
+    fn the_upsample_shader_retraces_below_the_same_share() {
+        let line = crate::shaders::AO_UPSAMPLE_WGSL
+            .lines()
+            .find_map(|l| l.strip_prefix("const RETRACE_BELOW: f32 = "))
+            .expect("ao_upsample.wgsl declares RETRACE_BELOW");
+        let value: f32 = line.trim_end_matches(';').parse().expect("a number");
+        assert_eq!(value, RETRACE_BELOW);
+        // The default upsample is the one that re-traces (uniform value 2).
+        assert_eq!(AoSettings::default().upsample, Upsample::Bilateral);
     }
 
     #[test]

@@ -401,7 +401,11 @@ impl AoPasses {
                 f as f32,
                 ox as f32,
                 oy as f32,
-                if s.upsample == Upsample::Bilateral { 1.0 } else { 0.0 },
+                match s.upsample {
+                    Upsample::Bilinear => 0.0,
+                    Upsample::BilateralOnly => 1.0,
+                    Upsample::Bilateral => 2.0,
+                },
             ],
             temporal: [
                 s.accumulated_frames() as f32,

@@ -37,7 +37,8 @@ pub const SHADER_FILES: &[(&str, &str)] = &[
 pub enum AoPass {
     /// Cone tracing at 1/f resolution (ao_trace.wgsl with ao.wgsl).
     Trace,
-    /// Joint bilateral upsampling to full resolution (ao_upsample.wgsl).
+    /// Joint bilateral upsampling to full resolution (ao_upsample.wgsl with
+    /// ao.wgsl: it traces the pixels no traced texel matches).
     Upsample,
     /// Reprojection and exponential accumulation (ao_temporal.wgsl).
     Temporal,
@@ -75,14 +76,19 @@ impl AoPass {
     }
 
     /// The pass's module: frame.wgsl and screen.wgsl, then its own file
-    /// (the trace pass with ao.wgsl before it).
+    /// (the trace and upsample passes with ao.wgsl before it).
     pub fn module_source(self) -> String {
         match self {
             AoPass::Trace => {
                 let (ao, trace) = trace_sources();
                 format!("{FRAME_WGSL}\n{SCREEN_WGSL}\n{ao}\n{trace}")
             }
-            AoPass::Upsample => format!("{FRAME_WGSL}\n{SCREEN_WGSL}\n{AO_UPSAMPLE_WGSL}"),
+            AoPass::Upsample => {
+                let (ao, _) = trace_sources();
+                let upsample =
+                    dev_source("ao_upsample.wgsl").unwrap_or(std::borrow::Cow::Borrowed(AO_UPSAMPLE_WGSL));
+                format!("{FRAME_WGSL}\n{SCREEN_WGSL}\n{ao}\n{upsample}")
+            }
             AoPass::Temporal => format!("{FRAME_WGSL}\n{SCREEN_WGSL}\n{AO_TEMPORAL_WGSL}"),
             AoPass::Composite => format!("{FRAME_WGSL}\n{SCREEN_WGSL}\n{AO_COMPOSITE_WGSL}"),
         }
@@ -90,9 +96,10 @@ impl AoPass {
 }
 
 /// Environment variable (native builds only) naming a directory whose
-/// `ao.wgsl` and `ao_trace.wgsl` replace the built-in ones when a trace
-/// pipeline is created, and whose `voxel.wgsl`, if it holds one, replaces
-/// the draw's: to try a change to the tracer or the shading without
+/// `ao.wgsl` and `ao_trace.wgsl` replace the built-in ones when a trace (or
+/// upsample) pipeline is created, and whose `voxel.wgsl` and
+/// `ao_upsample.wgsl`, where it holds them, replace the draw's and the
+/// upsample's: to try a change to the tracer or the shading without
 /// rebuilding (a release build takes minutes), and for tests whose negative
 /// control is a deliberately different shader (`tests/tests/ao_axis_opacity.rs`,
 /// `tests/tests/ao_winding.rs`).
@@ -116,6 +123,21 @@ fn trace_sources() -> (std::borrow::Cow<'static, str>, std::borrow::Cow<'static,
     (std::borrow::Cow::Borrowed(AO_WGSL), std::borrow::Cow::Borrowed(AO_TRACE_WGSL))
 }
 
+/// `name` from [`DEV_AO_WGSL_ENV`]'s directory, where it holds that file.
+fn dev_source(name: &str) -> Option<std::borrow::Cow<'static, str>> {
+    #[cfg(not(target_arch = "wasm32"))]
+    if let Some(dir) = std::env::var_os(DEV_AO_WGSL_ENV) {
+        let path = std::path::Path::new(&dir).join(name);
+        if path.is_file() {
+            let text = std::fs::read_to_string(&path)
+                .unwrap_or_else(|e| panic!("{DEV_AO_WGSL_ENV}: reading {}: {e}", path.display()));
+            return Some(std::borrow::Cow::Owned(text));
+        }
+    }
+    let _ = name;
+    None
+}
+
 /// The compute module that expands voxels into face records.
 pub fn expand_module_source() -> &'static str {
     EXPAND_WGSL
@@ -125,16 +147,8 @@ pub fn expand_module_source() -> &'static str {
 /// voxel.wgsl in [`DEV_AO_WGSL_ENV`]'s directory where it holds one (the
 /// shading's negative controls; ao.wgsl and ao_trace.wgsl must be there too).
 pub fn voxel_module_source() -> String {
-    #[cfg(not(target_arch = "wasm32"))]
-    if let Some(dir) = std::env::var_os(DEV_AO_WGSL_ENV) {
-        let path = std::path::Path::new(&dir).join("voxel.wgsl");
-        if path.is_file() {
-            let voxel = std::fs::read_to_string(&path)
-                .unwrap_or_else(|e| panic!("{DEV_AO_WGSL_ENV}: reading {}: {e}", path.display()));
-            return format!("{FRAME_WGSL}\n{voxel}");
-        }
-    }
-    format!("{FRAME_WGSL}\n{VOXEL_WGSL}")
+    let voxel = dev_source("voxel.wgsl").unwrap_or(std::borrow::Cow::Borrowed(VOXEL_WGSL));
+    format!("{FRAME_WGSL}\n{voxel}")
 }
 
 #[cfg(all(test, not(target_arch = "wasm32")))]

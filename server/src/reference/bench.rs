@@ -126,8 +126,9 @@ fn default_point(frames: &[u32]) -> Point {
 }
 
 /// Full or reduced resolution, one frame or `frames` accumulated (default:
-/// the viewer's N and 16), at the default cone setting, with two
-/// comparisons: accumulation without jitter, and plain bilinear upsampling.
+/// the viewer's N and 16), at the default cone setting, with three
+/// comparisons: accumulation without jitter, the bilateral upsample without
+/// re-tracing the pixels it cannot match, and plain bilinear upsampling.
 fn sparse_temporal_sweep(frames: &[u32]) -> Vec<Point> {
     use voxstream_viewer::ao::Upsample;
     let default_frames = [AoSettings::default().temporal_frames, 16];
@@ -164,6 +165,11 @@ fn sparse_temporal_sweep(frames: &[u32]) -> Vec<Point> {
     }
     let interleaved_full = AoSettings { interleave: true, ..d };
     points.push(point("full res, interleaved, 1 frame".into(), interleaved_full, 1));
+    points.push(point(
+        format!("1/2 res + bilateral without re-tracing, interleaved, {} frames jittered", counts[0]),
+        AoSettings { upsample: Upsample::BilateralOnly, ..interleaved },
+        counts[0],
+    ));
     points.push(point(
         "1/2 res + bilinear, 1 frame".into(),
         AoSettings { trace_downscale: 2, upsample: Upsample::Bilinear, ..d },
