@@ -14,7 +14,9 @@
 // bilinear weight (a depth edge, a crease, a feature thinner than f pixels),
 // the pixel is traced itself (frame.ao_sparse.w = 2, the default): the few
 // texels left, or the most alike texel of another surface, stood in for it
-// badly. Such pixels are the edges', a small share at full-screen sizes.
+// badly. Such pixels are the edges', a small share at full-screen sizes; they
+// are queued for the retrace pass (ao_retrace.wgsl), which traces them 64 a
+// workgroup, and traced here only when the queue is full.
 // frame.ao_sparse.w = 1: the bilateral blend alone (a pixel no texel matches
 // takes the most alike one); 0: plain bilinear upsampling, which blurs
 // across edges (comparisons). Module: frame.wgsl, screen.wgsl, ao.wgsl, this.
@@ -26,6 +28,31 @@ const RETRACE_BELOW: f32 = 0.25;
 @group(1) @binding(1) var gbuffer_normal: texture_2d<f32>;
 @group(1) @binding(2) var traced: texture_2d<f32>;
 @group(1) @binding(3) var upsampled_out: texture_storage_2d<r32float, write>;
+@group(1) @binding(4) var<storage, read_write> retrace: RetraceQueue;
+
+// The pixels to trace (ao_retrace.wgsl's `RetraceList`); the frame clears
+// `count` and `groups` before this pass, `groups_y` and `groups_z` stay 1.
+struct RetraceQueue {
+    count: atomic<u32>,
+    groups: atomic<u32>,
+    groups_y: u32,
+    groups_z: u32,
+    pixels: array<u32>,
+}
+
+// Queues `pixel` for the retrace pass; false when the queue is full.
+fn queue_retrace(pixel: vec2<i32>) -> bool {
+    let slot = atomicAdd(&retrace.count, 1u);
+    if slot >= arrayLength(&retrace.pixels) {
+        return false;
+    }
+    retrace.pixels[slot] = u32(pixel.x) | (u32(pixel.y) << 16u);
+    // A workgroup for each 64 queued pixels: the indirect dispatch's count.
+    if slot % 64u == 0u {
+        atomicAdd(&retrace.groups, 1u);
+    }
+    return true;
+}
 
 @compute @workgroup_size(8, 8)
 fn cs_upsample(@builtin(global_invocation_id) id: vec3<u32>) {
@@ -75,7 +102,7 @@ fn upsample_pixel(pixel: vec2<i32>) -> vec4<f32> {
         sum += w * v;
         weight_sum += w;
     }
-    if frame.ao_sparse.w > 1.5 && weight_sum < RETRACE_BELOW {
+    if frame.ao_sparse.w > 1.5 && weight_sum < RETRACE_BELOW && !queue_retrace(pixel) {
         return vec4<f32>(surface_visibility(here, interleaved_turn(pixel)), 0.0, 0.0, 1.0);
     }
     if weight_sum > 1e-6 {

@@ -25,7 +25,7 @@ import { readFileSync, writeFileSync } from 'node:fs';
 import { chromiumExecutable, launchPage, startSession } from './chromium.mjs';
 
 // The AO's own passes (viewer-wasm/src/shaders.rs AoPass::AO_ONLY).
-const AO_PASSES = ['cs_trace', 'cs_upsample', 'cs_temporal'];
+const AO_PASSES = ['cs_trace', 'cs_upsample', 'cs_retrace', 'cs_temporal'];
 
 function die(msg) {
   console.error(`ao-bench.mjs: ${msg}`);

@@ -355,10 +355,10 @@ fn the_passes_of_a_frame_are_timed_by_the_gpu() {
     };
     let with = names(&t.gpu_passes_ms);
     let without = names(&t.gpu_passes_no_ao_ms);
-    let ao = ["cs_trace", "cs_upsample", "cs_temporal"];
+    let ao = ["cs_trace", "cs_upsample", "cs_retrace", "cs_temporal"];
     let at = |list: &[String], name: &str| list.iter().position(|p| p == name);
     let order: Vec<Option<usize>> =
-        ["voxels", ao[0], ao[1], ao[2], "fs_composite"].iter().map(|n| at(&with, n)).collect();
+        ["voxels", ao[0], ao[1], ao[2], ao[3], "fs_composite"].iter().map(|n| at(&with, n)).collect();
     assert!(order.iter().all(Option::is_some), "passes with AO: {with:?}");
     assert!(order.windows(2).all(|w| w[0] < w[1]), "passes out of frame order: {with:?}");
     assert!(ao.iter().all(|n| at(&without, n).is_none()), "AO passes in a frame without AO: {without:?}");

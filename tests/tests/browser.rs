@@ -755,9 +755,12 @@ fn ao_bench_times_each_point_in_chromium() {
         assert!(r.ao_over_frame.is_some_and(|x| x.is_finite() && x > 0.0), "{r:?}");
     }
     let (default, full) = (&rows[0], &rows[1]);
-    assert!(has(default, "cs_upsample") && has(default, "cs_temporal"), "{default:?}");
     assert!(
-        !has(full, "cs_upsample") && !has(full, "cs_temporal"),
+        has(default, "cs_upsample") && has(default, "cs_retrace") && has(default, "cs_temporal"),
+        "{default:?}"
+    );
+    assert!(
+        !has(full, "cs_upsample") && !has(full, "cs_retrace") && !has(full, "cs_temporal"),
         "the full-res point's settings were not applied: {full:?}"
     );
 }

@@ -6,7 +6,9 @@
 //! 2. **trace** (ao_trace.wgsl + ao.wgsl): cone tracing for one pixel of each
 //!    f×f block into a 1/f-resolution target (f = 1, 2 or 4);
 //! 3. **upsample** (ao_upsample.wgsl, f > 1 only): joint bilateral upsampling
-//!    to full resolution, guided by the G-buffer's position and normal;
+//!    to full resolution, guided by the G-buffer's position and normal; it
+//!    queues the pixels no traced texel matches, and **retrace**
+//!    (ao_retrace.wgsl, dispatched indirectly from the queue) traces them;
 //! 4. **temporal** (ao_temporal.wgsl, N > 1 only): the history reprojected
 //!    with the previous frame's view-projection, dropped where position or
 //!    normal disagree, blended with weight max(1/frames, 1/N);
@@ -48,8 +50,23 @@ pub fn target_bytes(width: u32, height: u32, downscale: u32) -> u64 {
     let pixels = width as u64 * height as u64;
     let f = downscale.max(1);
     let low = width.div_ceil(f) as u64 * height.div_ceil(f) as u64;
-    // Position ×2, normal ×2, colour, upsampled V, history ×2; traced V.
-    pixels * (16 * 2 + 8 * 2 + 4 + 4 + 16 * 2) + low * 4
+    // Position ×2, normal ×2, colour, upsampled V, history ×2; traced V; the retrace queue.
+    pixels * (16 * 2 + 8 * 2 + 4 + 4 + 16 * 2) + low * 4 + retrace_queue_bytes((width, height))
+}
+
+/// The retrace queue's header: count, then the indirect dispatch's three
+/// workgroup counts (ao_upsample.wgsl `RetraceQueue`).
+const RETRACE_HEADER: u64 = 16;
+/// Where the indirect dispatch's arguments start in the queue.
+const RETRACE_DISPATCH_OFFSET: u64 = 4;
+/// Workgroup size of the retrace pass (ao_retrace.wgsl).
+pub const RETRACE_WORKGROUP: u32 = 64;
+
+/// Bytes of the retrace queue: room for one pixel in 8 (an image whose
+/// edges need more traces the rest in the upsample pass itself).
+fn retrace_queue_bytes((width, height): (u32, u32)) -> u64 {
+    let slots = (width as u64 * height as u64).div_ceil(8).max(RETRACE_WORKGROUP as u64);
+    RETRACE_HEADER + 4 * slots
 }
 
 /// Every texture a frame draws into, at the viewport size.
@@ -64,6 +81,9 @@ pub struct FrameTargets {
     /// V upsampled to full resolution.
     pub upsampled: wgpu::Texture,
     pub history: [wgpu::Texture; 2],
+    /// The pixels the upsample could not match, for the retrace pass: a
+    /// count, the indirect dispatch's arguments, the packed pixels.
+    retrace_queue: wgpu::Buffer,
     views: TargetViews,
     /// The passes' input bind groups, made on first use and kept as long as
     /// the targets: a frame then creates no view and no bind group (each is a
@@ -123,6 +143,19 @@ impl FrameTargets {
         let upsampled = make("ao upsampled", VISIBILITY_FORMAT, size);
         let history =
             [make("ao history a", HISTORY_FORMAT, size), make("ao history b", HISTORY_FORMAT, size)];
+        let retrace_queue = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("ao retrace queue"),
+            size: retrace_queue_bytes(size),
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::INDIRECT | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: true,
+        });
+        // The dispatch's y and z stay 1; each frame clears count and x.
+        retrace_queue
+            .slice(..RETRACE_HEADER)
+            .get_mapped_range_mut()
+            .expect("a buffer mapped at creation maps")
+            .copy_from_slice(bytemuck::cast_slice(&[0u32, 0, 1, 1]));
+        retrace_queue.unmap();
         let view = |t: &wgpu::Texture| t.create_view(&Default::default());
         let views = TargetViews {
             position: position.each_ref().map(view),
@@ -141,6 +174,7 @@ impl FrameTargets {
             traced,
             upsampled,
             history,
+            retrace_queue,
             views,
             groups: RefCell::default(),
         }
@@ -156,14 +190,26 @@ impl FrameTargets {
 
     /// A pass's bindings, in binding order, from its key: `pair` the position
     /// and normal written this frame, `visibility` the V it reads (Temporal,
-    /// Composite), then a compute pass's output. The key is the bind group
-    /// cache's, so it must name every binding.
-    fn inputs(&self, (pass, pair, visibility): InputsKey) -> Vec<&wgpu::TextureView> {
+    /// Composite), then a compute pass's output, then the upsample's queue.
+    /// The key is the bind group cache's, so it must name every binding.
+    fn inputs(&self, (pass, pair, visibility): InputsKey) -> Vec<wgpu::BindingResource<'_>> {
         let v = &self.views;
         let prev = 1 - pair;
-        match pass {
+        let queue = || self.retrace_queue.as_entire_binding();
+        let views = match pass {
             AoPass::Trace => vec![&v.position[pair], &v.normal[pair], &v.traced],
-            AoPass::Upsample => vec![&v.position[pair], &v.normal[pair], &v.traced, &v.upsampled],
+            AoPass::Upsample => {
+                let mut r: Vec<_> = [&v.position[pair], &v.normal[pair], &v.traced, &v.upsampled]
+                    .map(wgpu::BindingResource::TextureView)
+                    .into();
+                r.push(queue());
+                return r;
+            }
+            AoPass::Retrace => {
+                let [p, n, out] = [&v.position[pair], &v.normal[pair], &v.upsampled]
+                    .map(wgpu::BindingResource::TextureView);
+                return vec![p, n, queue(), out];
+            }
             AoPass::Temporal => vec![
                 &v.position[pair],
                 &v.normal[pair],
@@ -174,7 +220,8 @@ impl FrameTargets {
                 &v.history[pair],
             ],
             AoPass::Composite => vec![&v.normal[pair], &v.colour, self.visibility_view(visibility)],
-        }
+        };
+        views.into_iter().map(wgpu::BindingResource::TextureView).collect()
     }
 }
 
@@ -252,11 +299,51 @@ fn texture_entry(binding: u32, visibility: wgpu::ShaderStages) -> wgpu::BindGrou
 /// Textures group 1 of each pass reads (all with textureLoad).
 fn pass_texture_count(pass: AoPass) -> u32 {
     match pass {
-        AoPass::Trace => 2,
+        AoPass::Trace | AoPass::Retrace => 2,
         AoPass::Upsample => 3,
         AoPass::Temporal => 6,
         AoPass::Composite => 3,
     }
+}
+
+/// A storage buffer binding of group 1.
+fn queue_entry(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Storage { read_only },
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+/// Group 1 of a pass: its textures, the retrace pass's queue (read), the
+/// storage texture a compute pass writes, the upsample's queue (written).
+fn pass_layout_entries(pass: AoPass, stage: wgpu::ShaderStages) -> Vec<wgpu::BindGroupLayoutEntry> {
+    let inputs = pass_texture_count(pass);
+    let mut entries: Vec<_> = (0..inputs).map(|b| texture_entry(b, stage)).collect();
+    if pass == AoPass::Retrace {
+        entries.push(queue_entry(entries.len() as u32, true));
+    }
+    if let Some(format) = pass_output_format(pass) {
+        entries.push(wgpu::BindGroupLayoutEntry {
+            binding: entries.len() as u32,
+            visibility: stage,
+            ty: wgpu::BindingType::StorageTexture {
+                access: wgpu::StorageTextureAccess::WriteOnly,
+                format,
+                view_dimension: wgpu::TextureViewDimension::D2,
+            },
+            count: None,
+        });
+    }
+    if pass == AoPass::Upsample {
+        entries.push(queue_entry(entries.len() as u32, false));
+    }
+    entries
 }
 
 /// Workgroup edge of the compute passes (the WGSL's `@workgroup_size(8, 8)`).
@@ -265,7 +352,7 @@ const PASS_WORKGROUP: u32 = 8;
 /// The storage texture a compute pass writes, after its inputs.
 fn pass_output_format(pass: AoPass) -> Option<wgpu::TextureFormat> {
     match pass {
-        AoPass::Trace | AoPass::Upsample => Some(VISIBILITY_FORMAT),
+        AoPass::Trace | AoPass::Upsample | AoPass::Retrace => Some(VISIBILITY_FORMAT),
         AoPass::Temporal => Some(HISTORY_FORMAT),
         AoPass::Composite => None,
     }
@@ -287,20 +374,7 @@ impl AoPasses {
                 } else {
                     wgpu::ShaderStages::FRAGMENT
                 };
-                let inputs = pass_texture_count(pass);
-                let mut entries: Vec<_> = (0..inputs).map(|b| texture_entry(b, stage)).collect();
-                if let Some(format) = pass_output_format(pass) {
-                    entries.push(wgpu::BindGroupLayoutEntry {
-                        binding: inputs,
-                        visibility: stage,
-                        ty: wgpu::BindingType::StorageTexture {
-                            access: wgpu::StorageTextureAccess::WriteOnly,
-                            format,
-                            view_dimension: wgpu::TextureViewDimension::D2,
-                        },
-                        count: None,
-                    });
-                }
+                let entries = pass_layout_entries(pass, stage);
                 let textures = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
                     label: Some(pass.entry_point()),
                     entries: &entries,
@@ -449,10 +523,7 @@ impl AoPasses {
                 .inputs(key)
                 .into_iter()
                 .enumerate()
-                .map(|(i, v)| wgpu::BindGroupEntry {
-                    binding: i as u32,
-                    resource: wgpu::BindingResource::TextureView(v),
-                })
+                .map(|(i, resource)| wgpu::BindGroupEntry { binding: i as u32, resource })
                 .collect();
             device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some(pass.entry_point()),
@@ -473,7 +544,15 @@ impl AoPasses {
                 cpass.set_pipeline(pipeline);
                 cpass.set_bind_group(0, frame_group, &[]);
                 cpass.set_bind_group(1, &*group, &[]);
-                cpass.dispatch_workgroups(width.div_ceil(PASS_WORKGROUP), height.div_ceil(PASS_WORKGROUP), 1);
+                if pass == AoPass::Retrace {
+                    cpass.dispatch_workgroups_indirect(&targets.retrace_queue, RETRACE_DISPATCH_OFFSET);
+                } else {
+                    cpass.dispatch_workgroups(
+                        width.div_ceil(PASS_WORKGROUP),
+                        height.div_ceil(PASS_WORKGROUP),
+                        1,
+                    );
+                }
             }
             PassPipeline::Render(pipeline) => {
                 let mut rpass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
@@ -522,7 +601,15 @@ impl AoPasses {
             self.run(device, encoder, (AoPass::Trace, cur, None), frame_group, t, target, timer);
             let mut current = VisibilityTexture::Traced;
             if s.downscale() > 1 {
+                let retrace = s.upsample == Upsample::Bilateral;
+                if retrace {
+                    // An empty queue: count and workgroups 0.
+                    encoder.clear_buffer(&t.retrace_queue, 0, Some(RETRACE_DISPATCH_OFFSET + 4));
+                }
                 self.run(device, encoder, (AoPass::Upsample, cur, None), frame_group, t, target, timer);
+                if retrace {
+                    self.run(device, encoder, (AoPass::Retrace, cur, None), frame_group, t, target, timer);
+                }
                 current = VisibilityTexture::Upsampled;
             }
             if s.accumulated_frames() > 1 {

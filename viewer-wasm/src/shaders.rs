@@ -9,6 +9,7 @@ pub const AO_WGSL: &str = include_str!("../../shaders/ao.wgsl");
 pub const DEPTH_REDUCE_WGSL: &str = include_str!("../../shaders/depth_reduce.wgsl");
 pub const AO_TRACE_WGSL: &str = include_str!("../../shaders/ao_trace.wgsl");
 pub const AO_UPSAMPLE_WGSL: &str = include_str!("../../shaders/ao_upsample.wgsl");
+pub const AO_RETRACE_WGSL: &str = include_str!("../../shaders/ao_retrace.wgsl");
 pub const AO_TEMPORAL_WGSL: &str = include_str!("../../shaders/ao_temporal.wgsl");
 pub const AO_COMPOSITE_WGSL: &str = include_str!("../../shaders/ao_composite.wgsl");
 pub const CLIPMAP_CLEAR_WGSL: &str = include_str!("../../shaders/clipmap_clear.wgsl");
@@ -24,6 +25,7 @@ pub const SHADER_FILES: &[(&str, &str)] = &[
     ("ao.wgsl", AO_WGSL),
     ("ao_trace.wgsl", AO_TRACE_WGSL),
     ("ao_upsample.wgsl", AO_UPSAMPLE_WGSL),
+    ("ao_retrace.wgsl", AO_RETRACE_WGSL),
     ("ao_temporal.wgsl", AO_TEMPORAL_WGSL),
     ("ao_composite.wgsl", AO_COMPOSITE_WGSL),
     ("depth_reduce.wgsl", DEPTH_REDUCE_WGSL),
@@ -40,6 +42,9 @@ pub enum AoPass {
     /// Joint bilateral upsampling to full resolution (ao_upsample.wgsl with
     /// ao.wgsl: it traces the pixels no traced texel matches).
     Upsample,
+    /// The pixels the upsample could not match, traced at full resolution
+    /// (ao_retrace.wgsl with ao.wgsl; indirect, from the upsample's queue).
+    Retrace,
     /// Reprojection and exponential accumulation (ao_temporal.wgsl).
     Temporal,
     /// Colour × V into the frame's target (ao_composite.wgsl).
@@ -47,7 +52,8 @@ pub enum AoPass {
 }
 
 impl AoPass {
-    pub const ALL: [AoPass; 4] = [AoPass::Trace, AoPass::Upsample, AoPass::Temporal, AoPass::Composite];
+    pub const ALL: [AoPass; 5] =
+        [AoPass::Trace, AoPass::Upsample, AoPass::Retrace, AoPass::Temporal, AoPass::Composite];
 
     /// The entry point: a compute one for the passes that write a texture of
     /// their own, the fragment one of a full-screen triangle (`vs_fullscreen`)
@@ -56,6 +62,7 @@ impl AoPass {
         match self {
             AoPass::Trace => "cs_trace",
             AoPass::Upsample => "cs_upsample",
+            AoPass::Retrace => "cs_retrace",
             AoPass::Temporal => "cs_temporal",
             AoPass::Composite => "fs_composite",
         }
@@ -63,7 +70,7 @@ impl AoPass {
 
     /// The passes that run only with AO on (the composite runs without it
     /// too): their GPU time is what the AO costs a frame.
-    pub const AO_ONLY: [AoPass; 3] = [AoPass::Trace, AoPass::Upsample, AoPass::Temporal];
+    pub const AO_ONLY: [AoPass; 4] = [AoPass::Trace, AoPass::Upsample, AoPass::Retrace, AoPass::Temporal];
 
     /// Whether a timed pass's label is one of [`AoPass::AO_ONLY`].
     pub fn is_ao_only_label(label: &str) -> bool {
@@ -88,6 +95,10 @@ impl AoPass {
                 let upsample =
                     dev_source("ao_upsample.wgsl").unwrap_or(std::borrow::Cow::Borrowed(AO_UPSAMPLE_WGSL));
                 format!("{FRAME_WGSL}\n{SCREEN_WGSL}\n{ao}\n{upsample}")
+            }
+            AoPass::Retrace => {
+                let (ao, _) = trace_sources();
+                format!("{FRAME_WGSL}\n{SCREEN_WGSL}\n{ao}\n{AO_RETRACE_WGSL}")
             }
             AoPass::Temporal => format!("{FRAME_WGSL}\n{SCREEN_WGSL}\n{AO_TEMPORAL_WGSL}"),
             AoPass::Composite => format!("{FRAME_WGSL}\n{SCREEN_WGSL}\n{AO_COMPOSITE_WGSL}"),
