@@ -8,8 +8,10 @@
 //!   bilaterally stays close to the full-resolution trace; the control, plain
 //!   bilinear upsampling, blurs the wall's dark contact shadow onto the plate;
 //! - a pixel whose surface no traced texel around it shares is traced
-//!   itself: on fins one or two pixels wide it then equals the full-resolution
-//!   trace; the control, the bilateral blend alone, misses those pixels;
+//!   itself: on fins one or two pixels wide it then equals the
+//!   full-resolution trace; the control, the bilateral blend alone, misses
+//!   those pixels; on a comb so dense that more pixels need it than the
+//!   retrace queue holds, more pixels than that come out traced;
 //! - accumulating jittered frames lowers the error against the exact values on
 //!   the sphere on a plane; the control, the same accumulation without jitter,
 //!   averages identical frames and changes nothing;
@@ -51,14 +53,15 @@ fn plate_before_wall() -> AnalyticScene {
     )
 }
 
-/// A comb: thin fins 0.3 deep standing out of a wall, 0.1 apart, seen
-/// head-on. Each fin's front is a line one or two pixels wide, open to the
-/// front (V near 1), between strips of wall deep in the fins' shadow: at half
-/// resolution some of its pixels have no traced texel on a fin at all.
-fn comb_on_wall() -> AnalyticScene {
+/// A comb: `fins` thin fins 0.3 deep standing out of a wall, `spacing`
+/// apart, seen head-on. Each fin's front is a line one or two pixels wide,
+/// open to the front (V near 1), between strips of wall deep in the fins'
+/// shadow: at half resolution some of its pixels have no traced texel on a
+/// fin at all.
+fn comb_on_wall(fins: usize, spacing: f64) -> AnalyticScene {
     let mut shapes = vec![rect([-2.0, -0.5, 0.0], [4.0, 0.0, 0.0], [0.0, 3.0, 0.0])];
-    for i in 0..8 {
-        let x = -0.35 + 0.1 * i as f64;
+    for i in 0..fins {
+        let x = spacing * (i as f64 - 0.5 * (fins - 1) as f64);
         shapes.push(rect([x, 0.5, 0.0], [0.0, 0.0, 0.3], [0.0, 1.0, 0.0]));
     }
     analytic::scene_from_shapes("comb_on_wall", shapes, camera([0.0, 1.0, 2.0], [0.0, 1.0, 0.0]))
@@ -161,52 +164,83 @@ fn bilateral_upsampling_keeps_a_depth_edge_sharp() {
     }
 }
 
-#[test]
-fn pixels_no_traced_texel_matches_are_traced_themselves() {
+/// What the re-tracing upsample does on a comb, against the full-resolution
+/// trace: (edge pixels, those the blend alone missed by > 0.02 that came out
+/// exactly, mean edge error re-tracing, the same for the blend alone, pixels
+/// away from the edges that changed, pixels away from the edges, pixels
+/// anywhere that came out exactly and unlike the blend: the ones traced),
+/// tracing one pixel of each `f`×`f` block.
+fn retrace_on_comb(fins: usize, spacing: f64, f: u32) -> (usize, usize, f64, f64, usize, usize, usize) {
     let store = tempfile::tempdir().unwrap();
-    let scene = comb_on_wall();
+    let scene = comb_on_wall(fins, spacing);
     let dir = build(&scene, store.path());
     // Fixed cones and no interleaving: a pixel traced by the upsample sees
     // exactly the cones the full-resolution trace gave it.
     let fixed = AoSettings { jitter: false, interleave: false, ..AoSettings::default() };
     let full = render(&dir, scene.camera, AoSettings { trace_downscale: 1, ..fixed }, 1);
-    let retrace = render(&dir, scene.camera, AoSettings { trace_downscale: 2, ..fixed }, 1);
+    let retrace = render(&dir, scene.camera, AoSettings { trace_downscale: f, ..fixed }, 1);
     // Control: the same upsample without tracing the pixels it cannot match.
     let blend_only = render(
         &dir,
         scene.camera,
-        AoSettings { trace_downscale: 2, upsample: Upsample::BilateralOnly, ..fixed },
+        AoSettings { trace_downscale: f, upsample: Upsample::BilateralOnly, ..fixed },
         1,
     );
     let edges = depth_edge_pixels(&full, 0.05);
-    assert!(edges.len() > 40, "only {} depth-edge pixels: the scene does not show its edge", edges.len());
     let same_as_full = |out: &RenderOutput, i: usize| (out.ao[i] - full.ao[i]).abs() < 1e-4;
-    // Pixels the blend got wrong that the re-trace got exactly.
     let mended = edges
         .iter()
         .filter(|&&i| same_as_full(&retrace, i) && (blend_only.ao[i] - full.ao[i]).abs() > 0.02)
         .count();
     let retrace_error = mean_abs_difference(&retrace, &full, &edges);
     let blend_error = mean_abs_difference(&blend_only, &full, &edges);
+    let interior: Vec<usize> =
+        (0..full.ao.len()).filter(|&i| full.ao[i].is_finite() && !edges.contains(&i)).collect();
+    let moved = interior.iter().filter(|&&i| (retrace.ao[i] - blend_only.ao[i]).abs() > 1e-6).count();
+    let traced = (0..full.ao.len())
+        .filter(|&i| {
+            full.ao[i].is_finite()
+                && same_as_full(&retrace, i)
+                && (retrace.ao[i] - blend_only.ao[i]).abs() > 1e-6
+        })
+        .count();
     println!(
-        "{} edge pixels: mean |V(1/2 res) − V(full res)|: re-tracing {retrace_error:.4}, blend only {blend_error:.4}; \
-         {mended} pixels the blend missed by > 0.02 traced exactly",
-        edges.len()
+        "1/{f} resolution, {traced} pixels traced by the upsample; {fins} fins {spacing} apart, {} edge pixels: mean |V(1/{f} res) − V(full res)|: re-tracing {retrace_error:.4}, \
+         blend only {blend_error:.4}; {mended} pixels the blend missed by > 0.02 traced exactly; \
+         {moved} of {} pixels away from the edges changed",
+        edges.len(),
+        interior.len()
     );
+    (edges.len(), mended, retrace_error, blend_error, moved, interior.len(), traced)
+}
+
+#[test]
+fn pixels_no_traced_texel_matches_are_traced_themselves() {
+    let (edges, mended, retrace_error, blend_error, moved, interior, _) = retrace_on_comb(8, 0.1, 2);
+    assert!(edges > 40, "only {edges} depth-edge pixels: the scene does not show its edge");
     assert!(mended >= 5, "only {mended} edge pixels were traced where the blend could not match them");
     assert!(
         retrace_error < 0.8 * blend_error,
         "re-tracing ({retrace_error:.4}) should follow the full-resolution trace at the edge better than the blend alone ({blend_error:.4})"
     );
     // Away from the edges the two agree: only unmatched pixels are traced.
-    let interior: Vec<usize> =
-        (0..full.ao.len()).filter(|&i| full.ao[i].is_finite() && !edges.contains(&i)).collect();
-    let moved = interior.iter().filter(|&&i| (retrace.ao[i] - blend_only.ao[i]).abs() > 1e-6).count();
     assert!(
-        moved * 10 < interior.len(),
-        "{moved} of {} pixels away from the depth edges changed: the upsample traces more than the pixels it cannot match",
-        interior.len()
+        moved * 10 < interior,
+        "{moved} of {interior} pixels away from the depth edges changed: the upsample traces more than the pixels it cannot match"
     );
+}
+
+/// A comb so dense that more pixels need tracing than the retrace queue
+/// holds (one pixel in 8): the upsample traces the rest itself.
+#[test]
+fn pixels_past_the_retrace_queue_are_traced_too() {
+    let (_, _, retrace_error, blend_error, .., traced) = retrace_on_comb(49, 0.05, 4);
+    let room = (WIDTH * HEIGHT).div_ceil(8) as usize;
+    assert!(
+        traced > room,
+        "{traced} pixels came out traced; the queue holds {room}, so none was traced past it"
+    );
+    assert!(retrace_error < 0.8 * blend_error, "re-tracing {retrace_error:.4}, blend only {blend_error:.4}");
 }
 
 #[test]
