@@ -59,8 +59,9 @@ pub fn target_bytes(width: u32, height: u32, downscale: u32) -> u64 {
 const RETRACE_HEADER: u64 = 16;
 /// Where the indirect dispatch's arguments start in the queue.
 const RETRACE_DISPATCH_OFFSET: u64 = 4;
-/// Workgroup size of the retrace pass (ao_retrace.wgsl).
-pub const RETRACE_WORKGROUP: u32 = 64;
+/// Workgroup size of the retrace pass (ao_retrace.wgsl), and how many queued
+/// pixels the upsample counts a workgroup for (ao_upsample.wgsl).
+const RETRACE_WORKGROUP: u32 = 64;
 
 /// Bytes of the retrace queue: room for one pixel in 8 (an image whose
 /// edges need more traces the rest in the upsample pass itself).
@@ -651,5 +652,36 @@ impl AoPasses {
     /// every pixel's AO has its N frames.
     pub fn accumulating(&self) -> bool {
         self.accumulating
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_retrace_shaders_agree_on_the_workgroup_and_the_queue() {
+        let retrace = crate::shaders::AO_RETRACE_WGSL;
+        let upsample = crate::shaders::AO_UPSAMPLE_WGSL;
+        assert!(retrace.contains(&format!("@workgroup_size({RETRACE_WORKGROUP})")));
+        assert!(upsample.contains(&format!("slot % {RETRACE_WORKGROUP}u == 0u")));
+        // The header: count, then the dispatch's x, y, z, as both structs lay it out.
+        for wgsl in [retrace, upsample] {
+            let header: Vec<&str> = wgsl
+                .lines()
+                .map(str::trim)
+                .skip_while(|l| !l.starts_with("struct Retrace"))
+                .skip(1)
+                .filter(|l| !l.starts_with("//"))
+                .take(4)
+                .map(|l| l.split(':').next().unwrap_or(""))
+                .collect();
+            assert_eq!(header, ["count", "groups", "groups_y", "groups_z"], "{wgsl}");
+        }
+        assert_eq!(RETRACE_HEADER, 16);
+        assert_eq!(RETRACE_DISPATCH_OFFSET, 4);
+        // Room for one pixel in 8, and never less than one workgroup.
+        assert_eq!(retrace_queue_bytes((1920, 1080)), 16 + 4 * 259_200);
+        assert_eq!(retrace_queue_bytes((4, 4)), 16 + 4 * 64);
     }
 }
