@@ -307,27 +307,13 @@ fn pass_texture_count(pass: AoPass) -> u32 {
     }
 }
 
-/// A storage buffer binding of group 1.
-fn queue_entry(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
-    wgpu::BindGroupLayoutEntry {
-        binding,
-        visibility: wgpu::ShaderStages::COMPUTE,
-        ty: wgpu::BindingType::Buffer {
-            ty: wgpu::BufferBindingType::Storage { read_only },
-            has_dynamic_offset: false,
-            min_binding_size: None,
-        },
-        count: None,
-    }
-}
-
 /// Group 1 of a pass: its textures, the retrace pass's queue (read), the
 /// storage texture a compute pass writes, the upsample's queue (written).
 fn pass_layout_entries(pass: AoPass, stage: wgpu::ShaderStages) -> Vec<wgpu::BindGroupLayoutEntry> {
     let inputs = pass_texture_count(pass);
     let mut entries: Vec<_> = (0..inputs).map(|b| texture_entry(b, stage)).collect();
     if pass == AoPass::Retrace {
-        entries.push(queue_entry(entries.len() as u32, true));
+        entries.push(crate::expand::storage_entry(entries.len() as u32, true, 0));
     }
     if let Some(format) = pass_output_format(pass) {
         entries.push(wgpu::BindGroupLayoutEntry {
@@ -342,7 +328,7 @@ fn pass_layout_entries(pass: AoPass, stage: wgpu::ShaderStages) -> Vec<wgpu::Bin
         });
     }
     if pass == AoPass::Upsample {
-        entries.push(queue_entry(entries.len() as u32, false));
+        entries.push(crate::expand::storage_entry(entries.len() as u32, false, 0));
     }
     entries
 }

@@ -77,7 +77,8 @@ pub struct Expander {
     layout: wgpu::BindGroupLayout,
 }
 
-fn storage_entry(binding: u32, read_only: bool, min: u64) -> wgpu::BindGroupLayoutEntry {
+/// A compute pass's storage buffer binding; `min` 0: no minimum size.
+pub(crate) fn storage_entry(binding: u32, read_only: bool, min: u64) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,
         visibility: wgpu::ShaderStages::COMPUTE,

@@ -92,8 +92,8 @@ impl AoPass {
             }
             AoPass::Upsample => {
                 let (ao, _) = trace_sources();
-                let upsample =
-                    dev_source("ao_upsample.wgsl").unwrap_or(std::borrow::Cow::Borrowed(AO_UPSAMPLE_WGSL));
+                let upsample = dev_file("ao_upsample.wgsl", false)
+                    .unwrap_or(std::borrow::Cow::Borrowed(AO_UPSAMPLE_WGSL));
                 format!("{FRAME_WGSL}\n{SCREEN_WGSL}\n{ao}\n{upsample}")
             }
             AoPass::Retrace => {
@@ -120,32 +120,24 @@ pub const DEV_AO_WGSL_ENV: &str = "VOXSTREAM_DEV_AO_WGSL";
 /// [`DEV_AO_WGSL_ENV`]'s directory (a file that cannot be read is a panic
 /// naming it: a developer asked for it).
 fn trace_sources() -> (std::borrow::Cow<'static, str>, std::borrow::Cow<'static, str>) {
-    #[cfg(not(target_arch = "wasm32"))]
-    if let Some(dir) = std::env::var_os(DEV_AO_WGSL_ENV) {
-        let read = |name: &str| {
-            let path = std::path::Path::new(&dir).join(name);
-            std::borrow::Cow::Owned(
-                std::fs::read_to_string(&path)
-                    .unwrap_or_else(|e| panic!("{DEV_AO_WGSL_ENV}: reading {}: {e}", path.display())),
-            )
-        };
-        return (read("ao.wgsl"), read("ao_trace.wgsl"));
-    }
-    (std::borrow::Cow::Borrowed(AO_WGSL), std::borrow::Cow::Borrowed(AO_TRACE_WGSL))
+    let read = |name, built_in| dev_file(name, true).unwrap_or(std::borrow::Cow::Borrowed(built_in));
+    (read("ao.wgsl", AO_WGSL), read("ao_trace.wgsl", AO_TRACE_WGSL))
 }
 
-/// `name` from [`DEV_AO_WGSL_ENV`]'s directory, where it holds that file.
-fn dev_source(name: &str) -> Option<std::borrow::Cow<'static, str>> {
+/// `name` from [`DEV_AO_WGSL_ENV`]'s directory (native builds, with the
+/// variable set): always when `required`, else where the directory holds
+/// it. A file that cannot be read is a panic naming it.
+fn dev_file(name: &str, required: bool) -> Option<std::borrow::Cow<'static, str>> {
     #[cfg(not(target_arch = "wasm32"))]
     if let Some(dir) = std::env::var_os(DEV_AO_WGSL_ENV) {
         let path = std::path::Path::new(&dir).join(name);
-        if path.is_file() {
+        if required || path.is_file() {
             let text = std::fs::read_to_string(&path)
                 .unwrap_or_else(|e| panic!("{DEV_AO_WGSL_ENV}: reading {}: {e}", path.display()));
             return Some(std::borrow::Cow::Owned(text));
         }
     }
-    let _ = name;
+    let _ = (name, required);
     None
 }
 
@@ -158,7 +150,7 @@ pub fn expand_module_source() -> &'static str {
 /// voxel.wgsl in [`DEV_AO_WGSL_ENV`]'s directory where it holds one (the
 /// shading's negative controls; ao.wgsl and ao_trace.wgsl must be there too).
 pub fn voxel_module_source() -> String {
-    let voxel = dev_source("voxel.wgsl").unwrap_or(std::borrow::Cow::Borrowed(VOXEL_WGSL));
+    let voxel = dev_file("voxel.wgsl", false).unwrap_or(std::borrow::Cow::Borrowed(VOXEL_WGSL));
     format!("{FRAME_WGSL}\n{voxel}")
 }
 
