@@ -11,6 +11,7 @@
 use std::collections::BTreeMap;
 use std::fs;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
@@ -234,6 +235,27 @@ pub struct Catalog {
     /// The manifest and `scene.json` bytes each bucket scene was loaded from, to tell a replaced
     /// (or renamed) scene on re-listing.
     manifests: Mutex<BTreeMap<String, (Bytes, Option<Bytes>)>>,
+    /// Counts this replica's deletes and renames of bucket scenes.
+    edits_made: AtomicU64,
+    /// The count at which each id was last dropped by a delete or rename here: a bucket load that
+    /// began before that read a manifest that is gone, and must not put the scene back.
+    forgotten: Mutex<BTreeMap<String, u64>>,
+}
+
+/// What one read of a bucket scene found.
+enum BucketRead {
+    Missing,
+    /// The manifest and `scene.json` this replica already serves.
+    Unchanged,
+    Loaded(SceneRead),
+}
+
+/// A scene read from the bucket, not yet served.
+struct SceneRead {
+    scene: Arc<LoadedScene>,
+    seen: (Bytes, Option<Bytes>),
+    /// [`Catalog::edits_made`] when the read began.
+    edits_before: u64,
 }
 
 impl Catalog {
@@ -262,6 +284,8 @@ impl Catalog {
                 .time_to_live(UNKNOWN_ID_RECHECK)
                 .build(),
             manifests: Mutex::new(BTreeMap::new()),
+            edits_made: AtomicU64::new(0),
+            forgotten: Mutex::new(BTreeMap::new()),
         }
     }
 
@@ -318,13 +342,23 @@ impl Catalog {
     }
 
     /// Loads (or reloads) scene `id` from the bucket when its manifest differs from the one loaded.
-    /// `Ok(false)`: the scene has no manifest.
+    /// `Ok(false)`: the scene has no manifest, or a delete or rename here dropped it while it loaded.
     async fn load_from_bucket(&self, bucket: &Arc<BucketStore>, id: &str) -> Result<bool, String> {
-        let Some(bytes) = bucket.manifest(id).await? else { return Ok(false) };
+        match self.read_from_bucket(bucket, id).await? {
+            BucketRead::Missing => Ok(false),
+            BucketRead::Unchanged => Ok(true),
+            BucketRead::Loaded(read) => Ok(self.install(read)),
+        }
+    }
+
+    /// Reads scene `id` from the bucket, noting how many edits this replica had made when it began.
+    async fn read_from_bucket(&self, bucket: &Arc<BucketStore>, id: &str) -> Result<BucketRead, String> {
+        let edits_before = self.edits_made.load(Ordering::SeqCst);
+        let Some(bytes) = bucket.manifest(id).await? else { return Ok(BucketRead::Missing) };
         let info_bytes = bucket.optional(&format!("{id}/{BUILD_INFO_FILE}")).await?;
         let seen = (bytes.clone(), info_bytes.clone());
         if self.manifests.lock().expect("manifest lock").get(id) == Some(&seen) {
-            return Ok(true);
+            return Ok(BucketRead::Unchanged);
         }
         // A damaged scene.json only loses the display name, as on a local store.
         let info: BuildInfo =
@@ -342,11 +376,24 @@ impl Catalog {
             manifest,
             index: Arc::new(PagedIndex::new(index)),
         };
-        let loaded = Arc::new(LoadedScene::load_with(stored, info));
-        self.scenes.write().expect("catalog lock").insert(id.to_string(), loaded);
-        self.manifests.lock().expect("manifest lock").insert(id.to_string(), seen);
+        let scene = Arc::new(LoadedScene::load_with(stored, info));
+        Ok(BucketRead::Loaded(SceneRead { scene, seen, edits_before }))
+    }
+
+    /// Serves what [`Catalog::read_from_bucket`] read, unless a delete or rename here dropped the
+    /// id after the read began (its manifest may be gone already; the scene would come back).
+    fn install(&self, read: SceneRead) -> bool {
+        let id = read.scene.stored.id.clone();
+        let mut scenes = self.scenes.write().expect("catalog lock");
+        let dropped_since =
+            self.forgotten.lock().expect("forgotten lock").get(&id).is_some_and(|&at| at > read.edits_before);
+        if dropped_since {
+            return false;
+        }
+        scenes.insert(id.clone(), read.scene);
+        self.manifests.lock().expect("manifest lock").insert(id.clone(), read.seen);
         tracing::info!(scene = %id, "scene loaded from the bucket");
-        Ok(true)
+        true
     }
 
     /// Loads scene `id` from the bucket now (a build on this replica just published it).
@@ -506,7 +553,10 @@ impl Catalog {
     /// Drops scene `id` from this replica's catalog at once (the others drop it at their next
     /// listing, when its manifest is gone).
     fn forget(&self, id: &str) {
-        self.scenes.write().expect("catalog lock").remove(id);
+        let mut scenes = self.scenes.write().expect("catalog lock");
+        let at = self.edits_made.fetch_add(1, Ordering::SeqCst) + 1;
+        self.forgotten.lock().expect("forgotten lock").insert(id.to_string(), at);
+        scenes.remove(id);
         self.manifests.lock().expect("manifest lock").remove(id);
     }
 
@@ -663,6 +713,56 @@ fn written_by_other_live_process(name: &str) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A replica's own delete or rename drops the id while a listing (or a lookup) is between
+    /// reading the manifest and serving the scene: that load must not put the scene back.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_load_that_began_before_a_delete_does_not_bring_the_scene_back() {
+        use crate::objstore::Bucket;
+        use crate::pipeline::{BuildOptions, Resolution, build_scene};
+        use object_store::ObjectStore;
+
+        let dir = tempfile::tempdir().unwrap();
+        let koala = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/koala.obj");
+        let opts = BuildOptions { resolution: Resolution::Explicit(64), ..Default::default() };
+        let id = build_scene(&koala, &dir.path().join("store"), &opts).unwrap().id;
+        let manifest = fs::read(dir.path().join("store").join(&id).join("manifest.json")).unwrap();
+        let memory = Arc::new(object_store::memory::InMemory::new());
+        let path = object_store::path::Path::from(format!("scenes/{id}/manifest.json"));
+        memory.put(&path, manifest.into()).await.unwrap();
+        let bucket = Bucket {
+            store: memory,
+            bucket: "test".into(),
+            prefix: "scenes".into(),
+            endpoint: "memory".into(),
+        };
+        let bucket = Arc::new(BucketStore::new(bucket, 1 << 20));
+        let catalog = Catalog::open_bucket(bucket.clone(), dir.path()).await.unwrap();
+        assert!(catalog.get(&id).is_some(), "the listing serves the scene");
+
+        // Control: a read with no edit in between is served.
+        catalog.forget(&id);
+        let BucketRead::Loaded(read) = catalog.read_from_bucket(&bucket, &id).await.unwrap() else {
+            panic!("the manifest is there and not served")
+        };
+        assert!(catalog.install(read));
+        assert!(catalog.get(&id).is_some());
+
+        // The race: the read began, then this replica deleted the scene.
+        let BucketRead::Unchanged = catalog.read_from_bucket(&bucket, &id).await.unwrap() else {
+            panic!("the same manifest reads as unchanged")
+        };
+        catalog.manifests.lock().unwrap().clear();
+        let BucketRead::Loaded(stale) = catalog.read_from_bucket(&bucket, &id).await.unwrap() else {
+            panic!("a forgotten manifest reads again")
+        };
+        catalog.forget(&id);
+        assert!(!catalog.install(stale), "a load older than the delete is dropped");
+        assert!(catalog.get(&id).is_none(), "the deleted scene came back");
+        // A load that begins after the delete (a rebuild under the same id) is served.
+        assert!(catalog.reload(&id).await.unwrap());
+        assert!(catalog.get(&id).is_some());
+    }
 
     #[test]
     fn stale_dirs_of_dead_processes_are_removed() {
