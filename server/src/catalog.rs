@@ -315,6 +315,9 @@ impl Catalog {
     /// listing itself.
     pub async fn relist(&self) -> Result<(), String> {
         let SceneStore::Bucket(bucket) = &self.scenes_at else { return Ok(()) };
+        // What was served before the listing: only those entries can be dropped for missing from
+        // it (a scene this replica publishes or renames to meanwhile is newer than the listing).
+        let before = self.scenes.read().expect("catalog lock").clone();
         let ids = bucket.list_ids().await?;
         let mut seen = Vec::new();
         for id in ids {
@@ -329,16 +332,21 @@ impl Catalog {
                 }
             }
         }
-        let gone: Vec<String> = {
-            let scenes = self.scenes.read().expect("catalog lock");
-            scenes.keys().filter(|id| !seen.contains(id)).cloned().collect()
-        };
-        for id in gone {
-            tracing::info!(scene = %id, "scene no longer in the bucket");
-            self.scenes.write().expect("catalog lock").remove(&id);
-            self.manifests.lock().expect("manifest lock").remove(&id);
-        }
+        self.drop_unlisted(&before, &seen);
         Ok(())
+    }
+
+    /// Drops the scenes of `before` (what was served when a listing began) that the listing did
+    /// not see, unless a newer load replaced them meanwhile.
+    fn drop_unlisted(&self, before: &BTreeMap<String, Arc<LoadedScene>>, seen: &[String]) {
+        let mut scenes = self.scenes.write().expect("catalog lock");
+        for (id, old) in before.iter().filter(|(id, _)| !seen.contains(id)) {
+            if scenes.get(id).is_some_and(|now| Arc::ptr_eq(now, old)) {
+                tracing::info!(scene = %id, "scene no longer in the bucket");
+                scenes.remove(id);
+                self.manifests.lock().expect("manifest lock").remove(id);
+            }
+        }
     }
 
     /// Loads (or reloads) scene `id` from the bucket when its manifest differs from the one loaded.
@@ -717,7 +725,7 @@ mod tests {
     /// A replica's own delete or rename drops the id while a listing (or a lookup) is between
     /// reading the manifest and serving the scene: that load must not put the scene back.
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-    async fn a_load_that_began_before_a_delete_does_not_bring_the_scene_back() {
+    async fn loads_and_listings_older_than_an_edit_here_do_not_undo_it() {
         use crate::objstore::Bucket;
         use crate::pipeline::{BuildOptions, Resolution, build_scene};
         use object_store::ObjectStore;
@@ -762,6 +770,17 @@ mod tests {
         // A load that begins after the delete (a rebuild under the same id) is served.
         assert!(catalog.reload(&id).await.unwrap());
         assert!(catalog.get(&id).is_some());
+
+        // A listing that began before this replica published the id again (so did not see it)
+        // leaves the newer load served; control: the entry it began with is dropped.
+        let before = catalog.scenes.read().unwrap().clone();
+        catalog.forget(&id);
+        assert!(catalog.reload(&id).await.unwrap());
+        catalog.drop_unlisted(&before, &[]);
+        assert!(catalog.get(&id).is_some(), "a listing older than the publish dropped it");
+        let before = catalog.scenes.read().unwrap().clone();
+        catalog.drop_unlisted(&before, &[]);
+        assert!(catalog.get(&id).is_none(), "an unlisted scene stays served");
     }
 
     #[test]
