@@ -110,8 +110,15 @@ fn axis_masks(depth: u32) -> [u32; 3] {
     [x, x << 1, x << 2]
 }
 
-/// Face masks predicted from occupancy alone: a face is exposed when the
-/// neighbour across it is outside the block or not occupied.
+/// The face masks the codec predicts for a 64³ block's voxels (Morton codes,
+/// strictly increasing) from their occupancy alone: a face is exposed when
+/// the neighbour across it is outside the block or not occupied. Bit 2a is
+/// the negative side of axis a, 2a + 1 the positive.
+pub fn predicted_face_masks(morton: &[u32]) -> Vec<u8> {
+    predicted_faces(BLOCK_DEPTH, morton)
+}
+
+/// [`predicted_face_masks`] at any depth.
 fn predicted_faces(depth: u32, morton: &[u32]) -> Vec<u8> {
     let mut occupied = vec![0u64; (1usize << (3 * depth)).div_ceil(64)];
     for &m in morton {
@@ -152,8 +159,10 @@ fn write_octree_masks(depth: u32, morton: &[u32], out: &mut Vec<u8>) {
     debug_assert!((1..=7).contains(&depth) && morton.windows(2).all(|w| w[0] < w[1]));
     let Some(&first) = morton.first() else { return };
     let depth = depth as usize;
-    // Masks of the nodes at each depth (0 = the root).
-    let mut levels: [Vec<u8>; 7] = Default::default();
+    // Masks of the nodes at each depth (0 = the root); depth d has at most
+    // 8^d nodes and one per voxel, so none grows.
+    let mut levels: [Vec<u8>; 7] =
+        std::array::from_fn(|d| Vec::with_capacity(morton.len().min(1 << (3 * d))));
     let child_at = |m: u32, d: usize| (m >> (3 * (depth - 1 - d))) & 7;
     for (d, level) in levels.iter_mut().enumerate().take(depth) {
         level.push(1 << child_at(first, d));
@@ -174,10 +183,14 @@ fn write_octree_masks(depth: u32, morton: &[u32], out: &mut Vec<u8>) {
     }
 }
 
-fn delta_plane(values: impl Iterator<Item = u8>, out: &mut Vec<u8>) {
+/// Appends each value less the one before it (the first less 0), wrapping.
+fn delta_plane(values: impl ExactSizeIterator<Item = u8>, out: &mut Vec<u8>) {
+    let start = out.len();
+    // Written in place rather than pushed: no capacity check a byte.
+    out.resize(start + values.len(), 0);
     let mut prev = 0u8;
-    for v in values {
-        out.push(v.wrapping_sub(prev));
+    for (o, v) in out[start..].iter_mut().zip(values) {
+        *o = v.wrapping_sub(prev);
         prev = v;
     }
 }
@@ -221,7 +234,7 @@ impl VoxelColumns {
         let n = self.len();
         let occupancy = octree_masks(self.depth, &self.morton);
         let mut faces = Vec::with_capacity(n);
-        self.write_faces(false, &mut faces);
+        self.write_faces(None, &mut faces);
         let mut normals = Vec::with_capacity(2 * n);
         self.write_normals(&mut normals);
         let mut colors = Vec::with_capacity(3 * self.color.len());
@@ -232,20 +245,20 @@ impl VoxelColumns {
     }
 
     /// The faces column: each mask XOR the mask predicted from occupancy.
-    /// `predicted`: the caller knows every mask equals its prediction (a
-    /// level-0 block whose faces were marked over exactly these voxels), so
-    /// the column is zeros and the neighbour lookups are skipped.
-    fn write_faces(&self, predicted: bool, out: &mut Vec<u8>) {
-        if predicted {
-            debug_assert_eq!(
-                self.faces,
-                predicted_faces(self.depth, &self.morton),
-                "faces are not the prediction"
-            );
-            out.resize(out.len() + self.len(), 0);
-        } else {
-            let p = predicted_faces(self.depth, &self.morton);
-            out.extend(self.faces.iter().zip(p).map(|(f, p)| f ^ p));
+    /// `prediction`: the caller's copy of that prediction (one mask a voxel,
+    /// as [`predicted_face_masks`] gives), which spares the codec the
+    /// neighbour lookups; `None`: the codec predicts.
+    fn write_faces(&self, prediction: Option<&[u8]>, out: &mut Vec<u8>) {
+        match prediction {
+            Some(p) => {
+                assert_eq!(p.len(), self.len(), "one predicted mask a voxel");
+                debug_assert_eq!(p, predicted_faces(self.depth, &self.morton), "not the prediction");
+                out.extend(self.faces.iter().zip(p).map(|(f, p)| f ^ p));
+            }
+            None => {
+                let p = predicted_faces(self.depth, &self.morton);
+                out.extend(self.faces.iter().zip(p).map(|(f, p)| f ^ p));
+            }
         }
     }
 
@@ -261,14 +274,14 @@ impl VoxelColumns {
     }
 
     /// Appends the uncompressed payload (the sections in order) to `out`;
-    /// `faces_predicted` as in [`Self::write_faces`].
-    fn write_payload(&self, faces_predicted: bool, out: &mut Vec<u8>) {
+    /// `prediction` as in [`Self::write_faces`].
+    fn write_payload(&self, prediction: Option<&[u8]>, out: &mut Vec<u8>) {
         let n = self.len();
         out.reserve(
             n * (4 + self.coverage.len().min(1) + 3 * self.color.len().min(1) + self.field.len().min(1)),
         );
         write_octree_masks(self.depth, &self.morton, out);
-        self.write_faces(faces_predicted, out);
+        self.write_faces(prediction, out);
         self.write_normals(out);
         out.extend_from_slice(&self.coverage);
         self.write_colors(out);
@@ -278,7 +291,7 @@ impl VoxelColumns {
     /// The uncompressed payload.
     pub fn payload(&self) -> Vec<u8> {
         let mut out = Vec::new();
-        self.write_payload(false, &mut out);
+        self.write_payload(None, &mut out);
         out
     }
 
@@ -412,16 +425,16 @@ fn max_payload(count: usize, has_coverage: bool, has_color: bool, has_field: boo
 pub fn encode_block(block: &Block) -> Vec<u8> {
     debug_assert!(block.voxels.windows(2).all(|w| w[0].morton() < w[1].morton()));
     debug_assert!(block.key.level > 0 || block.voxels.iter().all(|v| v.coverage() == FULL_COVERAGE));
-    encode_columns(block.key, &VoxelColumns::from_block(block), false)
+    encode_columns(block.key, &VoxelColumns::from_block(block), None)
 }
 
 /// Encodes a 64³ block given as columns: the bytes of [`encode_block`] for
 /// the block whose [`VoxelColumns::from_block`] they are (Morton codes
 /// strictly increasing, coverage present iff `key.level > 0`, colour empty
-/// or one per voxel). `faces_predicted`: every face mask is the one
-/// predicted from occupancy (true of a level-0 block whose masks were marked
-/// over exactly these voxels), which spares the codec its own prediction.
-pub fn encode_columns(key: BlockKey, columns: &VoxelColumns, faces_predicted: bool) -> Vec<u8> {
+/// or one per voxel). `prediction`: the face masks predicted from these
+/// voxels' occupancy ([`predicted_face_masks`]), when the caller has them
+/// from marking the faces; the codec otherwise works them out itself.
+pub fn encode_columns(key: BlockKey, columns: &VoxelColumns, prediction: Option<&[u8]>) -> Vec<u8> {
     let n = columns.len();
     assert!(columns.depth == BLOCK_DEPTH && n <= BLOCK_VOXELS, "not a 64³ block's columns");
     assert_eq!(
@@ -436,7 +449,7 @@ pub fn encode_columns(key: BlockKey, columns: &VoxelColumns, faces_predicted: bo
             && (columns.field.is_empty() || columns.field.len() == n)
     );
     let mut raw = Vec::new();
-    columns.write_payload(faces_predicted, &mut raw);
+    columns.write_payload(prediction, &mut raw);
     let packed = lz4_flex::block::compress(&raw);
     let flags = if columns.color.is_empty() { 0 } else { FLAG_COLOR }
         | if columns.field.is_empty() { 0 } else { FLAG_FIELD };
@@ -564,8 +577,8 @@ mod tests {
         }
     }
 
-    /// Fails if `encode_columns` with the faces declared predicted differs from
-    /// `encode_block` on a block whose faces are the prediction.
+    /// Fails if `encode_columns` given the prediction differs from
+    /// `encode_block`, on a block whose faces are the prediction and on one whose are not.
     #[test]
     fn predicted_faces_encode_the_same_bytes() {
         // A one-voxel-thick plane: no voxel is buried, so every predicted mask is a valid one.
@@ -577,8 +590,17 @@ mod tests {
             *v = PackedVoxel::new(v.local(), f, v.normal);
         }
         let columns = VoxelColumns::from_block(&block);
-        assert_eq!(encode_columns(block.key, &columns, true), encode_block(&block));
-        assert_eq!(decode_block(&encode_block(&block)), Ok(block));
+        let prediction = predicted_face_masks(&morton);
+        assert_eq!(encode_columns(block.key, &columns, Some(&prediction)), encode_block(&block));
+        assert_eq!(decode_block(&encode_block(&block)), Ok(block.clone()));
+        // Masks that differ from the prediction round-trip through the given one too.
+        for (i, v) in block.voxels.iter_mut().enumerate() {
+            *v = PackedVoxel::new(v.local(), (i % 63 + 1) as u8, v.normal);
+        }
+        let columns = VoxelColumns::from_block(&block);
+        let bytes = encode_columns(block.key, &columns, Some(&prediction));
+        assert_eq!(bytes, encode_block(&block));
+        assert_eq!(decode_block(&bytes), Ok(block));
     }
 
     fn block_from(locals: Vec<Spec>) -> Block {

@@ -17,7 +17,7 @@ mod voxel;
 
 pub use codec::{
     BLOCK_DEPTH, BLOCK_MAGIC, CodecError, ColumnSizes, FLAG_COLOR, FLAG_FIELD, HEADER_LEN, VoxelColumns,
-    decode_block, encode_block, encode_columns,
+    decode_block, encode_block, encode_columns, predicted_face_masks,
 };
 pub use hierarchy::{
     BlockLocation, FinishedHierarchy, HierarchyPage, PAGE_LEVELS, PackRange, PackRef, PageBuilder, PageError,

@@ -26,7 +26,8 @@ use voxstream_format::SourceInfo;
 use crate::pipeline::bin::StreamSink;
 use crate::pipeline::progress::{Progress, ProgressSink, Stage};
 use crate::pipeline::pyramid::{
-    FULL_LOD_BLOCK_BYTES, LodBlock, LodVoxel, Pyramid, level_count, mark_exposed_faces_lod, parent_share,
+    DrawnBlock, FULL_LOD_BLOCK_BYTES, LodVoxel, Pyramid, drop_buried, hide_covered_faces, level_count,
+    mark_exposed_faces_lod, parent_share,
 };
 use crate::pipeline::read::{IngestError, ReadOptions};
 use crate::pipeline::stream::ChunkStore;
@@ -400,12 +401,10 @@ fn level0_block(
     };
     mark_exposed_faces_lod(&mut block);
     let share = if levels > 1 { parent_share(&block) } else { Vec::new() };
-    let marked = block.voxels.len();
-    block.voxels.retain(|v| v.voxel.faces != 0);
-    // With no buried voxel dropped, every mask is the codec's own prediction.
-    let encode =
-        if block.voxels.len() == marked { write::encode_marked_entry } else { write::encode_entry_field };
-    let encoded = (!block.voxels.is_empty()).then(|| encode(&block, field));
+    let exposed = hide_covered_faces(&mut block);
+    let prediction = drop_buried(&mut block, exposed);
+    let drawn = DrawnBlock { block, prediction };
+    let encoded = (!drawn.block.voxels.is_empty()).then(|| write::encode_drawn_entry(&drawn, field));
     Ok(Some(Level0 { key, share, encoded }))
 }
 
@@ -458,14 +457,14 @@ impl WriteQueue<'_> {
     }
 
     /// Queues a coarse block the pyramid completed, encoding it on the pool when its bytes fit.
-    fn push_coarse(&mut self, b: LodBlock) -> Result<(), BuildError> {
-        let held = b.voxels.capacity() * std::mem::size_of::<LodVoxel>()
-            + b.voxels.len() * ENCODE_BYTES_PER_VOXEL
+    fn push_coarse(&mut self, b: DrawnBlock) -> Result<(), BuildError> {
+        let held = b.block.voxels.capacity() * std::mem::size_of::<LodVoxel>()
+            + b.block.voxels.len() * ENCODE_BYTES_PER_VOXEL
             + ENTRY_BYTES;
         if !self.reserve(held) {
             self.write_ready(true)?;
             if !self.reserve(held) {
-                let encoded = write::encode_entry_field(&b, self.field.as_deref());
+                let encoded = write::encode_drawn_entry(&b, self.field.as_deref());
                 drop(b);
                 return self.push_ready(Some(encoded), 0);
             }
@@ -474,7 +473,7 @@ impl WriteQueue<'_> {
         let field = self.field.clone();
         rayon::spawn(move || {
             let _ = tx.send(std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                write::encode_entry_field(&b, field.as_deref())
+                write::encode_drawn_entry(&b, field.as_deref())
             })));
         });
         self.queue.push_back(Queued::Encoding(rx, held));

@@ -882,17 +882,18 @@ pub fn for_each_touched_voxel(
         by_v[(cv - lo[v]) as usize] = sat.w_interval([u, 3 + u, 6 + u], v, w, centre(cv, v), len_w);
     }
     let k = 9; // the plane normal
+    let len_v = (hi[v] - lo[v] + 1) as usize;
     for cu in lo[u]..=hi[u] {
         let mu = centre(cu, u);
         let (u_first, u_last) = sat.w_interval([v, 3 + v, 6 + v], u, w, mu, len_w);
         if u_first > u_last {
             continue;
         }
-        for cv in lo[v]..=hi[v] {
+        // The column axes' `d` is monotone in cv as the others are in cw: the
+        // columns that pass are one run, found from its ends.
+        let (v_lo, v_hi) = passing_run(len_v, |iv| sat.column_passes(column, u, v, mu, iv as f64 + 0.5));
+        for cv in lo[v] + v_lo as i64..=lo[v] + v_hi as i64 {
             let mv = centre(cv, v);
-            if !sat.column_passes(column, u, v, mu, mv) {
-                continue;
-            }
             let (v_first, v_last) = by_v[(cv - lo[v]) as usize];
             let (w0, w1) = slab(cu, cv);
             // In `lo[w]`-relative indices, where both intervals live.
@@ -973,6 +974,24 @@ impl PlaneSlab {
 const SMALL: usize = 4;
 const _: () = assert!(SMALL * SMALL * SMALL <= 64, "a small box's voxels fit a u64");
 
+/// The closed run of indices below `len` where `passes` holds, given that it
+/// holds on one run (or nowhere: then first > last), found from both ends.
+#[inline]
+fn passing_run(len: usize, passes: impl Fn(usize) -> bool) -> (usize, usize) {
+    let mut first = 0;
+    while first < len && !passes(first) {
+        first += 1;
+    }
+    if first == len {
+        return (1, 0);
+    }
+    let mut last = len - 1;
+    while last > first && !passes(last) {
+        last -= 1;
+    }
+    (first, last)
+}
+
 /// Calls `f` with the index of every set bit of `bits`, lowest first.
 #[inline]
 fn for_each_bit(mut bits: u64, mut f: impl FnMut(usize)) {
@@ -982,13 +1001,22 @@ fn for_each_bit(mut bits: u64, mut f: impl FnMut(usize)) {
     }
 }
 
-/// `floor` without a libm call (the default x86-64 target has no SSE4.1 round);
-/// saturates far outside the grid, where the clamps above take over. The
-/// correction is a 0 or 1, not a branch: its sign is a coin toss.
+/// `floor` without a libm call (the default x86-64 target has no SSE4.1 round)
+/// and, on the grid's range, without the saturating float-to-int conversion's
+/// checks: adding 1.5·2^52 leaves round(x) in the low bits of the sum's
+/// representation (|x| < 2^51, where one ulp of the sum is 1). Outside that
+/// it saturates, where the callers' clamps take over. The correction is a 0 or 1,
+/// not a branch: its sign is a coin toss.
 #[inline]
 fn fast_floor(x: f64) -> i64 {
+    const MAGIC: f64 = 6_755_399_441_055_744.0;
+    if x.abs() < (1u64 << 51) as f64 {
+        let r = (x + MAGIC).to_bits() as i64 - MAGIC.to_bits() as i64;
+        return r - i64::from((r as f64) > x);
+    }
+    // NaN too (to 0, as `as` does).
     let i = x as i64;
-    i - i64::from((i as f64) > x)
+    i.saturating_sub(i64::from((i as f64) > x))
 }
 
 /// Separating-axis test (Akenine-Möller) of a triangle against the closed unit
@@ -1142,19 +1170,7 @@ impl TriangleSat {
     #[inline]
     fn w_interval(&self, ks: [usize; 3], a: usize, w: usize, m: f64, len: usize) -> (usize, usize) {
         let part = ks.map(|k| self.axes[k][a] * m);
-        let passes = |j: usize| self.edge_axes_pass(ks, part, w, j as f64 + 0.5);
-        let mut first = 0;
-        while first < len && !passes(first) {
-            first += 1;
-        }
-        if first == len {
-            return (1, 0);
-        }
-        let mut last = len - 1;
-        while last > first && !passes(last) {
-            last -= 1;
-        }
-        (first, last)
+        passing_run(len, |j| self.edge_axes_pass(ks, part, w, j as f64 + 0.5))
     }
 
     /// Whether the closed (grown) cube at integer corner `c` meets the triangle.
@@ -1199,6 +1215,27 @@ mod tests {
     use super::*;
     use rand::{Rng, SeedableRng, rngs::StdRng};
     use voxstream_format::morton3;
+
+    /// Fails if `fast_floor` differs from `f64::floor` at integers, half-way
+    /// points, a hair either side of them, random values over the grid and
+    /// far beyond it (the saturating path), and at infinities.
+    #[test]
+    fn fast_floor_is_floor() {
+        let mut rng = StdRng::seed_from_u64(7);
+        let mut xs =
+            vec![0.0, -0.0, f64::INFINITY, f64::NEG_INFINITY, 1e300, -1e300, 2f64.powi(51), -(2f64.powi(51))];
+        for i in -70_000i64..70_000 {
+            let x = i as f64;
+            xs.extend([x, x + 0.5, x.next_up(), x.next_down(), (x + 0.5).next_up(), (x + 0.5).next_down()]);
+        }
+        for _ in 0..200_000 {
+            xs.push(rng.random_range(-1e6..1e6));
+            xs.push(rng.random_range(-1e18..1e18));
+        }
+        for x in xs {
+            assert_eq!(fast_floor(x), x.floor() as i64, "floor({x:e})");
+        }
+    }
 
     /// Fails if the table lookup differs from `morton3` anywhere in a block.
     #[test]

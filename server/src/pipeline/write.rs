@@ -36,7 +36,7 @@ use voxstream_format::{
 
 use crate::pipeline::aofield::AoField;
 use crate::pipeline::progress::{ProgressSink, Stage, StageCounter};
-use crate::pipeline::pyramid::{LodBlock, block_morton, level_count, local_position};
+use crate::pipeline::pyramid::{DrawnBlock, LodBlock, block_morton, level_count, local_position};
 use crate::store::{StoreError, io, validate_id};
 
 /// Linear [0, 1] → sRGB8 (the viewer shows colours as stored, like its grey).
@@ -579,24 +579,28 @@ fn page_err(e: PageError) -> StoreError {
 /// page builder fills it in; location still a file: the writer places it)
 /// and its bytes.
 pub fn encode_entry(b: &LodBlock) -> (BlockEntry, Vec<u8>) {
-    encode_entry_with(b, false, None)
+    encode_entry_with(b, None, None)
 }
 
 /// [`encode_entry`] with the AO field's column, when there is a field.
 pub fn encode_entry_field(b: &LodBlock, field: Option<&AoField>) -> (BlockEntry, Vec<u8>) {
-    encode_entry_with(b, false, field)
+    encode_entry_with(b, None, field)
 }
 
-/// [`encode_entry`] for a level-0 block whose face masks were marked over
-/// exactly its voxels (no buried voxel dropped since): each mask is then the
-/// codec's prediction, which it need not compute again.
-pub fn encode_marked_entry(b: &LodBlock, field: Option<&AoField>) -> (BlockEntry, Vec<u8>) {
-    encode_entry_with(b, true, field)
+/// [`encode_entry_field`] for a block whose face masks' prediction the
+/// pyramid already knows ([`super::pyramid::DrawnBlock`]), which spares the
+/// codec its own neighbour lookups.
+pub fn encode_drawn_entry(d: &DrawnBlock, field: Option<&AoField>) -> (BlockEntry, Vec<u8>) {
+    encode_entry_with(&d.block, Some(&d.prediction), field)
 }
 
-fn encode_entry_with(b: &LodBlock, faces_predicted: bool, field: Option<&AoField>) -> (BlockEntry, Vec<u8>) {
+fn encode_entry_with(
+    b: &LodBlock,
+    prediction: Option<&[u8]>,
+    field: Option<&AoField>,
+) -> (BlockEntry, Vec<u8>) {
     let columns = block_columns(b, field);
-    let bytes = encode_columns(b.key, &columns, faces_predicted);
+    let bytes = encode_columns(b.key, &columns, prediction);
     let entry = BlockEntry {
         key: b.key,
         bounds: tight_bounds(b),
