@@ -976,7 +976,9 @@ const _: () = assert!(SMALL * SMALL * SMALL <= 64, "a small box's voxels fit a u
 
 /// The closed run of indices below `len` where `passes` holds, given that it
 /// holds on one run (or nowhere: then first > last), found from both ends.
-#[inline]
+/// Always inlined: called per row with a closure of a few multiplies, a call
+/// per test would cost more than the test.
+#[inline(always)]
 fn passing_run(len: usize, passes: impl Fn(usize) -> bool) -> (usize, usize) {
     let mut first = 0;
     while first < len && !passes(first) {
