@@ -249,17 +249,19 @@ impl VoxelColumns {
     /// as [`predicted_face_masks`] gives), which spares the codec the
     /// neighbour lookups; `None`: the codec predicts.
     fn write_faces(&self, prediction: Option<&[u8]>, out: &mut Vec<u8>) {
-        match prediction {
+        let own;
+        let p = match prediction {
             Some(p) => {
                 assert_eq!(p.len(), self.len(), "one predicted mask a voxel");
                 debug_assert_eq!(p, predicted_faces(self.depth, &self.morton), "not the prediction");
-                out.extend(self.faces.iter().zip(p).map(|(f, p)| f ^ p));
+                p
             }
             None => {
-                let p = predicted_faces(self.depth, &self.morton);
-                out.extend(self.faces.iter().zip(p).map(|(f, p)| f ^ p));
+                own = predicted_faces(self.depth, &self.morton);
+                &own
             }
-        }
+        };
+        out.extend(self.faces.iter().zip(p).map(|(f, p)| f ^ p));
     }
 
     fn write_normals(&self, out: &mut Vec<u8>) {

@@ -26,8 +26,7 @@ use voxstream_format::SourceInfo;
 use crate::pipeline::bin::StreamSink;
 use crate::pipeline::progress::{Progress, ProgressSink, Stage};
 use crate::pipeline::pyramid::{
-    DrawnBlock, FULL_LOD_BLOCK_BYTES, LodVoxel, Pyramid, drop_buried, hide_covered_faces, level_count,
-    mark_exposed_faces_lod, parent_share,
+    DrawnBlock, FULL_LOD_BLOCK_BYTES, LodVoxel, Pyramid, level_count, mark_exposed_faces_lod, parent_share,
 };
 use crate::pipeline::read::{IngestError, ReadOptions};
 use crate::pipeline::stream::ChunkStore;
@@ -401,9 +400,7 @@ fn level0_block(
     };
     mark_exposed_faces_lod(&mut block);
     let share = if levels > 1 { parent_share(&block) } else { Vec::new() };
-    let exposed = hide_covered_faces(&mut block);
-    let prediction = drop_buried(&mut block, exposed);
-    let drawn = DrawnBlock { block, prediction };
+    let drawn = DrawnBlock::new(block);
     let encoded = (!drawn.block.voxels.is_empty()).then(|| write::encode_drawn_entry(&drawn, field));
     Ok(Some(Level0 { key, share, encoded }))
 }

@@ -447,11 +447,19 @@ pub struct DrawnBlock {
     pub prediction: Vec<u8>,
 }
 
-/// Hides covered faces, drops buried voxels and emits the block if any voxel is left.
-fn emit_drawn<E>(mut block: LodBlock, emit: &mut impl FnMut(DrawnBlock) -> Result<(), E>) -> Result<(), E> {
-    let exposed = hide_covered_faces(&mut block);
-    let prediction = drop_buried(&mut block, exposed);
-    if block.voxels.is_empty() { Ok(()) } else { emit(DrawnBlock { block, prediction }) }
+impl DrawnBlock {
+    /// Hides `block`'s covered faces and drops its buried voxels (level 0: faces marked).
+    pub fn new(mut block: LodBlock) -> Self {
+        let exposed = hide_covered_faces(&mut block);
+        let prediction = drop_buried(&mut block, exposed);
+        Self { block, prediction }
+    }
+}
+
+/// Emits the block drawn ([`DrawnBlock::new`]) if any voxel is left.
+fn emit_drawn<E>(block: LodBlock, emit: &mut impl FnMut(DrawnBlock) -> Result<(), E>) -> Result<(), E> {
+    let drawn = DrawnBlock::new(block);
+    if drawn.block.voxels.is_empty() { Ok(()) } else { emit(drawn) }
 }
 
 /// A level-0 block's share of its parent (faces marked, buried voxels still
@@ -550,6 +558,14 @@ mod tests {
             .collect();
         voxels.sort_by_key(|v| v.morton);
         SparseBlock { key, voxels }
+    }
+
+    /// A solid ball of radius 22 about (40, 40, 40): buried voxels inside, a skirt where it meets the block's faces.
+    fn solid_ball() -> Vec<[u32; 3]> {
+        (0..64u32)
+            .flat_map(|z| (0..64u32).flat_map(move |y| (0..64u32).map(move |x| [x, y, z])))
+            .filter(|p| p.iter().map(|&c| (c as f32 - 40.0).powi(2)).sum::<f32>() < 22.0f32.powi(2))
+            .collect()
     }
 
     fn lod_of(key: BlockKey, points: &[[u32; 3]]) -> LodBlock {
@@ -663,10 +679,7 @@ mod tests {
     #[test]
     fn coarse_faces_are_those_facing_empty_voxels_or_the_boundary() {
         // A ball (solid: buried voxels inside) and a slanted plane, beside random sparse blocks.
-        let ball: Vec<[u32; 3]> = (0..64u32)
-            .flat_map(|z| (0..64u32).flat_map(move |y| (0..64u32).map(move |x| [x, y, z])))
-            .filter(|p| p.iter().map(|&c| (c as f32 - 40.0).powi(2)).sum::<f32>() < 22.0f32.powi(2))
-            .collect();
+        let ball = solid_ball();
         let plane: Vec<[u32; 3]> = (0..64u32)
             .flat_map(|y| (0..64u32).map(move |x| (x, y)))
             .filter_map(|(x, y)| {
@@ -833,10 +846,7 @@ mod tests {
     /// the control, the exposure before the drop, must differ on every block.
     #[test]
     fn drop_buried_predicts_what_the_codec_would() {
-        let ball: Vec<[u32; 3]> = (0..64u32)
-            .flat_map(|z| (0..64u32).flat_map(move |y| (0..64u32).map(move |x| [x, y, z])))
-            .filter(|p| p.iter().map(|&c| (c as f32 - 40.0).powi(2)).sum::<f32>() < 22.0f32.powi(2))
-            .collect();
+        let ball = solid_ball();
         let slab: Vec<[u32; 3]> = (0..64u32)
             .flat_map(|z| (0..64u32).flat_map(move |y| (0..4u32).map(move |x| [x, y, z])))
             .collect();

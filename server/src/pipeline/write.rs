@@ -582,14 +582,9 @@ pub fn encode_entry(b: &LodBlock) -> (BlockEntry, Vec<u8>) {
     encode_entry_with(b, None, None)
 }
 
-/// [`encode_entry`] with the AO field's column, when there is a field.
-pub fn encode_entry_field(b: &LodBlock, field: Option<&AoField>) -> (BlockEntry, Vec<u8>) {
-    encode_entry_with(b, None, field)
-}
-
-/// [`encode_entry_field`] for a block whose face masks' prediction the
-/// pyramid already knows ([`super::pyramid::DrawnBlock`]), which spares the
-/// codec its own neighbour lookups.
+/// [`encode_entry`] for a block the pyramid drew ([`DrawnBlock`]), with the
+/// AO field's column when there is a field: the pyramid's face prediction
+/// spares the codec its own neighbour lookups.
 pub fn encode_drawn_entry(d: &DrawnBlock, field: Option<&AoField>) -> (BlockEntry, Vec<u8>) {
     encode_entry_with(&d.block, Some(&d.prediction), field)
 }
