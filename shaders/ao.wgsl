@@ -161,7 +161,12 @@ fn cone_axis_weights(dir: vec3<f32>) -> vec3<f32> {
 //   neighbourhood is empty and the cone jumps half of that level's cell.
 // - Phase: the first step is `first_step` (0..1] of a step, so the samples
 //   fall at distances jittered per frame and texel (first_step_fraction).
-fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, base_cell: f32, cell: f32, max_mip: f32, first_step: f32) -> f32 {
+// - Bend (0..1, crevice_bend): how far the path comes back down to the
+//   cone's own axis from p once that axis rises above the start offset. At
+//   1 a sample t along the cone lies max(offset, t * n.dir) above p's tangent
+//   plane instead of offset + t * n.dir: in a crevice the raised start would
+//   put every cone half-way up the gap, grazing the surface above.
+fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, base_cell: f32, cell: f32, max_mip: f32, first_step: f32, bend: f32) -> f32 {
     let grid = frame.volume.x;
     let tan_half = frame.ao_cone.y;
     let step_fraction = frame.ao_cone.z;
@@ -170,12 +175,13 @@ fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, base_cell: f32, cell: 
     let falloff = frame.ao_range.y;
     let skip = frame.ao_range.z > 0.5;
     let origin = p + n * offset;
+    let rise = dot(dir, n);
     let axis_weight = cone_axis_weights(dir);
     var alpha = 0.0;
     var occlusion = 0.0;
     var t = 0.0;
     for (var step = 0u; step < 128u; step += 1u) {
-        let s = origin + dir * t;
+        let s = origin + dir * t - n * (bend * min(rise * t, offset));
         let d = length(s - p);
         if d > radius || alpha > 0.995 {
             break;
@@ -223,6 +229,39 @@ fn trace_cone(p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>, base_cell: f32, cell: 
         t += step_len;
     }
     return occlusion;
+}
+
+// The crevice probe (crevice_bend): the first cell above p along the normal
+// that is at least this opaque counts as a surface over p.
+const CREVICE_OPACITY: f32 = 0.5;
+// Heights (in cells of p's level) where the bend is full (at or below
+// CREVICE_FULL) and none (at or above CREVICE_NONE); the probe's samples lie
+// 1.5 (the start offset) to CREVICE_NONE cells up, one cell apart.
+const CREVICE_FULL: f32 = 4.5;
+const CREVICE_NONE: f32 = 7.5;
+
+// How much the cones from p bend back to their axes (trace_cone): 1 where a
+// surface hangs within CREVICE_FULL cells over p, 0 where none does within
+// CREVICE_NONE, linear between. Why only there: on an open, rough scan
+// (Cedar Creek) cones that run close along the surface read its voxelized
+// bumps, which are rougher than its triangles (bent everywhere: 51 -> 13
+// equal-error rays); under an overhang the raised start is what darkens the
+// crevice (the sphere on a plane: 20 -> 37 rays with the probe).
+// docs/ao-benchmark.md, "The start offset and the sphere's contact crevice".
+fn crevice_bend(p: vec3<f32>, n: vec3<f32>, base_cell: f32, cell: f32) -> f32 {
+    let lod = log2(cell / base_cell);
+    let weight = cone_axis_weights(n);
+    var h = 1.5;
+    loop {
+        if h > CREVICE_NONE {
+            return 0.0;
+        }
+        if occupancy_at(p + n * (h * cell), lod, weight).x > CREVICE_OPACITY {
+            break;
+        }
+        h += 1.0;
+    }
+    return clamp((CREVICE_NONE - h) / (CREVICE_NONE - CREVICE_FULL), 0.0, 1.0);
 }
 
 // The fraction (0..1] of a step that the cones' first step takes: 1 without
@@ -275,11 +314,12 @@ fn ambient_visibility(p: vec3<f32>, n_in: vec3<f32>, turn: f32) -> f32 {
     let b = cross(n, t);
     let cones = u32(frame.ao_cone.x);
     let first_step = first_step_fraction(turn);
+    let bend = crevice_bend(p, n, base_cell, cell);
     var occluded = 0.0;
     for (var i = 0u; i < cones; i += 1u) {
         let a = frame.ao_dirs[i];
         let dir = normalize(t * a.x + b * a.y + n * a.z);
-        occluded += a.w * trace_cone(p, n, dir, base_cell, cell, max_mip, first_step);
+        occluded += a.w * trace_cone(p, n, dir, base_cell, cell, max_mip, first_step, bend);
     }
     return clamp(1.0 - occluded, 0.0, 1.0);
 }
