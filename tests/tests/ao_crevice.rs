@@ -13,7 +13,9 @@
 
 mod ao_support;
 
-use ao_support::{RESOLUTION, error_where, render_still, with_ao_shader};
+use ao_support::{
+    RESOLUTION, ao_wgsl_without_crevice_probe, error_where, floor_ring, render_still, with_ao_shader,
+};
 use voxstream::reference::analytic;
 
 /// How much the probe must lower the mean |V − exact| in the crevice
@@ -25,26 +27,14 @@ fn cones_under_an_overhang_come_back_to_their_axes() {
     let scene = analytic::scenes().into_iter().find(|s| s.name == "sphere_on_plane").expect("scene");
     let store = tempfile::tempdir().unwrap();
     let dir = analytic::build(&scene, store.path(), RESOLUTION).expect("build");
-    // Floor pixels by horizontal distance from the point below the sphere's
-    // centre (source units; the sphere's radius is 0.5): the crevice, where
-    // the sphere's underside is 0.06–0.13 above the floor, and open floor
-    // beyond the probe's reach.
-    let floor_within = |lo: f64, hi: f64| {
-        move |p: &[f64; 3], n: &[f32; 3]| n[1] > 0.9 && (lo..hi).contains(&p[0].hypot(p[2]))
-    };
-    let crevice = floor_within(0.25, 0.4);
-    let open = floor_within(0.8, 1.5);
+    // The crevice, where the sphere's underside is 0.06–0.13 above the
+    // floor, and open floor beyond the probe's reach.
+    let crevice = floor_ring(0.25, 0.4);
+    let open = floor_ring(0.8, 1.5);
     let out = render_still(&dir, &scene, None);
     let (pixels, mae, exact_v) = error_where(&scene, &out, crevice);
 
-    let switched = voxstream_viewer::shaders::AO_WGSL
-        .replace("let bend = crevice_bend(p, n, base_cell, cell);", "let bend = 0.0;");
-    assert_eq!(
-        switched.matches("let bend = 0.0;").count(),
-        1,
-        "the probe is no longer where this test switches it off"
-    );
-    let control = with_ao_shader(&switched, || render_still(&dir, &scene, None));
+    let control = with_ao_shader(&ao_wgsl_without_crevice_probe(), || render_still(&dir, &scene, None));
     let (_, control_mae, _) = error_where(&scene, &control, crevice);
 
     println!(

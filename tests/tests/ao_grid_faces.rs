@@ -20,7 +20,9 @@
 
 mod ao_support;
 
-use ao_support::{RESOLUTION, error_where, render_still, with_ao_shader};
+use ao_support::{
+    RESOLUTION, ao_wgsl_without_crevice_probe, error_where, floor_ring, render_still, with_ao_shader,
+};
 use voxstream::reference::analytic;
 
 /// How much the rule must lower the mean |V − exact| in the ring around the
@@ -32,18 +34,11 @@ fn a_level_on_the_grids_face_holds_samples_up_to_it() {
     let scene = analytic::scenes().into_iter().find(|s| s.name == "sphere_on_plane").expect("scene");
     let store = tempfile::tempdir().unwrap();
     let dir = analytic::build(&scene, store.path(), RESOLUTION).expect("build");
-    // Floor pixels whose horizontal distance from the point below the
-    // sphere's centre lies in `ring` (source units): the half shadow around
-    // the contact, where the floor's occlusion comes from cones that skim it.
+    // The half shadow around the contact, where the floor's occlusion comes
+    // from cones that skim it.
     let ring = (0.3, 0.5);
-    let in_ring = |p: &[f64; 3], n: &[f32; 3]| n[1] > 0.9 && (ring.0..ring.1).contains(&p[0].hypot(p[2]));
-    let src = voxstream_viewer::shaders::AO_WGSL
-        .replace("let bend = crevice_bend(p, n, base_cell, cell);", "let bend = 0.0;");
-    assert_eq!(
-        src.matches("let bend = 0.0;").count(),
-        1,
-        "the crevice probe is no longer where this test switches it off"
-    );
+    let in_ring = floor_ring(ring.0, ring.1);
+    let src = ao_wgsl_without_crevice_probe();
     let out = with_ao_shader(&src, || render_still(&dir, &scene, None));
     let (pixels, mae, exact_v) = error_where(&scene, &out, in_ring);
 

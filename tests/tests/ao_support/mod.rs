@@ -92,3 +92,23 @@ fn with_dev_shaders<T>(ao_wgsl: &str, voxel_wgsl: Option<&str>, f: impl FnOnce()
     unsafe { std::env::remove_var(voxstream_viewer::shaders::DEV_AO_WGSL_ENV) };
     out
 }
+
+/// The shipped ao.wgsl with the crevice probe off (`crevice_bend`: no bend
+/// anywhere), for tests whose control or isolation needs the tracer without it.
+pub fn ao_wgsl_without_crevice_probe() -> String {
+    let src = voxstream_viewer::shaders::AO_WGSL
+        .replace("let bend = crevice_bend(p, n, base_cell, cell);", "let bend = 0.0;");
+    assert_eq!(
+        src.matches("let bend = 0.0;").count(),
+        1,
+        "the crevice probe is no longer where tests switch it off"
+    );
+    src
+}
+
+/// Floor pixels (normal up) of the sphere on a plane whose horizontal
+/// distance from the point below the sphere's centre lies in `lo..hi`
+/// (source units; the sphere's radius is 0.5), as [`error_where`] takes them.
+pub fn floor_ring(lo: f64, hi: f64) -> impl Fn(&[f64; 3], &[f32; 3]) -> bool + Copy {
+    move |p, n| n[1] > 0.9 && (lo..hi).contains(&p[0].hypot(p[2]))
+}
