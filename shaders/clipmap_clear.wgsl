@@ -33,8 +33,10 @@ fn clear_cells(@builtin(global_invocation_id) id: vec3<u32>) {
     if all(w >= dispatch.keep_min.xyz) && all(w < dispatch.keep_max.xyz) {
         return;
     }
-    // A cell's three words: its opacity along x, y and z.
-    let at = (dispatch.level.x * n * n * n + id.x) * 3u;
+    // A cell's three words: its opacity along x, y and z. `cells` is this
+    // level's range of the cells buffer (a binding per level: all levels
+    // together pass WebGPU's 128 MiB binding limit at 6 levels of 128^3).
+    let at = id.x * 3u;
     cells[at] = 0u;
     cells[at + 1u] = 0u;
     cells[at + 2u] = 0u;

@@ -66,7 +66,6 @@ fn splat_block(@builtin(global_invocation_id) id: vec3<u32>) {
     let n = i32(dispatch.level.z);
     let lo = max(first, dispatch.region.xyz);
     let hi = min(first + vec3<i32>(span), dispatch.region.xyz + vec3<i32>(n));
-    let base = dispatch.level.x * dispatch.level.z * dispatch.level.z * dispatch.level.z;
     let subtract = dispatch.level.w == 1u;
     // voxel_axes in clipmap.rs: the axes of its exposed faces, all three for none.
     let faces = (word >> 18u) & 63u;
@@ -79,7 +78,8 @@ fn splat_block(@builtin(global_invocation_id) id: vec3<u32>) {
                     continue;
                 }
                 let m = vec3<u32>((w % n + n) % n);
-                let index = (base + (m.z * u32(n) + m.y) * u32(n) + m.x) * 3u;
+                // `cells` is this level's range of the cells buffer.
+                let index = ((m.z * u32(n) + m.y) * u32(n) + m.x) * 3u;
                 for (var a = 0u; a < 3u; a += 1u) {
                     if !axes[a] {
                         continue;

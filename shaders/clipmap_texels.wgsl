@@ -32,7 +32,8 @@ fn copy_texels(@builtin(global_invocation_id) id: vec3<u32>) {
     let w = dispatch.box_min.xyz + vec3<i32>(local);
     let s = vec3<u32>(((w % n) + n) % n);
     let un = u32(n);
-    let at = (u32(dispatch.box_min.w) * un * un * un + (s.z * un + s.y) * un + s.x) * 3u;
+    // `cells` is this level's range of the cells buffer.
+    let at = ((s.z * un + s.y) * un + s.x) * 3u;
     let o = min(vec3<f32>(f32(cells[at]), f32(cells[at + 1u]), f32(cells[at + 2u])) / 4096.0, vec3<f32>(1.0));
     let texel = vec4<f32>(o, min(o.x + o.y + o.z, 1.0));
     let block = vec3<u32>(0u, 0u, u32(dispatch.box_min.w) * (un + 1u));

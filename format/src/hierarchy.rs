@@ -29,7 +29,7 @@
 //! 0  magic "VXHP"
 //! 4  version u8 (4), page_levels u8, reserved 2 zero bytes
 //! 8  root: level u8, x, y, z u32
-//! 21 entry count u32, child page count u32, pack count u32 (at most the entry count)
+//! 21 entry count u32, child page count u32, pack count u32 (at most entries + child pages)
 //! 33 payload length u32 (decompressed; must equal what the counts imply)
 //! 37 lz4 block of the payload:
 //!    packs        count × (blake3 32, length u64)                                 = 40 bytes
@@ -377,7 +377,10 @@ impl HierarchyPage {
         if root.level == 0 || root.level > crate::MAX_LEVEL {
             return Err(PageError::BadHeader(format!("root {root} cannot root a page")));
         }
-        if entries == 0 || entries > MAX_PAGE_ENTRIES || children > entries || packs > entries {
+        // Each pack holds at least one of the page's blocks or child pages (`validate`), and a
+        // page's blocks and child pages may each lie in a pack of their own: a page over coarse
+        // levels, whose blocks close late, can name more packs than it has entries.
+        if entries == 0 || entries > MAX_PAGE_ENTRIES || children > entries || packs > entries + children {
             return Err(PageError::BadHeader(format!(
                 "{entries} entries, {children} child pages, {packs} packs"
             )));
@@ -1223,7 +1226,8 @@ mod tests {
                 w.items += 1;
                 let sealed = w.b.add(e).unwrap();
                 w.place(sealed);
-                if w.items >= per_pack {
+                // A close can seal pages into the next pack and fill it too (one item a pack).
+                while w.items >= per_pack {
                     w.close();
                 }
             }
@@ -1279,6 +1283,55 @@ mod tests {
         broken.get_mut(&root_page_pack.hash).unwrap()[root_page.location.offset as usize + 40] ^= 1;
         let err = load_scene_index(&manifest, |r, range| read(&broken, r, range)).unwrap_err();
         assert!(err.to_string().contains("hash"), "{err}");
+    }
+
+    /// A page may name more packs than it has entries: its blocks and its child pages can each
+    /// lie in a pack of their own (a page over coarse levels, whose blocks close late, in a
+    /// scene of many packs: the conference room at 32768 has pages of 104 entries, 88 child
+    /// pages and 172 packs). Here packs of two items put a page rooted at a block in the pack
+    /// after that block's (the page waits for its last entries' pack to close), so the top page
+    /// names 208 packs for 165 entries; every page must decode and the whole index load (the
+    /// old bound, packs ≤ entries, fails here). Control: the page with the most packs past its
+    /// entries, its pack count in the header raised one past its entries and child pages, is
+    /// refused.
+    #[test]
+    fn a_page_can_name_more_packs_than_entries() {
+        let levels = tree(&sample_level0());
+        let coarsest = (levels.len() - 1) as u8;
+        let order = morton_post_order(&levels);
+        let (w, top) = PagePackWriter::run(&order, coarsest, 2);
+        let by_hash: HashMap<String, Vec<u8>> =
+            w.packs.iter().map(|(p, b)| (p.hash.clone(), b.clone())).collect();
+        let mut manifest = manifest_for(top.root.clone(), top.root_page.clone(), coarsest);
+        manifest.root_pack = top.root_pack.clone();
+        manifest.root_page_pack = top.root_page_pack.clone();
+        let mut widest: Option<(PageRef, Vec<u8>, HierarchyPage)> = None;
+        let index = load_scene_index(&manifest, |r, range| {
+            let range = range.ok_or_else(|| std::io::Error::other("not in a pack"))?;
+            let bytes = by_hash[&range.pack.hash][range.offset as usize..range.end() as usize].to_vec();
+            let page = HierarchyPage::decode(&bytes, r).map_err(std::io::Error::other)?;
+            let surplus = |p: &HierarchyPage| p.packs.len() as i64 - p.entries.len() as i64;
+            if widest.as_ref().is_none_or(|(_, _, w)| surplus(&page) > surplus(w)) {
+                widest = Some((r.clone(), bytes.clone(), page));
+            }
+            Ok::<_, std::io::Error>(bytes)
+        })
+        .unwrap();
+        assert!(index.is_complete());
+        let all: BTreeSet<BlockKey> = levels.iter().flatten().copied().collect();
+        assert_eq!(index.blocks().map(|e| e.key).collect::<BTreeSet<_>>(), all);
+        let (r, bytes, page) = widest.unwrap();
+        assert!(
+            page.packs.len() > page.entries.len(),
+            "a page names more packs ({}) than entries ({})",
+            page.packs.len(),
+            page.entries.len()
+        );
+        assert!(HierarchyPage::decode(&bytes, &r).is_ok());
+        let mut many = bytes.clone();
+        let most = (page.entries.len() + page.child_pages.len()) as u32;
+        many[29..33].copy_from_slice(&(most + 1).to_le_bytes());
+        assert!(matches!(HierarchyPage::decode_unverified(&many), Err(PageError::BadHeader(_))));
     }
 
     /// Placing a page in a pack that is already closed, or a page twice, is an order error.
@@ -1552,9 +1605,10 @@ mod tests {
         unused.packs.push(PackRef { hash: content_hash(b"unused"), bytes: 1 << 30 });
         assert!(unused.validate().is_err(), "a listed pack holding none of the page's blocks");
         assert!(HierarchyPage::decode_unverified(&unused.encode()).is_err());
-        // Header damage: a pack count past the entry count, a truncated header.
+        // Header damage: a pack count past the entries and child pages, a truncated header.
         let mut many = bytes.clone();
-        many[29..33].copy_from_slice(&(page.entries.len() as u32 + 1).to_le_bytes());
+        let most = (page.entries.len() + page.child_pages.len()) as u32;
+        many[29..33].copy_from_slice(&(most + 1).to_le_bytes());
         assert!(matches!(HierarchyPage::decode_unverified(&many), Err(PageError::BadHeader(_))));
         assert!(HierarchyPage::decode_unverified(&bytes[..PAGE_HEADER_LEN - 1]).is_err());
     }

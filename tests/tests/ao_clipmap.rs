@@ -52,13 +52,24 @@ fn keys(sources: &[Vec<&Block>]) -> Vec<Vec<BlockKey>> {
 }
 
 fn run(gpu: &Gpu, clipmap: &mut OccupancyClipmap, layout: ClipmapLayout, all: &[Block], state: &State) {
+    run_on(GRID, gpu, clipmap, layout, all, state)
+}
+
+fn run_on(
+    grid: u32,
+    gpu: &Gpu,
+    clipmap: &mut OccupancyClipmap,
+    layout: ClipmapLayout,
+    all: &[Block],
+    state: &State,
+) {
     let find = |k: &BlockKey| all.iter().find(|b| b.key == *k);
     let mut encoder = gpu.device.create_command_encoder(&Default::default());
     clipmap.update(
         &gpu.device,
         &gpu.queue,
         &mut encoder,
-        GRID,
+        grid,
         layout,
         state.eye,
         Vec3::X,
@@ -70,8 +81,12 @@ fn run(gpu: &Gpu, clipmap: &mut OccupancyClipmap, layout: ClipmapLayout, all: &[
 }
 
 fn model(layout: ClipmapLayout, state: &State) -> ClipmapModel {
+    model_on(GRID, layout, state)
+}
+
+fn model_on(grid: u32, layout: ClipmapLayout, state: &State) -> ClipmapModel {
     let origins: Vec<[i32; 3]> =
-        (0..layout.levels).map(|k| layout.origin(k, state.eye, Vec3::X, GRID)).collect();
+        (0..layout.levels).map(|k| layout.origin(k, state.eye, Vec3::X, grid)).collect();
     ClipmapModel::build(layout, &origins, &state.sources)
 }
 
@@ -221,4 +236,45 @@ fn a_layout_change_rebuilds_every_level() {
     let fine_as_coarse =
         ClipmapModel { layout: coarse, levels: model(fine, &state(fine)).levels[..3].to_vec() };
     assert!(mismatches(&gpu, &clipmap, &fine_as_coarse) > 100);
+}
+
+/// A 32768³ scene with level-0 blocks resident takes all 8 levels of 128³ cells: 192 MiB of
+/// cells, past the 128 MiB WebGPU allows one storage binding (lavapipe's device has the
+/// default). Each pass binds its level's range; when the passes bound the whole buffer, the
+/// first update of every scene from 4096³ on failed validation (a panic in `voxstream render`,
+/// no AO in the browser). Every level must match the model, the coarse ones too: a pass
+/// binding the wrong level's range leaves its own level empty.
+#[test]
+fn a_full_size_clipmap_binds_each_level_within_the_storage_limit() {
+    let gpu = Gpu::new().expect("a Vulkan adapter (lavapipe)");
+    let grid = 32768;
+    let layout = ClipmapLayout::for_scene(grid, 1, 128);
+    assert_eq!((layout.cells, layout.levels), (128, 8));
+    let cells_bytes = layout.levels as u64 * layout.level_words() * 4;
+    let limit = gpu.device.limits().max_storage_buffer_binding_size;
+    assert!(cells_bytes > limit, "the levels together ({cells_bytes} B) must pass the limit ({limit} B)");
+    // Each level's sources at about its cell size: level-0 blocks for the fine levels, then a
+    // level-3 block, then levels 6 and 7.
+    let all = vec![
+        block(0, [1, 1, 1], 1),
+        block(0, [2, 1, 1], 2),
+        block(3, [0, 0, 0], 3),
+        block(6, [0, 0, 0], 4),
+        block(7, [1, 0, 0], 5),
+    ];
+    let sources = (0..layout.levels)
+        .map(|k| match k {
+            0..=2 => vec![&all[0], &all[1]],
+            3..=5 => vec![&all[2]],
+            _ => vec![&all[3], &all[4]],
+        })
+        .collect();
+    let state = State { eye: Vec3::new(130.0, 120.0, 110.0), sources };
+    let mut clipmap = OccupancyClipmap::new(&gpu.device, layout.cells);
+    run_on(grid, &gpu, &mut clipmap, layout, &all, &state);
+    let expected = model_on(grid, layout, &state);
+    for (k, level) in expected.levels.iter().enumerate() {
+        assert!(level.iter().any(|&v| v > 0), "the test must fill level {k}");
+    }
+    assert_eq!(mismatches(&gpu, &clipmap, &expected), 0, "a level differs from its model");
 }

@@ -422,7 +422,8 @@ pub struct OccupancyClipmap {
     texel_dispatch_buffer: wgpu::Buffer,
     /// The copy's bind group, kept while its buffers and texture stay (in a
     /// browser each one made is a call across to the GPU process).
-    texel_group: Option<wgpu::BindGroup>,
+    /// Per level: the texel pass's bind group (its range of the cells buffer).
+    texel_groups: Vec<wgpu::BindGroup>,
     /// [`ClipmapUniform`].
     pub uniform_buffer: wgpu::Buffer,
     layout: Option<ClipmapLayout>,
@@ -663,7 +664,7 @@ impl OccupancyClipmap {
             ),
             texel_layout,
             texel_dispatch_buffer: Self::dispatch_buffer(device, MAX_CLIP_LEVELS as u64),
-            texel_group: None,
+            texel_groups: Vec::new(),
             uniform_buffer,
             layout: None,
             levels: Vec::new(),
@@ -810,13 +811,13 @@ impl OccupancyClipmap {
             let bytes = layout.levels as u64 * layout.level_words() * 4;
             if self.cells_buffer.size() < bytes {
                 self.cells_buffer = Self::cells_buffer(device, bytes);
-                self.texel_group = None;
+                self.texel_groups.clear();
                 replaced = true;
             }
             let edge = layout.cells + 1;
             if self.texels.width() != edge || self.texels.depth_or_array_layers() != edge * layout.levels {
                 self.texels = texel_atlas(device, layout.cells, layout.levels);
-                self.texel_group = None;
+                self.texel_groups.clear();
                 self.texel_view = self.texels.create_view(&Default::default());
                 replaced = true;
             }
@@ -892,7 +893,7 @@ impl OccupancyClipmap {
             self.encode(device, queue, encoder, layout, &ops, timer);
             if !self.skip_texel_copy {
                 let boxes = texel_boxes(layout, &ops, &moved);
-                self.encode_texels(device, queue, encoder, layout.cells, &boxes, timer);
+                self.encode_texels(device, queue, encoder, layout, &boxes, timer);
             }
             self.counters.updates += 1;
         }
@@ -963,23 +964,36 @@ impl OccupancyClipmap {
             offset: 0,
             size: wgpu::BufferSize::new(size_of::<DispatchRecord>() as u64),
         });
-        let clear_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("clipmap clear"),
-            layout: &self.clear_layout,
-            entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: record_binding.clone() },
-                wgpu::BindGroupEntry { binding: 1, resource: self.cells_buffer.as_entire_binding() },
-            ],
-        });
-        let splat_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("clipmap splat"),
-            layout: &self.splat_layout,
-            entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: record_binding },
-                wgpu::BindGroupEntry { binding: 1, resource: self.cells_buffer.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 2, resource: self.voxel_words.buffer.as_entire_binding() },
-            ],
-        });
+        // A clear and a splat group per level the records touch, each binding that level's cells.
+        let mut clear_groups: Vec<Option<wgpu::BindGroup>> = vec![None; layout.levels as usize];
+        let mut splat_groups: Vec<Option<wgpu::BindGroup>> = vec![None; layout.levels as usize];
+        for (record, &splat) in records.iter().zip(&splats) {
+            let level = record.level[0] as usize;
+            let cells = level_cells(&self.cells_buffer, layout, record.level[0]);
+            if splat && splat_groups[level].is_none() {
+                splat_groups[level] = Some(device.create_bind_group(&wgpu::BindGroupDescriptor {
+                    label: Some("clipmap splat"),
+                    layout: &self.splat_layout,
+                    entries: &[
+                        wgpu::BindGroupEntry { binding: 0, resource: record_binding.clone() },
+                        wgpu::BindGroupEntry { binding: 1, resource: cells },
+                        wgpu::BindGroupEntry {
+                            binding: 2,
+                            resource: self.voxel_words.buffer.as_entire_binding(),
+                        },
+                    ],
+                }));
+            } else if !splat && clear_groups[level].is_none() {
+                clear_groups[level] = Some(device.create_bind_group(&wgpu::BindGroupDescriptor {
+                    label: Some("clipmap clear"),
+                    layout: &self.clear_layout,
+                    entries: &[
+                        wgpu::BindGroupEntry { binding: 0, resource: record_binding.clone() },
+                        wgpu::BindGroupEntry { binding: 1, resource: cells },
+                    ],
+                }));
+            }
+        }
         {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("clipmap update"),
@@ -988,13 +1002,14 @@ impl OccupancyClipmap {
             let level_groups = (layout.level_len() as u32).div_ceil(WORKGROUP);
             for (i, (record, &splat)) in records.iter().zip(&splats).enumerate() {
                 let offset = (i as u64 * DISPATCH_STRIDE) as u32;
+                let level = record.level[0] as usize;
                 if splat {
                     pass.set_pipeline(&self.splat_pipeline);
-                    pass.set_bind_group(0, &splat_group, &[offset]);
+                    pass.set_bind_group(0, splat_groups[level].as_ref(), &[offset]);
                     pass.dispatch_workgroups((record.region[3] as u32).div_ceil(WORKGROUP), 1, 1);
                 } else {
                     pass.set_pipeline(&self.clear_pipeline);
-                    pass.set_bind_group(0, &clear_group, &[offset]);
+                    pass.set_bind_group(0, clear_groups[level].as_ref(), &[offset]);
                     pass.dispatch_workgroups(level_groups, 1, 1);
                 }
             }
@@ -1008,7 +1023,7 @@ impl OccupancyClipmap {
         device: &wgpu::Device,
         queue: &wgpu::Queue,
         encoder: &mut wgpu::CommandEncoder,
-        cells: u32,
+        layout: ClipmapLayout,
         boxes: &[(u32, CellBox)],
         timer: Option<&crate::pass_timer::PassTimer>,
     ) {
@@ -1018,7 +1033,7 @@ impl OccupancyClipmap {
         if self.texel_dispatch_buffer.size() < boxes.len() as u64 * DISPATCH_STRIDE {
             self.texel_dispatch_buffer =
                 Self::dispatch_buffer(device, (boxes.len() as u64).next_power_of_two());
-            self.texel_group = None;
+            self.texel_groups.clear();
         }
         let records: Vec<TexelRecord> = boxes
             .iter()
@@ -1026,43 +1041,68 @@ impl OccupancyClipmap {
                 let size = b.size();
                 TexelRecord {
                     box_min: [b.min[0], b.min[1], b.min[2], *level as i32],
-                    box_size: [size[0], size[1], size[2], cells],
+                    box_size: [size[0], size[1], size[2], layout.cells],
                 }
             })
             .collect();
         queue.write_buffer(&self.texel_dispatch_buffer, 0, &strided_records(&records));
-        let group = self.texel_group.get_or_insert_with(|| {
-            device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("clipmap texels"),
-                layout: &self.texel_layout,
-                entries: &[
-                    wgpu::BindGroupEntry {
-                        binding: 0,
-                        resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                            buffer: &self.texel_dispatch_buffer,
-                            offset: 0,
-                            size: wgpu::BufferSize::new(size_of::<TexelRecord>() as u64),
-                        }),
-                    },
-                    wgpu::BindGroupEntry { binding: 1, resource: self.cells_buffer.as_entire_binding() },
-                    wgpu::BindGroupEntry {
-                        binding: 2,
-                        resource: wgpu::BindingResource::TextureView(&self.texel_view),
-                    },
-                ],
-            })
-        });
+        if self.texel_groups.len() != layout.levels as usize {
+            self.texel_groups = (0..layout.levels)
+                .map(|level| {
+                    device.create_bind_group(&wgpu::BindGroupDescriptor {
+                        label: Some("clipmap texels"),
+                        layout: &self.texel_layout,
+                        entries: &[
+                            wgpu::BindGroupEntry {
+                                binding: 0,
+                                resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                                    buffer: &self.texel_dispatch_buffer,
+                                    offset: 0,
+                                    size: wgpu::BufferSize::new(size_of::<TexelRecord>() as u64),
+                                }),
+                            },
+                            wgpu::BindGroupEntry {
+                                binding: 1,
+                                resource: level_cells(&self.cells_buffer, layout, level),
+                            },
+                            wgpu::BindGroupEntry {
+                                binding: 2,
+                                resource: wgpu::BindingResource::TextureView(&self.texel_view),
+                            },
+                        ],
+                    })
+                })
+                .collect();
+        }
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("clipmap texels"),
             timestamp_writes: timer.and_then(|t| t.compute_writes("clipmap texels")),
         });
         pass.set_pipeline(&self.texel_pipeline);
-        for (i, (_, b)) in boxes.iter().enumerate() {
+        for (i, (level, b)) in boxes.iter().enumerate() {
             let [x, y, z] = b.size();
-            pass.set_bind_group(0, &*group, &[(i as u64 * DISPATCH_STRIDE) as u32]);
+            pass.set_bind_group(
+                0,
+                &self.texel_groups[*level as usize],
+                &[(i as u64 * DISPATCH_STRIDE) as u32],
+            );
             pass.dispatch_workgroups((x * y * z).div_ceil(WORKGROUP), 1, 1);
         }
     }
+}
+
+/// Level `level`'s range of the cells buffer, which the clear, splat and texel passes bind
+/// one level at a time: all levels together (8 of 128³ cells, 12 bytes each: 192 MiB) pass
+/// WebGPU's 128 MiB limit on a storage binding from 6 levels on, which scenes of 4096³ and
+/// more reach. A level's bytes (cells³ × 12, cells ≥ 8 a power of two) are a multiple of 256,
+/// the storage offset alignment.
+fn level_cells(buffer: &wgpu::Buffer, layout: ClipmapLayout, level: u32) -> wgpu::BindingResource<'_> {
+    let bytes = layout.level_words() * 4;
+    wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+        buffer,
+        offset: level as u64 * bytes,
+        size: wgpu::BufferSize::new(bytes),
+    })
 }
 
 /// `records` one [`DISPATCH_STRIDE`] apart, as a dynamic uniform offset reads them.

@@ -791,6 +791,46 @@ mod tests {
         assert!(packs >= small.len(), "{packs} packs for {} blocks", small.len());
     }
 
+    /// A page's blocks and child pages may lie in more packs than it has entries: a child page
+    /// waits for the pack holding its last entries to close, so it lands in the pack after its
+    /// root block's. Scenes of many packs do this (the conference room at 32768: a page of 104
+    /// entries naming 172 packs), and readers once refused such pages, so nothing below the top
+    /// page could be drawn or served. Here packs of a few blocks force it; every page must read
+    /// back and every block with it. Control: the surplus of packs over entries is positive.
+    #[test]
+    fn pages_naming_more_packs_than_entries_read_back() {
+        let mut blocks = diagonal_tree(48, 8);
+        blocks.sort_by_key(|b| post_order_key(&b.key));
+        let mut most_surplus = i64::MIN;
+        let one_block = {
+            let dir = tempfile::tempdir().unwrap();
+            let (m, _, _) = write_packed(&blocks, dir.path(), 16384, PACK_MAX_BYTES);
+            m.root.bytes as u64
+        };
+        for blocks_a_pack in [2, 3] {
+            let dir = tempfile::tempdir().unwrap();
+            write_packed(&blocks, dir.path(), 16384, blocks_a_pack * one_block);
+            let scene = crate::store::open_scene(dir.path(), "t").unwrap();
+            assert_eq!(scene.blocks().len(), blocks.len());
+            for e in scene.blocks() {
+                assert_eq!(
+                    voxstream_format::decode_block(&scene.read_block(&e).unwrap()).unwrap().key,
+                    e.key
+                );
+            }
+            let scene_dir = dir.path().join("t");
+            voxstream_format::load_scene_index(&scene.manifest, |r, range| {
+                let bytes = crate::store::read_pack_range(&scene_dir, &range.expect("pages live in packs"))?;
+                let page =
+                    voxstream_format::HierarchyPage::decode(&bytes, r).map_err(std::io::Error::other)?;
+                most_surplus = most_surplus.max(page.packs.len() as i64 - page.entries.len() as i64);
+                Ok::<_, std::io::Error>(bytes)
+            })
+            .unwrap();
+        }
+        assert!(most_surplus > 0, "no page names more packs than entries: {most_surplus}");
+    }
+
     /// Every directory of a store by the manifest text it holds.
     fn manifests_in(store: &Path) -> BTreeMap<String, String> {
         fs::read_dir(store)
