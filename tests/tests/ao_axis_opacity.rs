@@ -54,7 +54,7 @@ fn isotropic_shader() -> String {
 }
 
 fn check(bvh: &MeshBvh, out: &RenderOutput) -> Comparison {
-    let reference = reference_at(bvh, &out.position, &out.normal, &AoParams::of_render(&out.info), RAYS);
+    let reference = reference_at(bvh, &out.position, &out.normal, &AoParams::of_render(&out.info, bvh), RAYS);
     compare(&out.ao, &reference.v, &reference.variance, RAYS, out.info.width, out.info.height)
 }
 

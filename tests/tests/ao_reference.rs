@@ -72,7 +72,7 @@ fn meets_goals(c: &Comparison) -> bool {
 }
 
 fn check(view: &str, bvh: &MeshBvh, out: &RenderOutput, max_distance: f64) -> Comparison {
-    let params = AoParams { max_distance, ..AoParams::of_render(&out.info) };
+    let params = AoParams { max_distance, ..AoParams::of_render(&out.info, bvh) };
     let reference = reference_at(bvh, &out.position, &out.normal, &params, RAYS);
     // AO, reference and 5 × |AO − reference| from top to bottom: <target>/e2e/ao-cornell-*.png.
     let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).parent().expect("target").join("e2e");

@@ -647,7 +647,7 @@ pub fn ao_bench_main(args: &AoBenchArgs) -> anyhow::Result<()> {
             };
             let bvh = bvh.get_or_insert_with(|| MeshBvh::new(mesh, out.info.grid_origin));
             if !references.iter().any(|r| r.scale == point.scale) {
-                let params = AoParams::of_render(&out.info);
+                let params = AoParams::of_render(&out.info, bvh);
                 let reference = reference_at(bvh, &out.position, &out.normal, &params, args.rays);
                 let exact = view.shapes.as_ref().map(|s| exact_image(s, &out, 32));
                 let (pp, pn) = crate::reference::primary_hits(bvh, &out.info);

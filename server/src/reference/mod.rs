@@ -34,8 +34,13 @@ use crate::pipeline::read::TriangleMesh;
 use crate::render::{RenderInfo, grey_rgba, read_outputs, write_file, write_png_rgba};
 use metrics::{Comparison, compare};
 
-/// Ray start offset along the normal, in level-0 voxels.
+/// Ray start offset along the normal, in level-0 voxels (at least [`MeshBvh::offset_floor`]).
 pub const EPSILON_VOXELS: f64 = 1e-3;
+
+/// The BVH is f32: a start point rounds by half a unit in the last place (ulp) of its
+/// coordinates, the triangles' corners by as much, and a hit point comes back within a few
+/// more. A start offset of this many ulps of the largest coordinate clears them all.
+const OFFSET_FLOOR_ULPS: f64 = 8.0;
 /// Default rays per pixel.
 pub const DEFAULT_RAYS: u32 = 4096;
 
@@ -89,6 +94,8 @@ pub struct MeshBvh {
     tris: Vec<Triangle>,
     bvh: Bvh2,
     pub origin: DVec3,
+    /// The largest |coordinate| of a triangle corner, local (f32).
+    extent: f32,
 }
 
 impl MeshBvh {
@@ -109,7 +116,18 @@ impl MeshBvh {
             })
             .collect();
         let bvh = build_bvh2_from_tris(&tris, BvhBuildParams::medium_build(), &mut Duration::default());
-        Self { tris, bvh, origin }
+        let extent =
+            tris.iter().flat_map(|t| [t.v0, t.v1, t.v2]).map(|v| v.abs().max_element()).fold(0.0, f32::max);
+        Self { tris, bvh, origin, extent }
+    }
+
+    /// The smallest start offset (source units) this BVH resolves: [`OFFSET_FLOOR_ULPS`] ulps of
+    /// its largest coordinate. Below it a ray from a point on a surface can hit that surface
+    /// itself (a scene 2,700 units across at 32768³ has voxels of 0.08 and f32 ulps of 2.4e-4,
+    /// so 1e-3 voxel is under one ulp and V came out 0 on open walls).
+    pub fn offset_floor(&self) -> f64 {
+        let ulp = if self.extent > 0.0 { (self.extent.next_up() - self.extent) as f64 } else { 0.0 };
+        OFFSET_FLOOR_ULPS * ulp
     }
 
     pub fn triangle_count(&self) -> usize {
@@ -172,13 +190,13 @@ pub struct AoParams {
 }
 
 impl AoParams {
-    /// The R and λ a render recorded, and the start offset for its voxel size:
-    /// the reference for exactly that render's AO.
-    pub fn of_render(info: &RenderInfo) -> Self {
+    /// The R and λ a render recorded, and the start offset for its voxel size (at least what
+    /// `bvh` resolves): the reference for exactly that render's AO.
+    pub fn of_render(info: &RenderInfo, bvh: &MeshBvh) -> Self {
         Self {
             max_distance: info.ao.max_distance,
             falloff: info.ao.falloff,
-            epsilon: EPSILON_VOXELS * info.voxel_size,
+            epsilon: (EPSILON_VOXELS * info.voxel_size).max(bvh.offset_floor()),
         }
     }
 }
@@ -326,7 +344,7 @@ pub fn reference_command(
     };
     ensure!(!mesh.triangles.is_empty(), "{} has no triangles", mesh_path.display());
     let bvh = MeshBvh::new(&mesh, info.grid_origin);
-    let params = AoParams::of_render(&info);
+    let params = AoParams::of_render(&info, &bvh);
     let reference = reference_at(&bvh, &positions, &normals, &params, rays);
     let at_render_points = compare(&ao, &reference.v, &reference.variance, rays, info.width, info.height);
     write_file(&render_dir.join("reference.f32"), &crate::render::f32_bytes(&reference.v))?;
@@ -346,7 +364,7 @@ pub fn reference_command(
     let report = CompareReport {
         rays,
         ao: params,
-        epsilon_voxels: EPSILON_VOXELS,
+        epsilon_voxels: params.epsilon / info.voxel_size,
         triangles: bvh.triangle_count(),
         at_render_points,
         against_primary,
@@ -355,4 +373,43 @@ pub fn reference_command(
     };
     write_file(&render_dir.join("compare.json"), &serde_json::to_vec_pretty(&report)?)?;
     Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// One slanted triangle thousands of units from the BVH's origin, nothing else: V is 1 at
+    /// every point of it. With a start offset below the f32 coordinates' resolution (1e-3 of a
+    /// 1e-4 voxel, the negative control) rays start behind the surface and hit it; the offset
+    /// floor keeps every point open.
+    #[test]
+    fn the_start_offset_clears_the_f32_resolution_far_from_the_origin() {
+        let corners = [[2000.0, 3100.0, 3900.0], [4100.0, 2900.0, 2600.0], [2300.0, 4200.0, 2800.0]];
+        let mesh =
+            TriangleMesh { positions: corners.to_vec(), triangles: vec![[0, 1, 2]], colors: Vec::new() };
+        let bvh = MeshBvh::new(&mesh, [0.0; 3]);
+        let [a, b, c] = corners.map(DVec3::from);
+        let n = (b - a).cross(c - a).normalize();
+        let mut rng = Rng::new(7);
+        let points: Vec<DVec3> = (0..200)
+            .map(|_| {
+                let (u, v) = (rng.next_f64(), rng.next_f64());
+                let (u, v) = if u + v > 1.0 { (1.0 - u, 1.0 - v) } else { (u, v) };
+                a + (b - a) * u + (c - a) * v
+            })
+            .collect();
+        let closed = |epsilon: f64| {
+            let params = AoParams { max_distance: 50.0, falloff: 1.0, epsilon };
+            points
+                .iter()
+                .enumerate()
+                .filter(|(i, p)| bvh.visibility(**p, n, &params, 16, *i as u64).v < 1.0)
+                .count()
+        };
+        let floor = bvh.offset_floor();
+        assert!(floor > 1e-4 && floor < 1e-2, "{floor}");
+        assert_eq!(closed(floor), 0, "points on an open surface saw it");
+        assert!(closed(1e-7) > 20, "control: an offset under one ulp must let rays hit their own surface");
+    }
 }
