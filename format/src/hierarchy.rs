@@ -1216,6 +1216,19 @@ mod tests {
             self.place(sealed);
         }
 
+        /// The manifest naming `top` (with its root block's and root page's packs), and the
+        /// packs' bytes by hash.
+        fn manifest_and_packs(
+            &self,
+            top: &FinishedHierarchy,
+            coarsest: u8,
+        ) -> (Manifest, HashMap<String, Vec<u8>>) {
+            let mut manifest = manifest_for(top.root.clone(), top.root_page.clone(), coarsest);
+            manifest.root_pack = top.root_pack.clone();
+            manifest.root_page_pack = top.root_page_pack.clone();
+            (manifest, self.packs.iter().map(|(p, b)| (p.hash.clone(), b.clone())).collect())
+        }
+
         fn run(order: &[BlockKey], coarsest: u8, per_pack: usize) -> (Self, FinishedHierarchy) {
             let b = PageBuilder::new(coarsest, PAGE_LEVELS).with_pages_in_packs();
             let mut w = Self { b, packs: Vec::new(), open: Vec::new(), items: 0, pages: 0 };
@@ -1240,6 +1253,18 @@ mod tests {
         }
     }
 
+    /// A page's bytes from `packs` (by hash) at the range the index gives for it.
+    fn read_page(
+        packs: &HashMap<String, Vec<u8>>,
+        r: &PageRef,
+        range: Option<PackRange>,
+    ) -> std::io::Result<Vec<u8>> {
+        let range =
+            range.ok_or_else(|| std::io::Error::other(format!("page {} is not in a pack", r.root)))?;
+        let pack = packs.get(&range.pack.hash).ok_or_else(|| std::io::Error::other("no such pack"))?;
+        Ok(pack[range.offset as usize..range.end() as usize].to_vec())
+    }
+
     /// Fails if a page can be sealed before the pack holding a child page is closed, if any
     /// page is left as a file of its own, or if the index cannot read pages by range; the
     /// control reads one page from a pack with a byte changed.
@@ -1255,19 +1280,9 @@ mod tests {
         // page layers' packs at the end.
         let items = all.len() + w.pages;
         assert!(w.packs.len() <= items / 256 + 3, "{} packs for {items} items", w.packs.len());
-        let mut manifest = manifest_for(top.root.clone(), top.root_page.clone(), coarsest);
-        manifest.root_pack = top.root_pack.clone();
-        manifest.root_page_pack = top.root_page_pack.clone();
+        let (manifest, by_hash) = w.manifest_and_packs(&top, coarsest);
         manifest.validate().unwrap();
-        let by_hash: HashMap<String, Vec<u8>> =
-            w.packs.iter().map(|(p, b)| (p.hash.clone(), b.clone())).collect();
-        let read = |packs: &HashMap<String, Vec<u8>>, r: &PageRef, range: Option<PackRange>| {
-            let range =
-                range.ok_or_else(|| std::io::Error::other(format!("page {} is not in a pack", r.root)))?;
-            let pack = packs.get(&range.pack.hash).ok_or_else(|| std::io::Error::other("no such pack"))?;
-            Ok::<_, std::io::Error>(pack[range.offset as usize..range.end() as usize].to_vec())
-        };
-        let index = load_scene_index(&manifest, |r, range| read(&by_hash, r, range)).unwrap();
+        let index = load_scene_index(&manifest, |r, range| read_page(&by_hash, r, range)).unwrap();
         assert!(index.is_complete());
         assert_eq!(index.pages_loaded(), w.pages);
         let known: BTreeSet<BlockKey> = index.blocks().map(|e| e.key).collect();
@@ -1281,7 +1296,7 @@ mod tests {
         let (root_page_pack, root_page) = (top.root_page_pack.unwrap(), top.root_page.unwrap());
         let mut broken = by_hash.clone();
         broken.get_mut(&root_page_pack.hash).unwrap()[root_page.location.offset as usize + 40] ^= 1;
-        let err = load_scene_index(&manifest, |r, range| read(&broken, r, range)).unwrap_err();
+        let err = load_scene_index(&manifest, |r, range| read_page(&broken, r, range)).unwrap_err();
         assert!(err.to_string().contains("hash"), "{err}");
     }
 
@@ -1300,15 +1315,10 @@ mod tests {
         let coarsest = (levels.len() - 1) as u8;
         let order = morton_post_order(&levels);
         let (w, top) = PagePackWriter::run(&order, coarsest, 2);
-        let by_hash: HashMap<String, Vec<u8>> =
-            w.packs.iter().map(|(p, b)| (p.hash.clone(), b.clone())).collect();
-        let mut manifest = manifest_for(top.root.clone(), top.root_page.clone(), coarsest);
-        manifest.root_pack = top.root_pack.clone();
-        manifest.root_page_pack = top.root_page_pack.clone();
+        let (manifest, by_hash) = w.manifest_and_packs(&top, coarsest);
         let mut widest: Option<(PageRef, Vec<u8>, HierarchyPage)> = None;
         let index = load_scene_index(&manifest, |r, range| {
-            let range = range.ok_or_else(|| std::io::Error::other("not in a pack"))?;
-            let bytes = by_hash[&range.pack.hash][range.offset as usize..range.end() as usize].to_vec();
+            let bytes = read_page(&by_hash, r, range)?;
             let page = HierarchyPage::decode(&bytes, r).map_err(std::io::Error::other)?;
             let surplus = |p: &HierarchyPage| p.packs.len() as i64 - p.entries.len() as i64;
             if widest.as_ref().is_none_or(|(_, _, w)| surplus(&page) > surplus(w)) {

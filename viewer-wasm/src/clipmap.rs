@@ -420,9 +420,9 @@ pub struct OccupancyClipmap {
     texel_pipeline: wgpu::ComputePipeline,
     texel_layout: wgpu::BindGroupLayout,
     texel_dispatch_buffer: wgpu::Buffer,
-    /// The copy's bind group, kept while its buffers and texture stay (in a
+    /// The copy's bind groups, one a level (each binds that level's range of
+    /// the cells buffer), kept while its buffers and texture stay (in a
     /// browser each one made is a call across to the GPU process).
-    /// Per level: the texel pass's bind group (its range of the cells buffer).
     texel_groups: Vec<wgpu::BindGroup>,
     /// [`ClipmapUniform`].
     pub uniform_buffer: wgpu::Buffer,
