@@ -1,0 +1,148 @@
+//! traverse → request: what the view wants this frame ([`crate::traverse`]), and the
+//! queue of pages and blocks to fetch for it ([`crate::request`]), replanned whenever the
+//! traversal or what has arrived changes.
+
+use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
+
+use voxstream_format::{BlockKey, PageRef};
+
+use super::Scene;
+use crate::request::Request;
+use crate::select::ViewParams;
+use crate::traverse::{TraverseParams, traverse};
+
+/// Share of the block budget the needed set (wanted blocks and their
+/// ancestors, counted with the pools' rounding) may take; the rest leaves
+/// room for the free list and the last frame's blocks while the view changes.
+const WANTED_SHARE_OF_BUDGET: f64 = 0.8;
+
+impl Scene {
+    pub(super) fn traverse_params(&self) -> TraverseParams {
+        TraverseParams {
+            max_error_pixels: self.select_params.max_error_pixels,
+            max_blocks: self.select_params.max_blocks,
+            max_bytes: (self.residency.block_budget() as f64 * WANTED_SHARE_OF_BUDGET) as u64,
+            ..Default::default()
+        }
+    }
+
+    /// Runs the traversal when the camera, viewport, loaded pages, parameters
+    /// or budget changed, and replans the requests.
+    pub(super) fn update_traversal(&mut self) {
+        let now = (
+            self.camera,
+            self.viewport,
+            self.index.pages_loaded(),
+            self.select_params,
+            // The block budget, not the budget: the fixed targets are counted after the first
+            // traversal, whose byte cap must then shrink.
+            self.residency.block_budget(),
+            self.failed_pages.len(),
+            self.hidden_generation,
+            self.fixed_view,
+        );
+        if self.traversed_for.as_ref() == Some(&now) {
+            return;
+        }
+        let view = ViewParams {
+            view_proj: self.view_proj(),
+            eye: self.eye(),
+            focal_pixels: self
+                .fixed_view
+                .map_or_else(|| self.camera.focal_pixels(self.viewport.1 as f32), |v| v.focal_pixels),
+        };
+        let started = (self.clock)();
+        let no_feedback = HashSet::default();
+        let occluded = if self.occlusion_culling { &self.hidden } else { &no_feedback };
+        self.traversal =
+            traverse(&self.index, &self.manifest.root.key, &view, &self.traverse_params(), occluded);
+        self.stats.culled_frustum = self.traversal.culled_frustum;
+        self.stats.culled_occlusion = self.traversal.culled_occlusion;
+        self.traversed_for = Some(now);
+        self.plan_requests();
+        self.stats.longest_traversal_ms = self.stats.longest_traversal_ms.max((self.clock)() - started);
+    }
+
+    pub(super) fn plan_requests(&mut self) {
+        let pages: Vec<PageRef> = self
+            .traversal
+            .pages
+            .iter()
+            .filter(|p| !self.failed_pages.contains_key(&p.root))
+            .cloned()
+            .collect();
+        let (decoded, failed, empty) = (&self.decoded, &self.failed, &self.empty);
+        let present = |k: &BlockKey| decoded.contains_key(k) || failed.contains_key(k) || empty.contains(k);
+        let needed = self.needed();
+        let failed_pages = &self.failed_pages;
+        self.requests.plan(&pages, &needed, |k| failed_pages.contains_key(k), present);
+    }
+
+    /// What must be loaded, with its projected error: the wanted blocks but
+    /// the hidden ones, and all their ancestors (stand-ins while they load).
+    pub(super) fn needed(&self) -> HashMap<BlockKey, f32> {
+        let hidden: HashSet<&BlockKey> = self.traversal.hidden.iter().collect();
+        let max_level = self.manifest.coarsest_level();
+        let mut needed = HashMap::default();
+        for key in self.traversal.blocks.iter().filter(|k| !hidden.contains(k)) {
+            let mut k = *key;
+            loop {
+                if needed.contains_key(&k) {
+                    break;
+                }
+                if self.index.block(&k).is_some() {
+                    needed.insert(k, self.traversal.priority.get(&k).copied().unwrap_or(f32::INFINITY));
+                }
+                if k.level >= max_level {
+                    break;
+                }
+                k = k.parent();
+            }
+        }
+        needed
+    }
+
+    /// The blocks to resolve the draw set from: the wanted ones, a hidden
+    /// block only if it is loaded (it is invisible; its ancestor must not
+    /// stand in for it and cover its visible siblings).
+    pub(super) fn drawable_wanted(&self) -> Vec<BlockKey> {
+        let hidden: HashSet<&BlockKey> = self.traversal.hidden.iter().collect();
+        self.traversal.blocks.iter().filter(|k| !hidden.contains(k) || self.is_ready(k)).copied().collect()
+    }
+
+    /// The blocks this view wants (sorted by key).
+    pub fn wanted(&mut self) -> &[BlockKey] {
+        self.update_traversal();
+        &self.traversal.blocks
+    }
+
+    /// The next requests to start (pages first, then blocks by projected
+    /// error), within the in-flight cap; they are marked in flight.
+    pub fn start_requests(&mut self) -> Vec<Request> {
+        self.update_traversal();
+        let started = self.requests.start();
+        self.stats.requests_in_flight = self.requests.in_flight() as u32;
+        started
+    }
+
+    /// Like [`Scene::start_requests`], hierarchy pages only.
+    pub fn start_page_requests(&mut self) -> Vec<Request> {
+        self.update_traversal();
+        let started = self.requests.start_where(|r| matches!(r, Request::Page(_)));
+        self.stats.requests_in_flight = self.requests.in_flight() as u32;
+        started
+    }
+
+    /// In-flight requests this view no longer needs: abort them.
+    pub fn take_stale_requests(&mut self) -> Vec<Request> {
+        self.update_traversal();
+        let stale = self.requests.take_stale();
+        self.stats.requests_aborted += stale.len() as u32;
+        self.stats.requests_in_flight = self.requests.in_flight() as u32;
+        stale
+    }
+
+    pub fn in_flight(&self) -> usize {
+        self.requests.in_flight()
+    }
+}
