@@ -31,6 +31,30 @@ impl Request {
     }
 }
 
+/// The blocks a view needs loaded, with their projected error, and the order
+/// they are asked for in: largest error first, coarser first on ties (infinite
+/// error near the eye), then by key. Made once per traversal, not per arrival:
+/// an arrival changes what is loaded, which [`RequestQueue::plan`] filters by,
+/// never what is needed.
+#[derive(Debug, Clone, Default)]
+pub struct NeededBlocks {
+    pub by_key: HashMap<BlockKey, f32>,
+    order: Vec<(BlockKey, f32)>,
+}
+
+impl NeededBlocks {
+    pub fn new(by_key: HashMap<BlockKey, f32>) -> Self {
+        let mut order: Vec<(BlockKey, f32)> = by_key.iter().map(|(k, p)| (*k, *p)).collect();
+        order.sort_by(|a, b| b.1.total_cmp(&a.1).then(b.0.level.cmp(&a.0.level)).then(a.0.cmp(&b.0)));
+        Self { by_key, order }
+    }
+
+    /// The needed blocks in request order.
+    pub fn in_order(&self) -> impl Iterator<Item = &(BlockKey, f32)> {
+        self.order.iter()
+    }
+}
+
 #[derive(Debug, Default)]
 pub struct RequestQueue {
     pub max_in_flight: usize,
@@ -48,38 +72,30 @@ impl RequestQueue {
     }
 
     /// Replaces the queue. `pages` are needed pages (most needed first),
-    /// `blocks` needed blocks with their projected error; `done` says which
-    /// are loaded or failed (they are skipped).
+    /// `blocks` needed blocks in request order; `done` says which are loaded or
+    /// failed (they are skipped). In-flight requests neither names are stale.
     pub fn plan(
         &mut self,
         pages: &[PageRef],
-        blocks: &HashMap<BlockKey, f32>,
+        blocks: &NeededBlocks,
         done_page: impl Fn(&BlockKey) -> bool,
         done_block: impl Fn(&BlockKey) -> bool,
     ) {
-        let mut wanted_blocks: Vec<(BlockKey, f32)> =
-            blocks.iter().filter(|(k, _)| !done_block(k)).map(|(k, p)| (*k, *p)).collect();
-        // Largest error first; coarser first on ties (infinite error near the eye).
-        wanted_blocks.sort_by(|a, b| b.1.total_cmp(&a.1).then(b.0.level.cmp(&a.0.level)).then(a.0.cmp(&b.0)));
-        let needed: HashSet<(bool, BlockKey)> = pages
-            .iter()
-            .map(|p| (true, p.root))
-            .chain(wanted_blocks.iter().map(|(k, _)| (false, *k)))
-            .collect();
         self.queue = pages
             .iter()
             .filter(|p| !done_page(&p.root))
             .cloned()
             .map(Request::Page)
-            .chain(wanted_blocks.into_iter().map(|(k, _)| Request::Block(k)))
+            .chain(blocks.order.iter().filter(|(k, _)| !done_block(k)).map(|(k, _)| Request::Block(*k)))
             .filter(|r| !self.in_flight.contains(&r.id()))
             .collect();
-        self.stale = self
-            .in_flight_requests
-            .iter()
-            .filter(|(id, _)| !needed.contains(id))
-            .map(|(_, r)| r.clone())
-            .collect();
+        // At most the in-flight cap of these: a scan of the pages each is cheap.
+        let needed = |id: &(bool, BlockKey)| match id {
+            (true, root) => pages.iter().any(|p| p.root == *root),
+            (false, key) => blocks.by_key.contains_key(key) && !done_block(key),
+        };
+        self.stale =
+            self.in_flight_requests.iter().filter(|(id, _)| !needed(id)).map(|(_, r)| r.clone()).collect();
     }
 
     /// The next requests to start, within the cap; they count as in flight.
@@ -152,13 +168,13 @@ mod tests {
         let blocks: HashMap<BlockKey, f32> =
             [(key(2, 0), 8.0), (key(1, 0), 4.0), (key(1, 1), 6.0), (key(0, 0), 2.0)].into_iter().collect();
         let page = PageRef { root: key(1, 1), hash: "a".repeat(64), bytes: 10, location: Default::default() };
-        q.plan(std::slice::from_ref(&page), &blocks, |_| false, |k| *k == key(2, 0));
+        q.plan(std::slice::from_ref(&page), &NeededBlocks::new(blocks), |_| false, |k| *k == key(2, 0));
         // Page first, then the largest error; the loaded root is skipped; cap 2.
         assert_eq!(q.start(), vec![Request::Page(page.clone()), Request::Block(key(1, 1))]);
         assert_eq!(q.in_flight(), 2);
         assert!(q.start().is_empty(), "the cap holds");
         // The camera moved: key(1, 1) is no longer needed, the page still is.
-        let moved: HashMap<BlockKey, f32> = [(key(1, 0), 4.0)].into_iter().collect();
+        let moved = NeededBlocks::new([(key(1, 0), 4.0)].into_iter().collect());
         q.plan(std::slice::from_ref(&page), &moved, |_| false, |_| false);
         assert_eq!(q.take_stale(), vec![Request::Block(key(1, 1))]);
         assert_eq!(q.in_flight(), 1);

@@ -35,6 +35,8 @@ impl Scene {
                 self.failed_pages.insert(page.root, e);
             }
         }
+        // New entries change which ancestors are needed.
+        self.refresh_needed();
         self.plan_requests();
     }
 
@@ -64,8 +66,9 @@ impl Scene {
                 Err(e) => self.fail(key, e.to_string()),
             }
         }
+        // No replan: an arrival settles a request the queue no longer holds (it left the queue
+        // when it started), and what is needed has not changed.
         self.stats.requests_in_flight = self.requests.in_flight() as u32;
-        self.plan_requests();
     }
 
     /// Takes a worker's answer for block `key`: `fetched` response bytes and
@@ -78,8 +81,9 @@ impl Scene {
             Ok(decoded) => self.fail(key, format!("asked for block {key}, got block {}", decoded.block.key)),
             Err(e) => self.fail(key, e),
         }
+        // No replan: an arrival settles a request the queue no longer holds (it left the queue
+        // when it started), and what is needed has not changed.
         self.stats.requests_in_flight = self.requests.in_flight() as u32;
-        self.plan_requests();
     }
 
     /// Takes a decoded block.

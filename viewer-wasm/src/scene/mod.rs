@@ -30,7 +30,7 @@ use crate::crossfade::{Crossfade, Fade};
 use crate::expand::{GpuBlock, UPLOAD_BYTES_PER_FRAME, UploadBatch, UploadPacer};
 use crate::occlusion::{Occlusion, OccupiedCells, occlusion_gpu_bytes};
 use crate::render::{FrameParams, Renderer};
-use crate::request::{DEFAULT_MAX_IN_FLIGHT, RequestQueue};
+use crate::request::{DEFAULT_MAX_IN_FLIGHT, NeededBlocks, RequestQueue};
 use crate::residency::{DEFAULT_BUDGET_BYTES, Residency};
 use crate::select::{SelectParams, resolve_draw_set_in, scene_bounds};
 use crate::stats::Stats;
@@ -124,6 +124,8 @@ pub struct Scene {
     traversed_for: Option<TraversedFor>,
     traversal: Traversal,
     requests: RequestQueue,
+    /// What the traversal needs loaded ([`Scene::needed`]).
+    needed: NeededBlocks,
     failed_pages: HashMap<BlockKey, String>,
     residency: Residency,
     /// Blocks on the GPU.
@@ -183,6 +185,7 @@ impl Scene {
             traversed_for: None,
             traversal: Traversal::default(),
             requests: RequestQueue::new(DEFAULT_MAX_IN_FLIGHT),
+            needed: NeededBlocks::default(),
             failed_pages: HashMap::default(),
             residency: Residency::new(DEFAULT_BUDGET_BYTES),
             gpu: HashMap::default(),

@@ -7,7 +7,7 @@ use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
 use voxstream_format::{BlockKey, PageRef};
 
 use super::Scene;
-use crate::request::Request;
+use crate::request::{NeededBlocks, Request};
 use crate::select::ViewParams;
 use crate::traverse::{TraverseParams, traverse};
 
@@ -59,6 +59,7 @@ impl Scene {
         self.stats.culled_frustum = self.traversal.culled_frustum;
         self.stats.culled_occlusion = self.traversal.culled_occlusion;
         self.traversed_for = Some(now);
+        self.refresh_needed();
         self.plan_requests();
         self.stats.longest_traversal_ms = self.stats.longest_traversal_ms.max((self.clock)() - started);
     }
@@ -73,14 +74,22 @@ impl Scene {
             .collect();
         let (decoded, failed, empty) = (&self.decoded, &self.failed, &self.empty);
         let present = |k: &BlockKey| decoded.contains_key(k) || failed.contains_key(k) || empty.contains(k);
-        let needed = self.needed();
         let failed_pages = &self.failed_pages;
-        self.requests.plan(&pages, &needed, |k| failed_pages.contains_key(k), present);
+        self.requests.plan(&pages, &self.needed, |k| failed_pages.contains_key(k), present);
     }
 
     /// What must be loaded, with its projected error: the wanted blocks but
     /// the hidden ones, and all their ancestors (stand-ins while they load).
-    pub(super) fn needed(&self) -> HashMap<BlockKey, f32> {
+    /// Kept from the last [`Self::refresh_needed`].
+    pub(super) fn needed(&self) -> &HashMap<BlockKey, f32> {
+        &self.needed.by_key
+    }
+
+    /// Works out [`Self::needed`] again. It depends on the traversal and on which entries the
+    /// index holds, so this runs after either changes, and only then: once a frame at most
+    /// while the view moves, not once an arrival (at 32768³ an arrival's replan, with this
+    /// recomputed, was the largest share of the viewer's own main-thread time).
+    pub(super) fn refresh_needed(&mut self) {
         let hidden: HashSet<&BlockKey> = self.traversal.hidden.iter().collect();
         let max_level = self.manifest.coarsest_level();
         let mut needed = HashMap::default();
@@ -99,7 +108,7 @@ impl Scene {
                 k = k.parent();
             }
         }
-        needed
+        self.needed = NeededBlocks::new(needed);
     }
 
     /// The blocks to resolve the draw set from: the wanted ones, a hidden
@@ -144,5 +153,65 @@ impl Scene {
 
     pub fn in_flight(&self) -> usize {
         self.requests.in_flight()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use voxstream_format::Block;
+
+    use super::*;
+    use crate::decode::DecodedBlock;
+    use crate::select::tests::pyramid;
+
+    /// Streams the default view of a loaded pyramid to the end, every started request answered
+    /// at once (odd x refused, the rest arriving empty); `lose` is a block whose answer is
+    /// dropped (its request finished, nothing inserted). With `replan_on_arrival` the queue is
+    /// replanned after each answer, as it was before arrivals stopped replanning.
+    fn stream(replan_on_arrival: bool, lose: Option<usize>) -> (Vec<Request>, Scene) {
+        let (m, index) = pyramid(1024);
+        let mut scene = Scene::new(m, (640, 480));
+        scene.index = index;
+        let mut started = Vec::new();
+        while started.len() < 100_000 {
+            let batch = scene.start_requests();
+            if batch.is_empty() {
+                break;
+            }
+            for r in &batch {
+                let Request::Block(key) = *r else { panic!("a loaded index asks for no page") };
+                if lose == Some(started.len()) {
+                    scene.requests.finished(r);
+                } else {
+                    let answer = if key.x % 2 == 1 {
+                        Err("refused".to_string())
+                    } else {
+                        Ok(DecodedBlock::new(Block { key, voxels: Vec::new() }))
+                    };
+                    scene.insert_worker_result(key, 0, answer);
+                }
+                if replan_on_arrival {
+                    scene.plan_requests();
+                }
+                started.push(r.clone());
+            }
+        }
+        (started, scene)
+    }
+
+    #[test]
+    fn arrivals_leave_the_plan_as_a_replan_would() {
+        let (without, mut scene) = stream(false, None);
+        let (with, _) = stream(true, None);
+        assert!(without.len() > 20, "the view streams enough to tell: {} requests", without.len());
+        assert_eq!(without, with, "the same requests in the same order as replanning after each arrival");
+        let unique: HashSet<BlockKey> =
+            without.iter().map(|r| if let Request::Block(k) = r { *k } else { unreachable!() }).collect();
+        assert_eq!(unique.len(), without.len(), "nothing asked twice");
+        assert!(scene.is_settled(), "everything needed arrived or failed for good");
+        // Negative control: an answer lost on the way leaves a needed block neither loaded
+        // nor asked for again, and the checks above see it.
+        let (_, mut lost) = stream(false, Some(without.len() / 2));
+        assert!(!lost.is_settled());
     }
 }

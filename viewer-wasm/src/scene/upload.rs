@@ -26,22 +26,19 @@ impl Scene {
             + FADE_BUFFER_BYTES
     }
 
-    /// Decoded needed blocks not on the GPU yet, most needed first.
+    /// Decoded needed blocks not on the GPU yet, most needed first (the request order).
     pub(super) fn awaiting_upload(&self) -> Vec<BlockKey> {
-        let mut keys: Vec<(f32, BlockKey)> = self
-            .needed()
-            .into_iter()
-            .filter(|(k, _)| self.decoded.contains_key(k) && !self.gpu.contains_key(k))
-            .map(|(k, p)| (p, k))
-            .collect();
-        keys.sort_by(|a, b| b.0.total_cmp(&a.0).then(b.1.level.cmp(&a.1.level)).then(a.1.cmp(&b.1)));
-        keys.into_iter().map(|(_, k)| k).collect()
+        self.needed
+            .in_order()
+            .map(|(k, _)| *k)
+            .filter(|k| self.decoded.contains_key(k) && !self.gpu.contains_key(k))
+            .collect()
     }
 
     /// Whether decoded blocks wait for the GPU.
     pub fn has_pending_uploads(&mut self) -> bool {
         self.update_traversal();
-        !self.awaiting_upload().is_empty()
+        self.needed.in_order().any(|(k, _)| self.decoded.contains_key(k) && !self.gpu.contains_key(k))
     }
 
     /// One frame's upload: needed decoded blocks, most needed first, up to
@@ -72,7 +69,7 @@ impl Scene {
         }
         // What this frame can draw: the needed blocks and hidden ones already
         // loaded. Last frame's other blocks will not be drawn again, so they may go.
-        let mut protected: HashSet<BlockKey> = self.needed().into_keys().collect();
+        let mut protected: HashSet<BlockKey> = self.needed().keys().copied().collect();
         protected.extend(self.traversal.hidden.iter().filter(|k| self.gpu.contains_key(k)).copied());
         // The pacer times what the bytes cost: packing, the write, the expansion (not the traversal).
         let packing_from = (self.clock)();
