@@ -35,9 +35,9 @@ impl Scene {
                 self.failed_pages.insert(page.root, e);
             }
         }
-        // New entries change which ancestors are needed.
-        self.refresh_needed();
-        self.plan_requests();
+        // No replan here: a loaded or failed page changes what `update_traversal` keys on
+        // (`pages_loaded`, `failed_pages`), so the next read of the plan traverses again and
+        // replans then, with the new entries.
     }
 
     pub fn record_bytes_fetched(&mut self, bytes: u64) {

@@ -1,6 +1,7 @@
 //! traverse → request: what the view wants this frame ([`crate::traverse`]), and the
 //! queue of pages and blocks to fetch for it ([`crate::request`]), replanned whenever the
-//! traversal or what has arrived changes.
+//! traversal runs again (the view, the pages, the feedback or the budget changed), never on
+//! a block's arrival.
 
 use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
 
