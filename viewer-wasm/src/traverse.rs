@@ -103,19 +103,22 @@ pub fn traverse(
         if occluded.contains(&c.key) {
             out.culled_occlusion += 1;
             out.hidden.push(c.key);
-        } else if c.pixels > params.max_error_pixels {
-            if let Some(page) = index.pending_page_for(&c.key) {
+        } else if let Some(entry) = index.block(&c.key).filter(|_| c.pixels > params.max_error_pixels) {
+            // Each entry is looked up once: at 32768³ a traversal visits thousands of blocks
+            // and the lookups were most of its time.
+            if let Some(page) = index.pending_page_below(entry) {
                 out.pages.push(page.clone());
-            } else if index.block(&c.key).is_some_and(|e| e.child_mask != 0) {
+            } else if entry.child_mask != 0 {
                 let mut children = Vec::new();
-                for child in index.children(&c.key) {
+                let mut bytes = out.bytes;
+                for child in index.children_of(entry) {
                     if frustum.intersects(&entry_bounds(child)) {
                         children.push(candidate(child));
+                        bytes += entry_gpu_bytes(child);
                     } else {
                         out.culled_frustum += 1;
                     }
                 }
-                let bytes = out.bytes + children.iter().map(|k| bytes_of(&k.key)).sum::<u64>();
                 let count = done.len() + open.len() + children.len();
                 if count <= params.max_blocks && bytes <= params.max_bytes {
                     out.bytes = bytes;

@@ -46,8 +46,12 @@ impl Scene {
                 k = k.parent();
             }
         };
-        let mut tests: Vec<(BlockKey, crate::select::Aabb)> = Vec::new();
-        for k in self.traversal.priority.keys() {
+        // Coarsest first, then by key: sorting the keys, not the boxes (up to
+        // eight a key), gives the same order at an eighth of the work.
+        let mut keys: Vec<&BlockKey> = self.traversal.priority.keys().collect();
+        keys.sort_unstable_by(|a, b| b.level.cmp(&a.level).then(a.cmp(b)));
+        let mut tests: Vec<(BlockKey, crate::select::Aabb)> = Vec::with_capacity(keys.len());
+        for k in keys {
             let Some(tight) = block_bounds(&self.index, k) else { continue };
             let level = drawn_level(k);
             let grown = |b: &crate::select::Aabb| proxy_bounds(b, level);
@@ -65,7 +69,6 @@ impl Scene {
                 None => tests.push((*k, grown(&tight))),
             }
         }
-        tests.sort_by(|a, b| b.0.level.cmp(&a.0.level).then(a.0.cmp(&b.0)));
         tests
     }
 
@@ -90,5 +93,26 @@ impl Scene {
             }
             self.picked = Some(answer);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::scene::plan::tests::stream;
+
+    #[test]
+    fn occlusion_tests_run_coarsest_first_then_by_key() {
+        let (_, scene) = stream(false, None);
+        let tests = scene.occlusion_tests();
+        assert!(tests.len() > 20, "enough boxes to tell: {}", tests.len());
+        let mut sorted = tests.clone();
+        // The order the pass had when the boxes themselves were sorted (stable).
+        sorted.sort_by(|a, b| b.0.level.cmp(&a.0.level).then(a.0.cmp(&b.0)));
+        assert_eq!(tests, sorted);
+        // Control: the traversal's own (hash) order is not that order, so the sort is what gives it.
+        let raw: Vec<_> = scene.traversal.priority.keys().copied().collect();
+        let mut keys = raw.clone();
+        keys.sort_by(|a, b| b.level.cmp(&a.level).then(a.cmp(b)));
+        assert_ne!(raw, keys);
     }
 }

@@ -158,7 +158,7 @@ impl Scene {
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use voxstream_format::Block;
 
     use super::*;
@@ -169,7 +169,7 @@ mod tests {
     /// at once (odd x refused, the rest arriving empty); `lose` is a block whose answer is
     /// dropped (its request finished, nothing inserted). With `replan_on_arrival` the queue is
     /// replanned after each answer, as it was before arrivals stopped replanning.
-    fn stream(replan_on_arrival: bool, lose: Option<usize>) -> (Vec<Request>, Scene) {
+    pub(in crate::scene) fn stream(replan_on_arrival: bool, lose: Option<usize>) -> (Vec<Request>, Scene) {
         let (m, index) = pyramid(1024);
         let mut scene = Scene::new(m, (640, 480));
         scene.index = index;
