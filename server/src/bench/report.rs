@@ -28,6 +28,13 @@ pub fn goal_definitions() -> BTreeMap<&'static str, &'static str> {
              `voxstream build` wall time and by the thread count >= 10,000,000",
         ),
         (
+            "core_seconds_within_2M_tri_10M_voxels",
+            "every input at every thread count: median child `voxstream build` wall time times the \
+             thread count <= input triangles / 2,000,000 + level-0 voxels / 10,000,000 seconds: both \
+             rates at once, each in the share of the work it governs (a build of few triangles and \
+             many voxels cannot meet the triangle rate alone, nor the reverse)",
+        ),
+        (
             "peak_rss_within_budget",
             "every `voxstream build` run's peak RSS <= budget_bytes (null without --memory-budget)",
         ),
@@ -60,6 +67,9 @@ pub struct ThreadSummary {
     /// Level-0 voxels stored over the median wall time.
     pub voxels_per_s_median: Option<f64>,
     pub voxels_per_s_per_thread: Option<f64>,
+    /// Median wall time × threads over the core-seconds both throughput goals
+    /// allow together (triangles / 2 M + level-0 voxels / 10 M): ≤ 1 meets them.
+    pub core_seconds_over_goal: Option<f64>,
     /// user + system CPU seconds over wall seconds: how many cores were busy.
     pub cpu_utilization_median: Option<f64>,
     pub peak_rss_bytes: Vec<u64>,
@@ -95,6 +105,10 @@ pub fn summarize_runs(
         tri_per_s_per_thread: tri_per_s_median.map(|r| r / threads.max(1) as f64),
         voxels_per_s_median,
         voxels_per_s_per_thread: voxels_per_s_median.map(|r| r / threads.max(1) as f64),
+        core_seconds_over_goal: voxels.zip(wall_seconds_median).map(|(v, w)| {
+            let allowed = triangles as f64 / GOAL_TRI_PER_S_PER_CORE + v as f64 / GOAL_VOXELS_PER_S_PER_CORE;
+            w * threads.max(1) as f64 / allowed
+        }),
         cpu_utilization_median: median(&utilization),
         peak_rss_bytes_median: median_u64(&rss),
         peak_rss_bytes: rss,
@@ -256,6 +270,8 @@ pub struct Goals {
     pub tri_per_s_per_core_2m: Option<bool>,
     #[serde(rename = "voxels_per_s_per_core_10M")]
     pub voxels_per_s_per_core_10m: Option<bool>,
+    #[serde(rename = "core_seconds_within_2M_tri_10M_voxels")]
+    pub core_seconds_within_goal: Option<bool>,
     pub peak_rss_within_budget: Option<bool>,
     pub faster_than_meshopt: Option<bool>,
     pub all_runs_succeeded: bool,
@@ -282,6 +298,9 @@ pub fn evaluate_goals(vox: &VoxstreamReport, peer: &PeerReport) -> Goals {
         // A thread count with no successful run fails the goal rather than vanishing from it.
         tri_per_s_per_core_2m: all_of(rates.map(|r| Some(r.unwrap_or(false)))),
         voxels_per_s_per_core_10m: all_of(voxel_rates.map(|r| Some(r.unwrap_or(false)))),
+        core_seconds_within_goal: all_of(
+            vox.threads.values().map(|t| Some(t.core_seconds_over_goal.is_some_and(|r| r <= 1.0))),
+        ),
         peak_rss_within_budget: all_of(vox.threads.values().map(|t| t.within_budget)),
         faster_than_meshopt: all_of(faster),
         all_runs_succeeded: !failed && !vox.threads.is_empty(),
@@ -292,6 +311,7 @@ pub fn combine_goals(per_input: &[Goals]) -> Goals {
     Goals {
         tri_per_s_per_core_2m: all_of(per_input.iter().map(|g| g.tri_per_s_per_core_2m)),
         voxels_per_s_per_core_10m: all_of(per_input.iter().map(|g| g.voxels_per_s_per_core_10m)),
+        core_seconds_within_goal: all_of(per_input.iter().map(|g| g.core_seconds_within_goal)),
         peak_rss_within_budget: all_of(per_input.iter().map(|g| g.peak_rss_within_budget)),
         faster_than_meshopt: all_of(per_input.iter().map(|g| g.faster_than_meshopt)),
         all_runs_succeeded: !per_input.is_empty() && per_input.iter().all(|g| g.all_runs_succeeded),
@@ -408,12 +428,14 @@ mod tests {
         assert_eq!(s.cpu_utilization_median, Some(1.5));
         assert_eq!(s.voxels_per_s_median, Some(15_000_000.0));
         assert_eq!(s.voxels_per_s_per_thread, Some(7_500_000.0));
+        assert_eq!(s.core_seconds_over_goal, Some(4.0 / 7.0));
         assert_eq!(s.peak_rss_bytes_max, Some(300 << 20));
         assert_eq!(s.peak_rss_bytes_median, Some(200 << 20));
         assert_eq!(s.peak_rss_over_budget, Some(1.2));
         assert_eq!(s.within_budget, Some(false));
         let none = summarize_runs(10, None, 1, &[], vec![], None);
         assert_eq!((none.tri_per_s_median, none.within_budget, none.peak_rss_bytes_max), (None, None, None));
+        assert_eq!(none.core_seconds_over_goal, None);
     }
 
     fn vox_with(rates: &[(usize, f64)], within: Option<bool>) -> VoxstreamReport {
@@ -445,6 +467,7 @@ mod tests {
             Goals {
                 tri_per_s_per_core_2m: Some(true),
                 voxels_per_s_per_core_10m: Some(true),
+                core_seconds_within_goal: Some(true),
                 peak_rss_within_budget: Some(true),
                 faster_than_meshopt: Some(true),
                 all_runs_succeeded: true
@@ -460,6 +483,11 @@ mod tests {
         let g2 = evaluate_goals(&slow, &PeerReport::default());
         assert_eq!(g2.tri_per_s_per_core_2m, Some(false));
         assert_eq!(g2.voxels_per_s_per_core_10m, Some(true));
+        // 4 M triangles and 24 M voxels allow 2 + 2.4 core-seconds: 2.4 meets that, the triangle rate alone does not.
+        assert_eq!(slow.threads["2"].core_seconds_over_goal, Some(2.4 / 4.4));
+        assert_eq!(g2.core_seconds_within_goal, Some(true));
+        let over = vox_with(&[(1, 1.5), (2, 2.3)], Some(true));
+        assert_eq!(evaluate_goals(&over, &PeerReport::default()).core_seconds_within_goal, Some(false));
         let slower = vox_with(&[(1, 1.5), (2, 1.3)], Some(true));
         assert_eq!(evaluate_goals(&slower, &PeerReport::default()).voxels_per_s_per_core_10m, Some(false));
         assert_eq!(g2.peak_rss_within_budget, Some(false));
@@ -471,6 +499,7 @@ mod tests {
         let g3 = evaluate_goals(&broken, &PeerReport::default());
         assert_eq!(g3.tri_per_s_per_core_2m, Some(false));
         assert_eq!(g3.voxels_per_s_per_core_10m, Some(false));
+        assert_eq!(g3.core_seconds_within_goal, Some(false));
         assert!(!g3.all_runs_succeeded);
 
         let all = combine_goals(&[g, g2]);
