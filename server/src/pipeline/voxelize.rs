@@ -1110,6 +1110,30 @@ impl TriangleSat {
         (0..3).fold(true, |ok, i| ok & self.passes(ks[i], part[i] + self.axes[ks[i]][w] * mw))
     }
 
+    /// Bit j: centre j + 0.5 along w (j < [`SMALL`]) passes the edge axes
+    /// `ks`, which have no component along their plane's third axis, at
+    /// centre `m` along `a`: [`Self::edge_axes_pass`]'s floats, lane by lane.
+    #[inline(always)]
+    fn run_mask(&self, ks: [usize; 3], a: usize, m: f64, w: usize) -> u64 {
+        self.mask_of(ks.map(|k| (self.axes[k][a] * m, k)), w)
+    }
+
+    /// Bit j: for every `(part, k)`, `part + axis_k[w]·(j + 0.5)` passes axis k.
+    /// Fixed-length arrays, so the lanes are straight-line code.
+    #[inline(always)]
+    fn mask_of<const N: usize>(&self, tests: [(f64, usize); N], w: usize) -> u64 {
+        const CENTRES: [f64; SMALL] = [0.5, 1.5, 2.5, 3.5];
+        let mut pass = [true; SMALL];
+        for (part, k) in tests {
+            let (slope, lo, hi) = (self.axes[k][w], self.lo[k], self.hi[k]);
+            for (p, x) in pass.iter_mut().zip(CENTRES) {
+                let d = part + slope * x;
+                *p &= (d >= lo) & (d <= hi);
+            }
+        }
+        pass.iter().enumerate().fold(0, |bits, (j, &p)| bits | u64::from(p) << j)
+    }
+
     /// [`for_each_touched_voxel`]'s voxels for a box `[lo, hi]` (the
     /// SAT's origin) under [`SMALL`] voxels an edge, as bits
     /// `(SMALL·iu + iv)·SMALL + iw` of the `lo`-relative indices along
@@ -1126,24 +1150,16 @@ impl TriangleSat {
         slab: impl Fn(i64, i64) -> (i64, i64),
     ) -> u64 {
         let (nu, nv, nw) = ((hi[u] - lo[u] + 1) as usize, (hi[v] - lo[v] + 1) as usize, hi[w] - lo[w] + 1);
-        // Bit j: centre j + 0.5 along w passes the edge axes `ks` (no component
-        // along their plane's third axis) at centre `m` along `a`.
-        let plane_bits = |ks: [usize; 3], a: usize, m: f64| {
-            let part = ks.map(|k| self.axes[k][a] * m);
-            (0..SMALL).fold(0u64, |bits, j| {
-                bits | (u64::from(self.edge_axes_pass(ks, part, w, j as f64 + 0.5)) << j)
-            })
-        };
         let mut by_v = [0u64; SMALL];
         for (iv, bits) in by_v.iter_mut().enumerate().take(nv) {
-            *bits = plane_bits([u, 3 + u, 6 + u], v, iv as f64 + 0.5);
+            *bits = self.run_mask([u, 3 + u, 6 + u], v, iv as f64 + 0.5, w);
         }
         let (column, k) = ([w, 3 + w, 6 + w], 9);
         let mut hits = 0u64;
         for iu in 0..nu {
             let mu = iu as f64 + 0.5;
             let cu = lo[u] + iu as i64;
-            let by_u = plane_bits([v, 3 + v, 6 + v], u, mu) & ((1 << nw) - 1);
+            let by_u = self.run_mask([v, 3 + v, 6 + v], u, mu, w) & ((1 << nw) - 1);
             for (iv, &by_v) in by_v.iter().enumerate().take(nv) {
                 let mv = iv as f64 + 0.5;
                 let in_column = self.column_passes(column, u, v, mu, mv);
@@ -1152,9 +1168,7 @@ impl TriangleSat {
                 let below = (1u64 << (w0 - lo[w]).min(SMALL as i64)) - 1;
                 let through = (1u64 << (w1 - lo[w] + 1).clamp(0, SMALL as i64)) - 1;
                 let part = self.axes[k][u] * mu + self.axes[k][v] * mv;
-                let normal = (0..SMALL).fold(0u64, |bits, j| {
-                    bits | (u64::from(self.passes(k, part + self.axes[k][w] * (j as f64 + 0.5))) << j)
-                });
+                let normal = self.mask_of([(part, k)], w);
                 let bits = by_u & by_v & through & !below & normal & 0u64.wrapping_sub(u64::from(in_column));
                 hits |= bits << ((SMALL * iu + iv) * SMALL);
             }
