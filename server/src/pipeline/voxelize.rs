@@ -1125,10 +1125,9 @@ impl TriangleSat {
         const CENTRES: [f64; SMALL] = [0.5, 1.5, 2.5, 3.5];
         let mut pass = [true; SMALL];
         for (part, k) in tests {
-            let (slope, lo, hi) = (self.axes[k][w], self.lo[k], self.hi[k]);
+            let slope = self.axes[k][w];
             for (p, x) in pass.iter_mut().zip(CENTRES) {
-                let d = part + slope * x;
-                *p &= (d >= lo) & (d <= hi);
+                *p &= self.passes(k, part + slope * x);
             }
         }
         pass.iter().enumerate().fold(0, |bits, (j, &p)| bits | u64::from(p) << j)
