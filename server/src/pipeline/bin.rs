@@ -24,7 +24,10 @@
 //! chunks grouped by block on all cores, appended one group after another),
 //! and in pass 3 each block is one thread's work over its triangles in input
 //! order, so the output does not depend on the thread count or on where
-//! buffers were flushed.
+//! buffers were flushed. Spilled chunks of passes 1 and 2 are compressed
+//! and written behind their producer ([`ChunkStore::push_behind`], at most
+//! [`PENDING_CHUNKS`] in flight): their ids are still given in push order,
+//! so only the spill files' byte layout varies between runs.
 //!
 //! Memory (shares from [`crate::pipeline::MemoryPlan`]): stream and bin
 //! stores keep their resident share of encoded chunks and spill the rest to
@@ -49,8 +52,15 @@ use crate::pipeline::voxelize::{
 };
 use crate::pipeline::{BuildError, BuildOptions, MAX_RECORD_BYTES};
 
-/// Chunks encoded (lz4 when spilled) together on all cores.
-const PENDING_CHUNKS: usize = 8;
+/// Chunks encoded (lz4 when spilled) together on all cores, or in flight
+/// behind their producer.
+pub(crate) const PENDING_CHUNKS: usize = 8;
+
+/// What the chunks in flight hold at most: records and their encoding.
+/// Pass 2 holds them beside its stores out of the pyramid's reserve, idle
+/// until pass 3 ([`crate::pipeline::MemoryPlan`]).
+pub(crate) const CHUNKS_IN_FLIGHT_BYTES: usize =
+    PENDING_CHUNKS * 2 * (MAX_CHUNK_TRIANGLES * MAX_RECORD_BYTES + HEADER_LEN);
 
 /// Triangles checked, encoded and measured together on all cores.
 const SINK_BATCH: usize = 1 << 14;
@@ -100,7 +110,7 @@ impl EncodedPiece {
 /// (readers' own, or gathered here from single ones); each batch is checked,
 /// encoded and measured on all cores, then appended in file order, so the
 /// chunks are the same as one triangle at a time would give.
-pub struct StreamSink<'a> {
+pub struct StreamSink<'a, 's> {
     pub store: ChunkStore,
     pub layout: RecordLayout,
     /// Bounds of every valid triangle, as the records hold them.
@@ -116,9 +126,11 @@ pub struct StreamSink<'a> {
     pending: Vec<Vec<u8>>,
     begun: bool,
     on_tick: &'a mut dyn FnMut() -> Result<(), IngestError>,
+    /// Where spilled chunks are compressed and written behind the reader; without one, in turn.
+    behind: Option<&'a rayon::Scope<'s>>,
 }
 
-impl<'a> StreamSink<'a> {
+impl<'a, 's> StreamSink<'a, 's> {
     pub fn new(store: ChunkStore, on_tick: &'a mut dyn FnMut() -> Result<(), IngestError>) -> Self {
         Self {
             store,
@@ -132,7 +144,14 @@ impl<'a> StreamSink<'a> {
             pending: Vec::new(),
             begun: false,
             on_tick,
+            behind: None,
         }
+    }
+
+    /// Spilled chunks are compressed and written by tasks of `scope`
+    /// ([`ChunkStore::push_behind`]); the store must be settled after it ends.
+    pub fn behind(self, scope: &'a rayon::Scope<'s>) -> Self {
+        Self { behind: Some(scope), ..self }
     }
 
     /// Queues the current chunk; every [`PENDING_CHUNKS`] (and at the end) they
@@ -145,7 +164,13 @@ impl<'a> StreamSink<'a> {
             );
             self.pending.push(raw);
         }
-        if self.pending.len() >= PENDING_CHUNKS || (last && !self.pending.is_empty()) {
+        if let Some(scope) = self.behind {
+            for raw in self.pending.drain(..) {
+                self.store
+                    .push_behind(self.layout, raw, scope, PENDING_CHUNKS)
+                    .map_err(|e| IngestError::Invalid(format!("temporary triangle stream: {e}")))?;
+            }
+        } else if self.pending.len() >= PENDING_CHUNKS || (last && !self.pending.is_empty()) {
             self.store
                 .push_many(self.layout, std::mem::take(&mut self.pending))
                 .map_err(|e| IngestError::Invalid(format!("temporary triangle stream: {e}")))?;
@@ -241,7 +266,7 @@ fn append_on_all_cores<'p>(raw: &mut Vec<u8>, parts: Vec<&'p [u8]>, room: usize)
     left
 }
 
-impl TriangleSink for StreamSink<'_> {
+impl TriangleSink for StreamSink<'_, '_> {
     fn begin(&mut self, layout: RecordLayout) -> Result<(), IngestError> {
         if self.begun {
             return Err(IngestError::Invalid("reader began twice".into()));
@@ -447,10 +472,11 @@ impl Binner {
         }
     }
 
-    fn drain(&mut self) -> Result<(), BuildError> {
-        let items: Vec<Vec<u8>> = self.pending.iter_mut().map(|(_, r)| std::mem::take(r)).collect();
-        let ids = self.store.push_many(self.layout, items).map_err(temp_err)?;
-        for ((m, _), id) in self.pending.drain(..).zip(ids) {
+    /// Stores the full buffers as segments; those that spill are compressed
+    /// and written by tasks of `scope`, beside the appends.
+    fn drain(&mut self, scope: &rayon::Scope<'_>) -> Result<(), BuildError> {
+        for (m, raw) in self.pending.drain(..) {
+            let id = self.store.push_behind(self.layout, raw, scope, PENDING_CHUNKS).map_err(temp_err)?;
             if id as u64 >= 1 << SEGMENT_BITS {
                 return Err(BuildError::Temp(format!("more than 2^{SEGMENT_BITS} bin segments")));
             }
@@ -460,11 +486,11 @@ impl Binner {
     }
 
     /// Every buffer goes, bookkeeping included, so many blocks cost no more than few.
-    fn flush_all(&mut self) -> Result<(), BuildError> {
+    fn flush_all(&mut self, scope: &rayon::Scope<'_>) -> Result<(), BuildError> {
         for buf in &mut self.buffers {
             Self::take(buf, &mut self.pending);
         }
-        self.drain()?;
+        self.drain(scope)?;
         self.buffers = Vec::new();
         self.lookup = FxHashMap::default();
         self.buffered = 0;
@@ -474,7 +500,7 @@ impl Binner {
     /// Appends whole records of block `m`,
     /// storing a buffer as a segment when it is full and flushing every
     /// buffer as soon as they pass their limit, as one record at a time would.
-    fn append(&mut self, m: u64, records: &[u8]) -> Result<(), BuildError> {
+    fn append(&mut self, m: u64, records: &[u8], scope: &rayon::Scope<'_>) -> Result<(), BuildError> {
         let rec = self.layout.size();
         let full = MAX_CHUNK_TRIANGLES * rec;
         let mut rest = records;
@@ -505,24 +531,27 @@ impl Binner {
             if buf.raw.len() >= full {
                 self.buffered -= buf.raw.len();
                 Self::take(buf, &mut self.pending);
-                if self.pending.len() >= PENDING_CHUNKS {
-                    self.drain()?;
-                }
+                self.drain(scope)?;
             }
             if self.buffered > self.buffer_limit {
-                self.flush_all()?;
+                self.flush_all(scope)?;
             }
         }
         Ok(())
     }
 
-    fn append_placed(&mut self, placed: Placed, frame: &GridFrame) -> Result<(), BuildError> {
+    fn append_placed(
+        &mut self,
+        placed: Placed,
+        frame: &GridFrame,
+        scope: &rayon::Scope<'_>,
+    ) -> Result<(), BuildError> {
         match placed {
             Placed::Grouped(g) => {
                 self.triangles += g.triangles;
                 self.skipped += g.skipped;
                 for (m, records) in &g.blocks {
-                    self.append(*m, records)?;
+                    self.append(*m, records, scope)?;
                 }
             }
             Placed::Raw(raw) => {
@@ -535,7 +564,7 @@ impl Binner {
                     for bz in blo[2]..=bhi[2] {
                         for by in blo[1]..=bhi[1] {
                             for bx in blo[0]..=bhi[0] {
-                                self.append(block_morton([bx, by, bz]), record)?;
+                                self.append(block_morton([bx, by, bz]), record, scope)?;
                             }
                         }
                     }
@@ -746,43 +775,49 @@ pub fn bin_triangles(
     let total = stream.len();
     // A full chunk's buffer: the capacity a spare must have to hold a whole segment.
     let segment_bytes = MAX_CHUNK_TRIANGLES * layout.size();
-    if group == 0 {
-        for id in 0..total {
-            opts.check_cancelled()?;
-            let raw = stream.read(id).map_err(temp_err)?;
-            binner.append_placed(Placed::Raw(raw), frame)?;
-            progress.stage(Stage::Voxelize, 0.3 * (id + 1) as f64 / total as f64);
-        }
-    } else {
-        let mut ready: Vec<Placed> = Vec::new();
-        let mut next = 0;
-        while next < total || !ready.is_empty() {
-            opts.check_cancelled()?;
-            let ids = next..(next + group).min(total);
-            next = ids.end;
-            // Appends the group before while this one is read and grouped.
-            let reading: &ChunkStore = stream;
-            let (appended, grouped) = rayon::join(
-                || -> Result<(), BuildError> {
-                    for p in std::mem::take(&mut ready) {
-                        binner.append_placed(p, frame)?;
-                    }
-                    Ok(())
-                },
-                || read_group(reading, ids.clone()),
-            );
-            appended?;
-            ready = grouped?;
-            // Grouped copies hold these chunks' records now.
-            for id in ids {
-                if let Some(raw) = stream.take_resident(id).filter(|raw| raw.capacity() == segment_bytes) {
-                    binner.spare.push(raw);
-                }
+    // Spilled segments are compressed and written by tasks of this scope; it
+    // ends when the last is written.
+    rayon::scope(|scope| -> Result<(), BuildError> {
+        if group == 0 {
+            for id in 0..total {
+                opts.check_cancelled()?;
+                let raw = stream.read(id).map_err(temp_err)?;
+                binner.append_placed(Placed::Raw(raw), frame, scope)?;
+                progress.stage(Stage::Voxelize, 0.3 * (id + 1) as f64 / total as f64);
             }
-            progress.stage(Stage::Voxelize, 0.3 * next as f64 / total.max(1) as f64);
+        } else {
+            let mut ready: Vec<Placed> = Vec::new();
+            let mut next = 0;
+            while next < total || !ready.is_empty() {
+                opts.check_cancelled()?;
+                let ids = next..(next + group).min(total);
+                next = ids.end;
+                // Appends the group before while this one is read and grouped.
+                let reading: &ChunkStore = stream;
+                let (appended, grouped) = rayon::join(
+                    || -> Result<(), BuildError> {
+                        for p in std::mem::take(&mut ready) {
+                            binner.append_placed(p, frame, scope)?;
+                        }
+                        Ok(())
+                    },
+                    || read_group(reading, ids.clone()),
+                );
+                appended?;
+                ready = grouped?;
+                // Grouped copies hold these chunks' records now.
+                for id in ids {
+                    if let Some(raw) = stream.take_resident(id).filter(|raw| raw.capacity() == segment_bytes)
+                    {
+                        binner.spare.push(raw);
+                    }
+                }
+                progress.stage(Stage::Voxelize, 0.3 * next as f64 / total.max(1) as f64);
+            }
         }
-    }
-    binner.flush_all()?;
+        binner.flush_all(scope)
+    })?;
+    binner.store.settle_behind().map_err(temp_err)?;
     let Binner { store, mut index, triangles, skipped, .. } = binner;
     index.sort_unstable();
     index.shrink_to_fit();

@@ -227,7 +227,9 @@ const SPARE_MIN: u64 = 4 << 20;
 /// [`SPARE_MIN`]: the stream and bin stores keep S/4 each resident, the bin
 /// buffers S/8 (S/4 with capacity slack). During pass 3 the bin index and
 /// the resident bins come out of S, and the rest of S buys more workers and
-/// finished level-0 blocks waiting for their turn in Morton order.
+/// finished level-0 blocks waiting for their turn in Morton order. Before
+/// pass 3 the reserve is idle; pass 2's chunks written behind it
+/// ([`bin::CHUNKS_IN_FLIGHT_BYTES`]) fit in it at any resolution.
 #[derive(Debug, Clone, Copy)]
 pub struct MemoryPlan {
     pub budget: u64,
@@ -250,7 +252,9 @@ impl MemoryPlan {
     /// What the pyramid stage holds at worst besides the bins.
     pub fn reserve(resolution: u32) -> u64 {
         let levels = level_count(resolution);
-        Self::front(levels) + Self::writer(levels) + WORKER_BYTES as u64
+        // Pass 2's chunks in flight borrow the reserve before pass 3 needs it.
+        (Self::front(levels) + Self::writer(levels) + WORKER_BYTES as u64)
+            .max(bin::CHUNKS_IN_FLIGHT_BYTES as u64)
     }
 
     /// The smallest budget a build at `resolution` can run in, whatever the input.
@@ -764,21 +768,24 @@ pub fn build_scene_reporting(
         Ok(())
     };
     let stream_store = ChunkStore::new(&temp.path().join("stream.vxt"), first_plan.stream_resident());
-    let mut sink = StreamSink::new(stream_store, &mut on_tick);
-    let format = read::stream_mesh(input, &mut sink, &read_opts).and_then(|f| sink.finish().map(|()| f));
+    // Spilled chunks are compressed and written by tasks of the scope, beside the reader.
+    let (format, sink) = rayon::scope(|scope| {
+        let mut sink = StreamSink::new(stream_store, &mut on_tick).behind(scope);
+        let format = read::stream_mesh(input, &mut sink, &read_opts).and_then(|f| sink.finish().map(|()| f));
+        let StreamSink { store, layout, bounds, triangles, skipped, edges, .. } = sink;
+        (format, (store, layout, bounds, triangles, skipped, edges))
+    });
+    let (mut stream_store, layout, bounds, read_triangles, read_skipped, edges) = sink;
+    let format = format.and_then(|f| {
+        stream_store
+            .settle_behind()
+            .map(|()| f)
+            .map_err(|e| IngestError::Invalid(format!("temporary triangle stream: {e}")))
+    });
     let format = match format {
         Err(IngestError::Cancelled) => return Err(BuildError::Cancelled),
         r => r?,
     };
-    let StreamSink {
-        store: mut stream_store,
-        layout,
-        bounds,
-        triangles: read_triangles,
-        skipped: read_skipped,
-        edges,
-        ..
-    } = sink;
     if read_triangles + read_skipped == 0 {
         return Err(IngestError::Invalid("the file holds no triangles".into()).into());
     }
@@ -901,6 +908,12 @@ mod tests {
                 // The paged table's cache is half the table: a quarter of the budget.
                 assert!(plan.ply_vertex_table() / 2 <= budget / 4);
             }
+        }
+        // Pass 2's chunks in flight fit in the pyramid's own reserve, so they raise no minimum budget.
+        for resolution in [64u32, 4096, 65536] {
+            let levels = level_count(resolution);
+            let own = MemoryPlan::front(levels) + MemoryPlan::writer(levels) + WORKER_BYTES as u64;
+            assert!(bin::CHUNKS_IN_FLIGHT_BYTES as u64 <= own, "{resolution}");
         }
         // Control: the stream store does take memory in pass 1, so a table allowed the whole
         // budget would pass it.

@@ -25,13 +25,20 @@
 //!
 //! Chunks live in a [`ChunkStore`]: in memory (the records' own buffer,
 //! no header) until the store's resident limit, then encoded and appended
-//! to a spill file. Readers of our own chunks still
+//! to a spill file. [`ChunkStore::push_behind`] hands a spilling chunk's
+//! encoding and write to a pool task, so a producer that must append in
+//! input order is not held up by lz4 and the disk: each write reserves its
+//! range at the file's atomic end, so chunk ids keep push order while the
+//! file's layout may differ from run to run (its content never does).
+//! Readers of our own chunks still
 //! check every length before allocating: the decompressed size is capped by
 //! the header's count, which is capped by [`MAX_CHUNK_TRIANGLES`].
 
 use std::fs::File;
-use std::io::{self, Write};
+use std::io;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
 
 /// Triangles per chunk at most (and per bin segment).
 pub const MAX_CHUNK_TRIANGLES: usize = 1 << 14;
@@ -260,6 +267,58 @@ enum Location {
     },
     /// A resident chunk whose buffer [`ChunkStore::take_resident`] handed out.
     Taken,
+    /// A chunk [`ChunkStore::push_behind`] is still encoding and writing.
+    Pending,
+}
+
+/// What the spill file's writers share: its end (each write reserves its
+/// range there, so writes need no lock and may finish in any order) and the
+/// chunks written behind their producer, until [`ChunkStore::settle_behind`].
+#[derive(Default)]
+struct SpillShared {
+    end: AtomicU64,
+    in_flight: AtomicUsize,
+    written: Mutex<Written>,
+}
+
+#[derive(Default)]
+struct Written {
+    /// (id, offset, length) of chunks written behind.
+    placed: Vec<(usize, u64, u32)>,
+    /// The first write that failed.
+    error: Option<ChunkError>,
+}
+
+impl SpillShared {
+    /// Encodes `raw` and writes it at a range reserved at the file's end.
+    fn write(
+        &self,
+        file: &File,
+        path: &Path,
+        layout: RecordLayout,
+        raw: &[u8],
+    ) -> Result<(u64, u32), ChunkError> {
+        let chunk = encode_chunk(layout, raw, &Bounds::of_records(layout, raw));
+        let offset = self.end.fetch_add(chunk.len() as u64, Ordering::Relaxed);
+        write_all_at(file, &chunk, offset).map_err(|source| ChunkError::Io {
+            action: "write",
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Ok((offset, chunk.len() as u32))
+    }
+
+    /// [`SpillShared::write`] for chunk `id`, its outcome kept for [`ChunkStore::settle_behind`].
+    fn write_behind(&self, file: &File, path: &Path, id: usize, layout: RecordLayout, raw: &[u8]) {
+        let outcome = self.write(file, path, layout, raw);
+        let mut w = self.written.lock().unwrap_or_else(|e| e.into_inner());
+        match outcome {
+            Ok((offset, len)) => w.placed.push((id, offset, len)),
+            Err(e) => {
+                w.error.get_or_insert(e);
+            }
+        }
+    }
 }
 
 /// Chunks of records, kept in memory up to a resident limit and appended to
@@ -271,8 +330,8 @@ enum Location {
 /// Only spilled chunks are encoded, as lz4 with their header.
 pub struct ChunkStore {
     spill_path: PathBuf,
-    spill: Option<File>,
-    spill_len: u64,
+    spill: Option<Arc<File>>,
+    shared: Arc<SpillShared>,
     resident: Vec<Vec<u8>>,
     resident_bytes: usize,
     resident_limit: usize,
@@ -286,7 +345,7 @@ impl ChunkStore {
         Self {
             spill_path: spill_path.to_path_buf(),
             spill: None,
-            spill_len: 0,
+            shared: Arc::default(),
             resident: Vec::new(),
             resident_bytes: 0,
             resident_limit,
@@ -336,7 +395,7 @@ impl ChunkStore {
             .into_iter()
             .map(|s| match s {
                 Stored::Resident(raw) => Ok(self.keep(raw)),
-                Stored::Spilled(chunk) => self.spill_chunk(&chunk),
+                Stored::Spilled(chunk) => self.spill_encoded(&chunk),
             })
             .collect()
     }
@@ -352,7 +411,16 @@ impl ChunkStore {
     }
 
     /// Appends an encoded chunk to the spill file.
-    fn spill_chunk(&mut self, chunk: &[u8]) -> Result<usize, ChunkError> {
+    fn spill_encoded(&mut self, chunk: &[u8]) -> Result<usize, ChunkError> {
+        let file = self.spill_file()?;
+        let offset = self.shared.end.fetch_add(chunk.len() as u64, Ordering::Relaxed);
+        write_all_at(&file, chunk, offset).map_err(self.io("write"))?;
+        self.chunks.push(Location::Disk { offset, len: chunk.len() as u32 });
+        Ok(self.chunks.len() - 1)
+    }
+
+    /// The spill file, created on first use.
+    fn spill_file(&mut self) -> Result<Arc<File>, ChunkError> {
         if self.spill.is_none() {
             let f = File::options()
                 .read(true)
@@ -360,17 +428,73 @@ impl ChunkStore {
                 .create_new(true)
                 .open(&self.spill_path)
                 .map_err(self.io("create"))?;
-            self.spill = Some(f);
+            self.spill = Some(Arc::new(f));
         }
-        let mut f = self.spill.as_ref().expect("opened above");
-        f.write_all(chunk).map_err(|source| ChunkError::Io {
-            action: "write",
-            path: self.spill_path.clone(),
-            source,
-        })?;
-        self.chunks.push(Location::Disk { offset: self.spill_len, len: chunk.len() as u32 });
-        self.spill_len += chunk.len() as u64;
+        Ok(self.spill.clone().expect("opened above"))
+    }
+
+    /// Encodes records and appends them to the spill file.
+    fn spill_chunk(&mut self, layout: RecordLayout, raw: &[u8]) -> Result<usize, ChunkError> {
+        let file = self.spill_file()?;
+        let (offset, len) = self.shared.write(&file, &self.spill_path, layout, raw)?;
+        self.chunks.push(Location::Disk { offset, len });
         Ok(self.chunks.len() - 1)
+    }
+
+    /// Stores records as one chunk and returns its id, as [`ChunkStore::push_many`]
+    /// would, but a chunk that spills is encoded and written by a task of
+    /// `scope` while the caller goes on; at most `in_flight` such tasks at once
+    /// (past that the caller encodes and writes it itself), so the chunks in
+    /// flight hold at most `in_flight` × (records + encoded) bytes.
+    ///
+    /// Why: a producer that appends in input order on one thread (pass 2)
+    /// would otherwise spend its turn compressing and writing while the
+    /// cores it feeds wait. The chunk reads as an error until
+    /// [`ChunkStore::settle_behind`] is called after `scope` ends.
+    pub fn push_behind(
+        &mut self,
+        layout: RecordLayout,
+        raw: Vec<u8>,
+        scope: &rayon::Scope<'_>,
+        in_flight: usize,
+    ) -> Result<usize, ChunkError> {
+        if self.fits(self.resident_bytes, raw.len()) {
+            return Ok(self.keep(raw));
+        }
+        if let Some(e) = self.shared.written.lock().unwrap_or_else(|e| e.into_inner()).error.take() {
+            return Err(e);
+        }
+        let file = self.spill_file()?;
+        if self.shared.in_flight.load(Ordering::Acquire) >= in_flight {
+            return self.spill_chunk(layout, &raw);
+        }
+        let id = self.chunks.len();
+        self.chunks.push(Location::Pending);
+        let (shared, path) = (self.shared.clone(), self.spill_path.clone());
+        shared.in_flight.fetch_add(1, Ordering::AcqRel);
+        scope.spawn(move |_| {
+            shared.write_behind(&file, &path, id, layout, &raw);
+            drop(raw);
+            shared.in_flight.fetch_sub(1, Ordering::AcqRel);
+        });
+        Ok(id)
+    }
+
+    /// Places the chunks [`ChunkStore::push_behind`] wrote; call once their
+    /// scope has ended. The first failed write is the error.
+    pub fn settle_behind(&mut self) -> Result<(), ChunkError> {
+        let mut w = self.shared.written.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(e) = w.error.take() {
+            return Err(e);
+        }
+        for (id, offset, len) in w.placed.drain(..) {
+            self.chunks[id] = Location::Disk { offset, len };
+        }
+        drop(w);
+        match self.chunks.iter().position(|c| matches!(c, Location::Pending)) {
+            Some(id) => Err(ChunkError::Damaged(format!("chunk {id} was never written"))),
+            None => Ok(()),
+        }
     }
 
     pub fn len(&self) -> usize {
@@ -389,7 +513,7 @@ impl ChunkStore {
 
     /// Bytes written to the spill file so far.
     pub fn spilled_bytes(&self) -> u64 {
-        self.spill_len
+        self.shared.end.load(Ordering::Relaxed)
     }
 
     /// Calls `f` with chunk `id`'s records: a resident chunk's own bytes, a
@@ -402,6 +526,7 @@ impl ChunkStore {
         match self.chunks.get(id) {
             None => Err(ChunkError::Damaged(format!("no chunk {id}"))),
             Some(Location::Taken) => Err(ChunkError::Damaged(format!("chunk {id} was taken"))),
+            Some(Location::Pending) => Err(ChunkError::Damaged(format!("chunk {id} is still being written"))),
             Some(Location::Memory(i)) => f(&self.resident[*i]),
             Some(&Location::Disk { offset, len }) => {
                 let file = self.spill.as_ref().expect("a disk chunk implies a spill file");
@@ -448,6 +573,26 @@ impl ChunkStore {
 #[cfg(unix)]
 fn read_exact_at(file: &File, buf: &mut [u8], offset: u64) -> io::Result<()> {
     std::os::unix::fs::FileExt::read_exact_at(file, buf, offset)
+}
+
+#[cfg(unix)]
+fn write_all_at(file: &File, buf: &[u8], offset: u64) -> io::Result<()> {
+    std::os::unix::fs::FileExt::write_all_at(file, buf, offset)
+}
+
+#[cfg(windows)]
+fn write_all_at(file: &File, mut buf: &[u8], mut offset: u64) -> io::Result<()> {
+    use std::os::windows::fs::FileExt;
+    while !buf.is_empty() {
+        match file.seek_write(buf, offset)? {
+            0 => return Err(io::ErrorKind::WriteZero.into()),
+            n => {
+                buf = &buf[n..];
+                offset += n as u64;
+            }
+        }
+    }
+    Ok(())
 }
 
 #[cfg(windows)]
@@ -536,5 +681,49 @@ mod tests {
         assert!(store.take_resident(4).is_none(), "chunk 4 is spilled");
         assert_eq!(&store.read(4).unwrap(), &chunks[4]);
         assert_eq!(&store.read(1).unwrap(), &chunks[1]);
+    }
+
+    #[test]
+    fn chunks_written_behind_read_back_after_settling() {
+        let dir = tempfile::tempdir().unwrap();
+        let layout = RecordLayout { f64_positions: false, color: true };
+        let mut store = ChunkStore::new(&dir.path().join("spill"), 200);
+        let chunks: Vec<Vec<u8>> = (0..40)
+            .map(|k| {
+                let mut raw = Vec::new();
+                for j in 0..=k % 7 {
+                    layout.encode(&mut raw, &tri((k * 8 + j) as f64), [k as f32 / 40.0, 0.5, 0.0]);
+                }
+                raw
+            })
+            .collect();
+        rayon::scope(|scope| {
+            for (k, raw) in chunks.iter().enumerate() {
+                // A cap of 2 makes some chunks go inline and some behind.
+                assert_eq!(store.push_behind(layout, raw.clone(), scope, 2).unwrap(), k);
+            }
+            let pending = (0..chunks.len()).find(|&k| matches!(store.chunks[k], Location::Pending));
+            if let Some(k) = pending {
+                assert!(store.read(k).is_err(), "a chunk still in flight reads as an error");
+            }
+        });
+        assert!(store.spilled_bytes() > 0);
+        store.settle_behind().unwrap();
+        for (k, raw) in chunks.iter().enumerate() {
+            assert_eq!(&store.read(k).unwrap(), raw, "chunk {k}");
+        }
+
+        // Control: a chunk whose write never landed, or a failed write, is an
+        // error at settle, not a silent hole.
+        let mut lost = ChunkStore::new(&dir.path().join("lost"), 0);
+        rayon::scope(|scope| {
+            lost.push_behind(layout, chunks[3].clone(), scope, 4).unwrap();
+        });
+        lost.shared.written.lock().unwrap().placed.clear();
+        assert!(matches!(lost.settle_behind(), Err(ChunkError::Damaged(_))));
+        let mut failed = ChunkStore::new(&dir.path().join("failed"), 0);
+        failed.shared.written.lock().unwrap().error = Some(ChunkError::Damaged("disk full".into()));
+        let e = rayon::scope(|scope| failed.push_behind(layout, chunks[3].clone(), scope, 4));
+        assert!(e.is_err(), "a failed write surfaces at the next push");
     }
 }
