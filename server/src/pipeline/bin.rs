@@ -166,14 +166,10 @@ impl<'a, 's> StreamSink<'a, 's> {
         }
         if let Some(scope) = self.behind {
             for raw in self.pending.drain(..) {
-                self.store
-                    .push_behind(self.layout, raw, scope, PENDING_CHUNKS)
-                    .map_err(|e| IngestError::Invalid(format!("temporary triangle stream: {e}")))?;
+                self.store.push_behind(self.layout, raw, scope, PENDING_CHUNKS).map_err(stream_err)?;
             }
         } else if self.pending.len() >= PENDING_CHUNKS || (last && !self.pending.is_empty()) {
-            self.store
-                .push_many(self.layout, std::mem::take(&mut self.pending))
-                .map_err(|e| IngestError::Invalid(format!("temporary triangle stream: {e}")))?;
+            self.store.push_many(self.layout, std::mem::take(&mut self.pending)).map_err(stream_err)?;
         }
         (self.on_tick)()
     }
@@ -396,6 +392,11 @@ impl Bins {
         });
         self.index.capacity() * 8 + places + self.store.index_bytes()
     }
+}
+
+/// A failure of pass 1's temporary triangle stream, as the reader reports it.
+pub(crate) fn stream_err(e: crate::pipeline::stream::ChunkError) -> IngestError {
+    IngestError::Invalid(format!("temporary triangle stream: {e}"))
 }
 
 fn temp_err(e: crate::pipeline::stream::ChunkError) -> BuildError {

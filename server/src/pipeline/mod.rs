@@ -776,12 +776,7 @@ pub fn build_scene_reporting(
         (format, (store, layout, bounds, triangles, skipped, edges))
     });
     let (mut stream_store, layout, bounds, read_triangles, read_skipped, edges) = sink;
-    let format = format.and_then(|f| {
-        stream_store
-            .settle_behind()
-            .map(|()| f)
-            .map_err(|e| IngestError::Invalid(format!("temporary triangle stream: {e}")))
-    });
+    let format = format.and_then(|f| stream_store.settle_behind().map(|()| f).map_err(bin::stream_err));
     let format = match format {
         Err(IngestError::Cancelled) => return Err(BuildError::Cancelled),
         r => r?,

@@ -299,8 +299,13 @@ impl SpillShared {
         raw: &[u8],
     ) -> Result<(u64, u32), ChunkError> {
         let chunk = encode_chunk(layout, raw, &Bounds::of_records(layout, raw));
+        self.write_encoded(file, path, &chunk)
+    }
+
+    /// Writes an encoded chunk at a range reserved at the file's end.
+    fn write_encoded(&self, file: &File, path: &Path, chunk: &[u8]) -> Result<(u64, u32), ChunkError> {
         let offset = self.end.fetch_add(chunk.len() as u64, Ordering::Relaxed);
-        write_all_at(file, &chunk, offset).map_err(|source| ChunkError::Io {
+        write_all_at(file, chunk, offset).map_err(|source| ChunkError::Io {
             action: "write",
             path: path.to_path_buf(),
             source,
@@ -413,9 +418,8 @@ impl ChunkStore {
     /// Appends an encoded chunk to the spill file.
     fn spill_encoded(&mut self, chunk: &[u8]) -> Result<usize, ChunkError> {
         let file = self.spill_file()?;
-        let offset = self.shared.end.fetch_add(chunk.len() as u64, Ordering::Relaxed);
-        write_all_at(&file, chunk, offset).map_err(self.io("write"))?;
-        self.chunks.push(Location::Disk { offset, len: chunk.len() as u32 });
+        let (offset, len) = self.shared.write_encoded(&file, &self.spill_path, chunk)?;
+        self.chunks.push(Location::Disk { offset, len });
         Ok(self.chunks.len() - 1)
     }
 
