@@ -122,16 +122,20 @@ pub struct StreamSink<'a, 's> {
     raw: Vec<u8>,
     /// Single triangles gathered into a batch.
     gathered: Vec<SourceTriangle>,
-    /// Full chunks waiting to be encoded together.
-    pending: Vec<Vec<u8>>,
     begun: bool,
     on_tick: &'a mut dyn FnMut() -> Result<(), IngestError>,
-    /// Where spilled chunks are compressed and written behind the reader; without one, in turn.
-    behind: Option<&'a rayon::Scope<'s>>,
+    /// Where spilled chunks are compressed and written behind the reader.
+    behind: &'a rayon::Scope<'s>,
 }
 
 impl<'a, 's> StreamSink<'a, 's> {
-    pub fn new(store: ChunkStore, on_tick: &'a mut dyn FnMut() -> Result<(), IngestError>) -> Self {
+    /// Spilled chunks are compressed and written by tasks of `behind`
+    /// ([`ChunkStore::push_behind`]); the store must be settled after it ends.
+    pub fn new(
+        store: ChunkStore,
+        on_tick: &'a mut dyn FnMut() -> Result<(), IngestError>,
+        behind: &'a rayon::Scope<'s>,
+    ) -> Self {
         Self {
             store,
             layout: RecordLayout { f64_positions: true, color: false },
@@ -141,35 +145,20 @@ impl<'a, 's> StreamSink<'a, 's> {
             edges: EdgeHistogram::default(),
             raw: Vec::new(),
             gathered: Vec::new(),
-            pending: Vec::new(),
             begun: false,
             on_tick,
-            behind: None,
+            behind,
         }
     }
 
-    /// Spilled chunks are compressed and written by tasks of `scope`
-    /// ([`ChunkStore::push_behind`]); the store must be settled after it ends.
-    pub fn behind(self, scope: &'a rayon::Scope<'s>) -> Self {
-        Self { behind: Some(scope), ..self }
-    }
-
-    /// Queues the current chunk; every [`PENDING_CHUNKS`] (and at the end) they
-    /// are stored together (those that spill encoded on all cores).
-    fn flush(&mut self, last: bool) -> Result<(), IngestError> {
+    /// Stores the current chunk (one that spills is written behind the reader).
+    fn flush(&mut self) -> Result<(), IngestError> {
         if !self.raw.is_empty() {
             let raw = std::mem::replace(
                 &mut self.raw,
                 Vec::with_capacity(MAX_CHUNK_TRIANGLES * self.layout.size()),
             );
-            self.pending.push(raw);
-        }
-        if let Some(scope) = self.behind {
-            for raw in self.pending.drain(..) {
-                self.store.push_behind(self.layout, raw, scope, PENDING_CHUNKS).map_err(stream_err)?;
-            }
-        } else if self.pending.len() >= PENDING_CHUNKS || (last && !self.pending.is_empty()) {
-            self.store.push_many(self.layout, std::mem::take(&mut self.pending)).map_err(stream_err)?;
+            self.store.push_behind(self.layout, raw, self.behind, PENDING_CHUNKS).map_err(stream_err)?;
         }
         (self.on_tick)()
     }
@@ -211,7 +200,7 @@ impl<'a, 's> StreamSink<'a, 's> {
             let room = chunk_bytes - self.raw.len();
             rest = append_on_all_cores(&mut self.raw, rest, room);
             if self.raw.len() == chunk_bytes {
-                self.flush(false)?;
+                self.flush()?;
             }
         }
         Ok(())
@@ -221,7 +210,7 @@ impl<'a, 's> StreamSink<'a, 's> {
     pub fn finish(&mut self) -> Result<(), IngestError> {
         let gathered = std::mem::take(&mut self.gathered);
         self.push_batch(&gathered)?;
-        self.flush(true)
+        self.flush()
     }
 }
 
@@ -910,12 +899,17 @@ mod tests {
 
     fn stream(dir: &Path, tris: &[SourceTriangle]) -> (ChunkStore, RecordLayout, GridFrame) {
         let mut tick = || Ok(());
-        let mut sink = StreamSink::new(ChunkStore::new(&dir.join("stream.vxt"), 1 << 30), &mut tick);
-        sink.begin(RecordLayout { f64_positions: false, color: true }).unwrap();
-        sink.triangles(tris).unwrap();
-        sink.finish().unwrap();
-        let (frame, _) = choose_resolution(&sink.bounds, Resolution::Explicit(256), None, 256, 0).unwrap();
-        (sink.store, sink.layout, frame)
+        let (mut store, layout, bounds) = rayon::scope(|scope| {
+            let store = ChunkStore::new(&dir.join("stream.vxt"), 1 << 30);
+            let mut sink = StreamSink::new(store, &mut tick, scope);
+            sink.begin(RecordLayout { f64_positions: false, color: true }).unwrap();
+            sink.triangles(tris).unwrap();
+            sink.finish().unwrap();
+            (sink.store, sink.layout, sink.bounds)
+        });
+        store.settle_behind().unwrap();
+        let (frame, _) = choose_resolution(&bounds, Resolution::Explicit(256), None, 256, 0).unwrap();
+        (store, layout, frame)
     }
 
     fn bin(dir: &Path, tris: &[SourceTriangle], resident: usize) -> (Bins, GridFrame) {

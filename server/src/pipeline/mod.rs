@@ -770,7 +770,7 @@ pub fn build_scene_reporting(
     let stream_store = ChunkStore::new(&temp.path().join("stream.vxt"), first_plan.stream_resident());
     // Spilled chunks are compressed and written by tasks of the scope, beside the reader.
     let (format, sink) = rayon::scope(|scope| {
-        let mut sink = StreamSink::new(stream_store, &mut on_tick).behind(scope);
+        let mut sink = StreamSink::new(stream_store, &mut on_tick, scope);
         let format = read::stream_mesh(input, &mut sink, &read_opts).and_then(|f| sink.finish().map(|()| f));
         let StreamSink { store, layout, bounds, triangles, skipped, edges, .. } = sink;
         (format, (store, layout, bounds, triangles, skipped, edges))

@@ -367,44 +367,6 @@ impl ChunkStore {
         resident + HEADER_LEN + raw_len <= self.resident_limit
     }
 
-    /// Stores records as chunks and returns their ids (ids count up from 0, in
-    /// order): each buffer itself while resident (no CPU spent on a copy or on
-    /// compression), lz4 when spilled (fewer bytes to write and read), the
-    /// spilled ones compressed on all cores.
-    pub fn push_many(&mut self, layout: RecordLayout, items: Vec<Vec<u8>>) -> Result<Vec<usize>, ChunkError> {
-        use rayon::prelude::*;
-        enum Stored {
-            Resident(Vec<u8>),
-            Spilled(Vec<u8>),
-        }
-        let mut resident = self.resident_bytes;
-        let kept: Vec<(Vec<u8>, bool)> = items
-            .into_iter()
-            .map(|raw| {
-                let keep = self.fits(resident, raw.len());
-                if keep {
-                    resident += HEADER_LEN + raw.len();
-                }
-                (raw, keep)
-            })
-            .collect();
-        // Only a spilled chunk's header holds its bounds; a resident one is its records alone.
-        let stored: Vec<Stored> = kept
-            .into_par_iter()
-            .map(|(raw, keep)| match keep {
-                true => Stored::Resident(raw),
-                false => Stored::Spilled(encode_chunk(layout, &raw, &Bounds::of_records(layout, &raw))),
-            })
-            .collect();
-        stored
-            .into_iter()
-            .map(|s| match s {
-                Stored::Resident(raw) => Ok(self.keep(raw)),
-                Stored::Spilled(chunk) => self.spill_encoded(&chunk),
-            })
-            .collect()
-    }
-
     /// Keeps records in memory (the caller checked that they fit).
     fn keep(&mut self, mut raw: Vec<u8>) -> usize {
         // The budget counts lengths: a buffer grown by doubling gives its slack back.
@@ -413,14 +375,6 @@ impl ChunkStore {
         self.chunks.push(Location::Memory(self.resident.len()));
         self.resident.push(raw);
         self.chunks.len() - 1
-    }
-
-    /// Appends an encoded chunk to the spill file.
-    fn spill_encoded(&mut self, chunk: &[u8]) -> Result<usize, ChunkError> {
-        let file = self.spill_file()?;
-        let (offset, len) = self.shared.write_encoded(&file, &self.spill_path, chunk)?;
-        self.chunks.push(Location::Disk { offset, len });
-        Ok(self.chunks.len() - 1)
     }
 
     /// The spill file, created on first use.
@@ -445,8 +399,10 @@ impl ChunkStore {
         Ok(self.chunks.len() - 1)
     }
 
-    /// Stores records as one chunk and returns its id, as [`ChunkStore::push_many`]
-    /// would, but a chunk that spills is encoded and written by a task of
+    /// Stores records as one chunk and returns its id (ids count up from 0, in
+    /// order): the buffer itself while it fits (no CPU spent on a copy or on
+    /// compression), lz4 when spilled (fewer bytes to write and read). A chunk
+    /// that spills is encoded and written by a task of
     /// `scope` while the caller goes on; at most `in_flight` such tasks at once
     /// (past that the caller encodes and writes it itself), so the chunks in
     /// flight hold at most `in_flight` × (records + encoded) bytes.
@@ -668,9 +624,14 @@ mod tests {
         for k in 0..5 {
             let mut raw = Vec::new();
             layout.encode(&mut raw, &tri(k as f64), [0.0; 3]);
-            assert_eq!(store.push_many(layout, vec![raw.clone()]).unwrap(), vec![k]);
             chunks.push(raw);
         }
+        rayon::scope(|scope| {
+            for (k, raw) in chunks.iter().enumerate() {
+                assert_eq!(store.push_behind(layout, raw.clone(), scope, 0).unwrap(), k);
+            }
+        });
+        store.settle_behind().unwrap();
         assert!(store.spilled_bytes() > 0 && dir.path().join("spill").exists());
         for (k, raw) in chunks.iter().enumerate() {
             assert_eq!(&store.read(k).unwrap(), raw);
