@@ -2,9 +2,9 @@
 //! triangle stream ([`crate::pipeline::stream`]), each within the memory budget.
 //!
 //! 1. **Stream** ([`StreamSink`]): the reader pushes triangles; valid ones
-//!    (finite, non-zero area) are packed into chunks whose headers carry
-//!    their bounds when they spill, invalid ones are counted and dropped. The
-//!    union of the valid triangles' bounds gives the grid frame.
+//!    (finite, non-zero area) are packed into chunks, invalid ones are
+//!    counted and dropped. The union of the valid triangles' bounds, kept as
+//!    they are pushed, gives the grid frame.
 //! 2. **Bin** ([`bin_triangles`]): chunks are read back in order and every
 //!    triangle's record is appended to the buffer of each 64³ block its
 //!    bounds overlap. A full buffer (one chunk's worth) becomes a segment in

@@ -1,7 +1,7 @@
 //! The chunked triangle stream: how triangles travel between the build's
 //! passes without the whole mesh ever sitting in memory.
 //!
-//! A stream is a sequence of chunks. Each chunk is a fixed 68-byte header
+//! A stream is a sequence of chunks. Each chunk is a fixed 20-byte header
 //! followed by its payload:
 //!
 //! ```text
@@ -13,9 +13,11 @@
 //!      8    4  triangle count (u32 LE, 1..=MAX_CHUNK_TRIANGLES)
 //!     12    4  raw payload length (u32 LE, = count × record size)
 //!     16    4  stored payload length (u32 LE)
-//!     20   48  bounds: min xyz, max xyz (f64 LE) of the chunk's vertices
-//!     68    …  payload
+//!     20    …  payload
 //! ```
+//!
+//! No bounds: no reader needs a chunk's, and finding them cost a decode of
+//! every spilled record (about 4 % of a triangle-bound build).
 //!
 //! The raw payload is `count` records, each 9 coordinates (v0 xyz, v1 xyz,
 //! v2 xyz; f32 or f64 LE) then, with bit 1, a linear RGB colour in [0, 1]
@@ -42,7 +44,7 @@ use std::sync::{Arc, Mutex};
 
 /// Triangles per chunk at most (and per bin segment).
 pub const MAX_CHUNK_TRIANGLES: usize = 1 << 14;
-pub const HEADER_LEN: usize = 68;
+pub const HEADER_LEN: usize = 20;
 const MAGIC: &[u8; 4] = b"VXTC";
 const FLAG_F64: u8 = 1;
 const FLAG_COLOR: u8 = 2;
@@ -155,15 +157,6 @@ impl Bounds {
         }
     }
 
-    /// The bounds of records' triangles.
-    pub fn of_records(layout: RecordLayout, records: &[u8]) -> Bounds {
-        let mut b = Bounds::EMPTY;
-        for r in records.chunks_exact(layout.size()) {
-            b.add_triangle(&layout.decode(r).0);
-        }
-        b
-    }
-
     pub fn union(&mut self, other: &Bounds) {
         for a in 0..3 {
             self.min[a] = self.min[a].min(other.min[a]);
@@ -176,7 +169,6 @@ impl Bounds {
 pub struct ChunkHeader {
     pub layout: RecordLayout,
     pub triangles: u32,
-    pub bounds: Bounds,
     codec: u8,
     raw_len: u32,
     stored_len: u32,
@@ -192,7 +184,7 @@ pub enum ChunkError {
 
 /// Encodes `raw` (whole records of `layout`) as one chunk: lz4, or raw when
 /// lz4 saves nothing.
-pub fn encode_chunk(layout: RecordLayout, raw: &[u8], bounds: &Bounds) -> Vec<u8> {
+pub fn encode_chunk(layout: RecordLayout, raw: &[u8]) -> Vec<u8> {
     let triangles = raw.len() / layout.size();
     debug_assert!(raw.len().is_multiple_of(layout.size()) && triangles <= MAX_CHUNK_TRIANGLES);
     let packed = lz4_flex::block::compress(raw);
@@ -202,9 +194,6 @@ pub fn encode_chunk(layout: RecordLayout, raw: &[u8], bounds: &Bounds) -> Vec<u8
     out.extend_from_slice(&[layout.flags(), codec, 0, 0]);
     for n in [triangles, raw.len(), payload.len()] {
         out.extend_from_slice(&(n as u32).to_le_bytes());
-    }
-    for c in bounds.min.iter().chain(&bounds.max) {
-        out.extend_from_slice(&c.to_le_bytes());
     }
     out.extend_from_slice(payload);
     out
@@ -218,7 +207,6 @@ pub fn decode_header(bytes: &[u8]) -> Result<ChunkHeader, ChunkError> {
     }
     let layout = RecordLayout::from_flags(h[4]).ok_or_else(|| damaged("unknown flags"))?;
     let u32_at = |o: usize| u32::from_le_bytes(h[o..o + 4].try_into().expect("4 bytes"));
-    let f64_at = |o: usize| f64::from_le_bytes(h[o..o + 8].try_into().expect("8 bytes"));
     let (triangles, raw_len, stored_len) = (u32_at(8), u32_at(12), u32_at(16));
     if triangles == 0
         || triangles as usize > MAX_CHUNK_TRIANGLES
@@ -228,11 +216,7 @@ pub fn decode_header(bytes: &[u8]) -> Result<ChunkHeader, ChunkError> {
     {
         return Err(damaged("inconsistent counts"));
     }
-    let bounds = Bounds {
-        min: std::array::from_fn(|a| f64_at(20 + 8 * a)),
-        max: std::array::from_fn(|a| f64_at(44 + 8 * a)),
-    };
-    Ok(ChunkHeader { layout, triangles, bounds, codec: h[5], raw_len, stored_len })
+    Ok(ChunkHeader { layout, triangles, codec: h[5], raw_len, stored_len })
 }
 
 /// Decodes a whole chunk into its header and raw records.
@@ -298,7 +282,7 @@ impl SpillShared {
         layout: RecordLayout,
         raw: &[u8],
     ) -> Result<(u64, u32), ChunkError> {
-        let chunk = encode_chunk(layout, raw, &Bounds::of_records(layout, raw));
+        let chunk = encode_chunk(layout, raw);
         self.write_encoded(file, path, &chunk)
     }
 
@@ -585,15 +569,13 @@ mod tests {
             RecordLayout { f64_positions: false, color: false },
         ] {
             let mut raw = Vec::new();
-            let mut bounds = Bounds::EMPTY;
             for k in 0..100 {
                 layout.encode(&mut raw, &tri(k as f64), [0.1, 0.2, k as f32 / 100.0]);
-                bounds.add_triangle(&tri(k as f64));
             }
             assert_eq!(raw.len(), 100 * layout.size());
-            let chunk = encode_chunk(layout, &raw, &bounds);
+            let chunk = encode_chunk(layout, &raw);
             let (h, back) = decode_chunk(&chunk).unwrap();
-            assert_eq!((h.triangles, h.layout, h.bounds), (100, layout, bounds));
+            assert_eq!((h.triangles, h.layout), (100, layout));
             assert_eq!(back, raw);
             let (t, c) = layout.decode(&back[7 * layout.size()..8 * layout.size()]);
             assert_eq!(t, tri(7.0));
@@ -606,7 +588,7 @@ mod tests {
         let layout = RecordLayout { f64_positions: false, color: false };
         let mut raw = Vec::new();
         layout.encode(&mut raw, &tri(1.0), [0.0; 3]);
-        let chunk = encode_chunk(layout, &raw, &Bounds::EMPTY);
+        let chunk = encode_chunk(layout, &raw);
         for len in 0..chunk.len() {
             assert!(decode_chunk(&chunk[..len]).is_err(), "{len}");
         }
