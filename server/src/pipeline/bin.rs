@@ -52,8 +52,8 @@ use crate::pipeline::voxelize::{
 };
 use crate::pipeline::{BuildError, BuildOptions, MAX_RECORD_BYTES};
 
-/// Chunks encoded (lz4 when spilled) together on all cores, or in flight
-/// behind their producer.
+/// Spilled chunks in flight behind their producer at most
+/// ([`ChunkStore::push_behind`]); past that the producer writes its own.
 pub(crate) const PENDING_CHUNKS: usize = 8;
 
 /// What the chunks in flight hold at most: records and their encoding.

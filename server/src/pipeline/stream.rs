@@ -283,13 +283,8 @@ impl SpillShared {
         raw: &[u8],
     ) -> Result<(u64, u32), ChunkError> {
         let chunk = encode_chunk(layout, raw);
-        self.write_encoded(file, path, &chunk)
-    }
-
-    /// Writes an encoded chunk at a range reserved at the file's end.
-    fn write_encoded(&self, file: &File, path: &Path, chunk: &[u8]) -> Result<(u64, u32), ChunkError> {
         let offset = self.end.fetch_add(chunk.len() as u64, Ordering::Relaxed);
-        write_all_at(file, chunk, offset).map_err(|source| ChunkError::Io {
+        write_all_at(file, &chunk, offset).map_err(|source| ChunkError::Io {
             action: "write",
             path: path.to_path_buf(),
             source,
