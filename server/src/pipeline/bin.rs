@@ -802,9 +802,10 @@ fn place_lists(
 /// `resident` bytes of segments stay in memory; buffers and their
 /// bookkeeping are flushed when they pass `buffer_limit` bytes (counted by
 /// length; capacities reach at most twice that). Chunks are read and grouped
-/// by block on all cores, `group_bytes` of them at a time (two groups alive:
-/// one grouping while the one before is appended), and appended in input
-/// order; a budget too small for two chunks bins one chunk at a time.
+/// by block on all cores, `group_bytes` of them at a time (three groups
+/// alive: one grouping, one waiting and one being appended in input order on
+/// a thread of its own, [`append_in_order`]); a budget too small for three
+/// chunks bins one chunk at a time.
 pub fn bin_triangles(
     stream: &mut ChunkStore,
     layout: RecordLayout,
@@ -824,58 +825,84 @@ pub fn bin_triangles(
         }
     }
     let mut binner = Binner::new(layout, ChunkStore::new(spill_path, resident), buffer_limit);
-    let group = (group_bytes / 2 / BIN_CHUNK_BYTES).min(BIN_GROUP_PER_THREAD * rayon::current_num_threads());
+    // Three groups alive at most: one grouping, one waiting, one being appended.
+    let group = (group_bytes / 3 / BIN_CHUNK_BYTES).min(BIN_GROUP_PER_THREAD * rayon::current_num_threads());
     let read_group = |stream: &ChunkStore, ids: std::ops::Range<usize>| -> Result<Vec<Placed>, BuildError> {
         ids.into_par_iter()
             .map(|id| stream.with_records(id, |raw| Ok(group_chunk(layout, raw, frame))).map_err(temp_err))
             .collect()
     };
     let total = stream.len();
-    // A full chunk's buffer: the capacity a spare must have to hold a whole segment.
-    let segment_bytes = MAX_CHUNK_TRIANGLES * layout.size();
-    // Spilled segments are compressed and written by tasks of this scope; it
-    // ends when the last is written.
-    rayon::scope(|scope| -> Result<(), BuildError> {
-        if group == 0 {
+    if group == 0 {
+        // Spilled segments are compressed and written by tasks of this scope; it
+        // ends when the last is written.
+        rayon::scope(|scope| -> Result<(), BuildError> {
             for id in 0..total {
                 opts.check_cancelled()?;
                 let raw = stream.read(id).map_err(temp_err)?;
                 binner.append_placed(Placed::Raw(raw), frame, Some(scope))?;
                 progress.stage(Stage::Voxelize, 0.3 * (id + 1) as f64 / total as f64);
             }
-        } else {
-            let mut ready: Vec<Placed> = Vec::new();
+            binner.flush_all(Some(scope))
+        })?;
+        return binner.into_bins();
+    }
+    // A full chunk's buffer: the capacity a spare must have to hold a whole segment.
+    let segment_bytes = MAX_CHUNK_TRIANGLES * layout.size();
+    // Groups, and the emptied resident chunks they free for new buffers.
+    let (to_appender, batches) = std::sync::mpsc::sync_channel::<AppendBatch>(1);
+    let (produced, appended) = std::thread::scope(|s| {
+        let appender = s.spawn(move || -> Result<Binner, BuildError> {
+            append_in_order(&mut binner, batches, frame)?;
+            Ok(binner)
+        });
+        let produced = (|| -> Result<(), BuildError> {
             let mut next = 0;
-            while next < total || !ready.is_empty() {
+            while next < total {
                 opts.check_cancelled()?;
                 let ids = next..(next + group).min(total);
                 next = ids.end;
-                // Appends the group before while this one is read and grouped.
-                let reading: &ChunkStore = stream;
-                let (appended, grouped) = rayon::join(
-                    || -> Result<(), BuildError> {
-                        for p in std::mem::take(&mut ready) {
-                            binner.append_placed(p, frame, Some(scope))?;
-                        }
-                        Ok(())
-                    },
-                    || read_group(reading, ids.clone()),
-                );
-                appended?;
-                ready = grouped?;
+                let grouped = read_group(stream, ids.clone())?;
                 // Grouped copies hold these chunks' records now.
-                for id in ids {
-                    if let Some(raw) = stream.take_resident(id).filter(|raw| raw.capacity() == segment_bytes)
-                    {
-                        binner.spare.push(raw);
-                    }
+                let spares = ids
+                    .filter_map(|id| stream.take_resident(id).filter(|raw| raw.capacity() == segment_bytes))
+                    .collect();
+                if to_appender.send((grouped, spares)).is_err() {
+                    return Ok(()); // the appender stopped: its error is the build's
                 }
                 progress.stage(Stage::Voxelize, 0.3 * next as f64 / total.max(1) as f64);
             }
+            Ok(())
+        })();
+        drop(to_appender);
+        (produced, appender.join().unwrap_or_else(|p| std::panic::resume_unwind(p)))
+    });
+    let binner = appended?;
+    produced?;
+    binner.into_bins()
+}
+
+/// Groups to append in order, and emptied resident chunks for new buffers.
+type AppendBatch = (Vec<Placed>, Vec<Vec<u8>>);
+
+/// The appending half of pass 2, on a thread of its own: appends each batch
+/// of groups in order (and takes its spare buffers), while the producer
+/// reads and groups the next; spilled segments are compressed and written
+/// on the pool, behind the appends. Flushes every buffer once the batches end.
+fn append_in_order(
+    binner: &mut Binner,
+    batches: std::sync::mpsc::Receiver<AppendBatch>,
+    frame: &GridFrame,
+) -> Result<(), BuildError> {
+    rayon::in_place_scope(|scope| -> Result<(), BuildError> {
+        for (placed, spares) in batches {
+            binner.spare.extend(spares);
+            for p in placed {
+                binner.append_placed(p, frame, Some(scope))?;
+            }
         }
         binner.flush_all(Some(scope))
-    })?;
-    binner.into_bins()
+    })
 }
 
 /// Pass 2 over the source read again, for a stream pass 1 gave up
@@ -898,18 +925,10 @@ pub fn bin_source(
 ) -> Result<Bins, BuildError> {
     let mut binner = Binner::new(layout, ChunkStore::new(spill_path, resident), buffer_limit);
     // One batch waits while one is appended and the next is grouped.
-    let (to_appender, batches) = std::sync::mpsc::sync_channel::<Vec<Placed>>(1);
+    let (to_appender, batches) = std::sync::mpsc::sync_channel::<AppendBatch>(1);
     let (read, seen, appended) = std::thread::scope(|s| {
         let appender = s.spawn(move || -> Result<Binner, BuildError> {
-            // Spilled segments are compressed and written on the pool, behind the appends.
-            rayon::in_place_scope(|scope| -> Result<(), BuildError> {
-                for batch in batches {
-                    for p in batch {
-                        binner.append_placed(p, frame, Some(scope))?;
-                    }
-                }
-                binner.flush_all(Some(scope))
-            })?;
+            append_in_order(&mut binner, batches, frame)?;
             Ok(binner)
         });
         let mut sink = SourceBinSink {
@@ -945,7 +964,7 @@ pub fn bin_source(
 /// The sink of [`bin_source`].
 struct SourceBinSink<'a> {
     /// `None` once finished.
-    to_appender: Option<std::sync::mpsc::SyncSender<Vec<Placed>>>,
+    to_appender: Option<std::sync::mpsc::SyncSender<AppendBatch>>,
     frame: &'a GridFrame,
     layout: RecordLayout,
     gathered: Vec<SourceTriangle>,
@@ -965,7 +984,7 @@ impl SourceBinSink<'_> {
             .filter(|p| !p.bytes.is_empty())
             .map(|p| group_chunk(layout, &p.bytes, frame))
             .collect();
-        let sent = self.to_appender.as_ref().map(|tx| tx.send(grouped));
+        let sent = self.to_appender.as_ref().map(|tx| tx.send((grouped, Vec::new())));
         match sent {
             Some(Ok(())) => Ok(()),
             // The appender stopped: its error is the build's.
