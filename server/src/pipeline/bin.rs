@@ -13,9 +13,7 @@
 //!    order. When the whole stream is in memory, nothing is copied: each
 //!    block gets the places of its triangles in the stream (4 bytes a
 //!    triangle and block, against a record's 36–84), and the stream itself
-//!    becomes the bins' store ([`BlockTriangles::Places`]). A binary PLY
-//!    whose stream would nearly all spill is read again instead
-//!    ([`bin_source`]; pass 1 gave its stream up, [`StreamSink::reread`]).
+//!    becomes the bins' store ([`BlockTriangles::Places`]).
 //! 3. **Voxelize** ([`voxelize_bin`]): one block's segments, read one at a
 //!    time into a reused dense brick, so a block costs one brick and one
 //!    segment however many triangles it has. The pipeline runs blocks in the
@@ -83,57 +81,29 @@ pub struct EncodedPiece {
     pub invalid: u64,
 }
 
-/// What a sink wants of the pieces readers encode for it ([`TriangleSink::piece_spec`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct PieceSpec {
-    pub layout: RecordLayout,
-    /// The records (pass 1 wants none once it has given its stream up).
-    pub records: bool,
-    /// The bounds and edge bins (pass 2 over the source has them from pass 1).
-    pub measures: bool,
-}
-
 impl EncodedPiece {
-    pub fn with_capacity(spec: PieceSpec, triangles: usize) -> Self {
+    pub fn with_capacity(layout: RecordLayout, triangles: usize) -> Self {
         Self {
-            bytes: Vec::with_capacity(if spec.records { triangles * spec.layout.size() } else { 0 }),
-            bins: Vec::with_capacity(if spec.measures { triangles * 3 } else { 0 }),
+            bytes: Vec::with_capacity(triangles * layout.size()),
+            bins: Vec::with_capacity(triangles * 3),
             bounds: Bounds::EMPTY,
             valid: 0,
             invalid: 0,
         }
     }
 
-    /// Encodes and measures a valid triangle, as `spec` asks; counts an
-    /// invalid one (non-finite or zero area).
+    /// Encodes a valid triangle; counts an invalid one (non-finite or zero area).
     #[inline]
-    pub fn push(&mut self, spec: PieceSpec, tri: &[[f64; 3]; 3], color: [f32; 3]) {
+    pub fn push(&mut self, layout: RecordLayout, tri: &[[f64; 3]; 3], color: [f32; 3]) {
         if valid_triangle(tri) {
-            if spec.records {
-                spec.layout.encode(&mut self.bytes, tri, color);
-            }
-            if spec.measures {
-                EdgeHistogram::bins(tri, &mut self.bins);
-                self.bounds.add_triangle(&spec.layout.stored(tri));
-            }
+            layout.encode(&mut self.bytes, tri, color);
+            EdgeHistogram::bins(tri, &mut self.bins);
+            self.bounds.add_triangle(&layout.stored(tri));
             self.valid += 1;
         } else {
             self.invalid += 1;
         }
     }
-}
-
-/// A batch of triangles checked and encoded on all cores, as pieces in order.
-fn encode_batch(spec: PieceSpec, tris: &[SourceTriangle]) -> Vec<EncodedPiece> {
-    tris.par_chunks(1024)
-        .map(|piece| {
-            let mut out = EncodedPiece::with_capacity(spec, piece.len());
-            for (tri, color) in piece {
-                out.push(spec, tri, *color);
-            }
-            out
-        })
-        .collect()
 }
 
 /// Pass 1: packs valid triangles into chunks. Triangles come in batches
@@ -149,11 +119,6 @@ pub struct StreamSink<'a, 's> {
     pub skipped: u64,
     /// Edge lengths of the valid triangles, for `--resolution auto`.
     pub edges: EdgeHistogram,
-    /// The stream was given up when its first chunk would have spilled
-    /// ([`Self::reread_instead_of_spilling`]): the store is empty, and pass 2
-    /// reads the source again ([`bin_source`]). The counts, bounds and edges are whole.
-    pub reread: bool,
-    reread_allowed: bool,
     raw: Vec<u8>,
     /// Single triangles gathered into a batch.
     gathered: Vec<SourceTriangle>,
@@ -178,8 +143,6 @@ impl<'a, 's> StreamSink<'a, 's> {
             triangles: 0,
             skipped: 0,
             edges: EdgeHistogram::default(),
-            reread: false,
-            reread_allowed: false,
             raw: Vec::new(),
             gathered: Vec::new(),
             begun: false,
@@ -188,27 +151,9 @@ impl<'a, 's> StreamSink<'a, 's> {
         }
     }
 
-    /// Gives the stream up instead of spilling it, for a source that costs
-    /// less to read twice than its stream costs to encode, write and read
-    /// back ([`crate::pipeline::read::binary_ply_faces`]). A stream that stays
-    /// in memory is kept: pass 2 then bins it without a copy.
-    pub fn reread_instead_of_spilling(&mut self) {
-        self.reread_allowed = true;
-    }
-
     /// Stores the current chunk (one that spills is written behind the reader).
     fn flush(&mut self) -> Result<(), IngestError> {
-        if self.reread_allowed
-            && !self.reread
-            && !self.raw.is_empty()
-            && self.store.would_spill(self.raw.len())
-        {
-            self.store.clear();
-            self.reread = true;
-        }
-        if self.reread {
-            self.raw.clear();
-        } else if !self.raw.is_empty() {
+        if !self.raw.is_empty() {
             let raw = std::mem::replace(
                 &mut self.raw,
                 Vec::with_capacity(MAX_CHUNK_TRIANGLES * self.layout.size()),
@@ -220,12 +165,18 @@ impl<'a, 's> StreamSink<'a, 's> {
 
     /// Checks, encodes and measures a batch on all cores and appends it in order.
     fn push_batch(&mut self, tris: &[SourceTriangle]) -> Result<(), IngestError> {
-        self.push_pieces(encode_batch(self.spec(), tris))
-    }
-
-    /// Records until the stream is given up, and always the measures.
-    fn spec(&self) -> PieceSpec {
-        PieceSpec { layout: self.layout, records: !self.reread, measures: true }
+        let layout = self.layout;
+        let pieces: Vec<EncodedPiece> = tris
+            .par_chunks(1024)
+            .map(|piece| {
+                let mut out = EncodedPiece::with_capacity(layout, piece.len());
+                for (tri, color) in piece {
+                    out.push(layout, tri, *color);
+                }
+                out
+            })
+            .collect();
+        self.push_pieces(pieces)
     }
 
     /// Appends pieces encoded elsewhere (in order) to the chunks.
@@ -245,8 +196,7 @@ impl<'a, 's> StreamSink<'a, 's> {
             parts.push(bytes);
         }
         let mut rest: Vec<&[u8]> = parts.iter().map(|b| b.as_slice()).filter(|b| !b.is_empty()).collect();
-        // Given up, the stream takes no more records: only their counts, bounds and edges.
-        while !rest.is_empty() && !self.reread {
+        while !rest.is_empty() {
             let room = chunk_bytes - self.raw.len();
             rest = append_on_all_cores(&mut self.raw, rest, room);
             if self.raw.len() == chunk_bytes {
@@ -332,8 +282,8 @@ impl TriangleSink for StreamSink<'_, '_> {
         self.push_batch(tris)
     }
 
-    fn piece_spec(&self) -> Option<PieceSpec> {
-        self.begun.then(|| self.spec())
+    fn encoded_layout(&self) -> Option<RecordLayout> {
+        self.begun.then_some(self.layout)
     }
 
     fn pieces(&mut self, pieces: Vec<EncodedPiece>) -> Result<(), IngestError> {
@@ -539,14 +489,10 @@ impl Binner {
     }
 
     /// Stores the full buffers as segments; those that spill are compressed
-    /// and written by tasks of `scope`, beside the appends, or here without one.
-    fn drain(&mut self, scope: Option<&rayon::Scope<'_>>) -> Result<(), BuildError> {
+    /// and written by tasks of `scope`, beside the appends.
+    fn drain(&mut self, scope: &rayon::Scope<'_>) -> Result<(), BuildError> {
         for (m, raw) in self.pending.drain(..) {
-            let id = match scope {
-                Some(scope) => self.store.push_behind(self.layout, raw, scope, PENDING_CHUNKS),
-                None => self.store.push(self.layout, raw),
-            }
-            .map_err(temp_err)?;
+            let id = self.store.push_behind(self.layout, raw, scope, PENDING_CHUNKS).map_err(temp_err)?;
             if id as u64 >= 1 << SEGMENT_BITS {
                 return Err(BuildError::Temp(format!("more than 2^{SEGMENT_BITS} bin segments")));
             }
@@ -556,7 +502,7 @@ impl Binner {
     }
 
     /// Every buffer goes, bookkeeping included, so many blocks cost no more than few.
-    fn flush_all(&mut self, scope: Option<&rayon::Scope<'_>>) -> Result<(), BuildError> {
+    fn flush_all(&mut self, scope: &rayon::Scope<'_>) -> Result<(), BuildError> {
         for buf in &mut self.buffers {
             Self::take(buf, &mut self.pending);
         }
@@ -570,7 +516,7 @@ impl Binner {
     /// Appends whole records of block `m`,
     /// storing a buffer as a segment when it is full and flushing every
     /// buffer as soon as they pass their limit, as one record at a time would.
-    fn append(&mut self, m: u64, records: &[u8], scope: Option<&rayon::Scope<'_>>) -> Result<(), BuildError> {
+    fn append(&mut self, m: u64, records: &[u8], scope: &rayon::Scope<'_>) -> Result<(), BuildError> {
         let rec = self.layout.size();
         let full = MAX_CHUNK_TRIANGLES * rec;
         let mut rest = records;
@@ -614,7 +560,7 @@ impl Binner {
         &mut self,
         placed: Placed,
         frame: &GridFrame,
-        scope: Option<&rayon::Scope<'_>>,
+        scope: &rayon::Scope<'_>,
     ) -> Result<(), BuildError> {
         match placed {
             Placed::Grouped(g) => {
@@ -840,16 +786,15 @@ pub fn bin_triangles(
             for id in 0..total {
                 opts.check_cancelled()?;
                 let raw = stream.read(id).map_err(temp_err)?;
-                binner.append_placed(Placed::Raw(raw), frame, Some(scope))?;
+                binner.append_placed(Placed::Raw(raw), frame, scope)?;
                 progress.stage(Stage::Voxelize, 0.3 * (id + 1) as f64 / total as f64);
             }
-            binner.flush_all(Some(scope))
+            binner.flush_all(scope)
         })?;
         return binner.into_bins();
     }
     // A full chunk's buffer: the capacity a spare must have to hold a whole segment.
     let segment_bytes = MAX_CHUNK_TRIANGLES * layout.size();
-    // Groups, and the emptied resident chunks they free for new buffers.
     let (to_appender, batches) = std::sync::mpsc::sync_channel::<AppendBatch>(1);
     let (produced, appended) = std::thread::scope(|s| {
         let appender = s.spawn(move || -> Result<Binner, BuildError> {
@@ -877,6 +822,7 @@ pub fn bin_triangles(
         drop(to_appender);
         (produced, appender.join().unwrap_or_else(|p| std::panic::resume_unwind(p)))
     });
+    // The appender's error first: the producer only saw its channel close.
     let binner = appended?;
     produced?;
     binner.into_bins()
@@ -886,9 +832,9 @@ pub fn bin_triangles(
 type AppendBatch = (Vec<Placed>, Vec<Vec<u8>>);
 
 /// The appending half of pass 2, on a thread of its own: appends each batch
-/// of groups in order (and takes its spare buffers), while the producer
-/// reads and groups the next; spilled segments are compressed and written
-/// on the pool, behind the appends. Flushes every buffer once the batches end.
+/// of groups in order (and takes its spare buffers) while the producer reads
+/// and groups the next; spilled segments are compressed and written on the
+/// pool, behind the appends. Flushes every buffer once the batches end.
 fn append_in_order(
     binner: &mut Binner,
     batches: std::sync::mpsc::Receiver<AppendBatch>,
@@ -898,161 +844,11 @@ fn append_in_order(
         for (placed, spares) in batches {
             binner.spare.extend(spares);
             for p in placed {
-                binner.append_placed(p, frame, Some(scope))?;
+                binner.append_placed(p, frame, scope)?;
             }
         }
-        binner.flush_all(Some(scope))
+        binner.flush_all(scope)
     })
-}
-
-/// Pass 2 over the source read again, for a stream pass 1 gave up
-/// ([`StreamSink::reread`]): `read` streams the source into the sink it is
-/// given, which takes the reader's pieces (the records pass 1 saw, in the
-/// same order) and groups each piece's records by block on all cores; a
-/// thread of its own appends the groups in order while the reader goes on
-/// (segments that spill are compressed and written on the pool). The bins are the same
-/// as [`bin_triangles`] makes of the stream. `valid`: pass 1's count of
-/// valid triangles; another count means the source changed between the
-/// reads, and is an error.
-pub fn bin_source(
-    read: impl FnOnce(&mut dyn TriangleSink) -> Result<(), IngestError>,
-    layout: RecordLayout,
-    frame: &GridFrame,
-    spill_path: &Path,
-    (resident, buffer_limit): (usize, usize),
-    valid: u64,
-    on_tick: &mut dyn FnMut() -> Result<(), IngestError>,
-) -> Result<Bins, BuildError> {
-    let mut binner = Binner::new(layout, ChunkStore::new(spill_path, resident), buffer_limit);
-    // One batch waits while one is appended and the next is grouped.
-    let (to_appender, batches) = std::sync::mpsc::sync_channel::<AppendBatch>(1);
-    let (read, seen, appended) = std::thread::scope(|s| {
-        let appender = s.spawn(move || -> Result<Binner, BuildError> {
-            append_in_order(&mut binner, batches, frame)?;
-            Ok(binner)
-        });
-        let mut sink = SourceBinSink {
-            to_appender: Some(to_appender),
-            frame,
-            layout,
-            gathered: Vec::new(),
-            begun: false,
-            valid: 0,
-            on_tick,
-        };
-        let read = read(&mut sink).and_then(|()| sink.finish());
-        // Closes the channel, so the appender finishes (or, after an error, stops).
-        drop(sink.to_appender.take());
-        let appended = appender.join().unwrap_or_else(|p| std::panic::resume_unwind(p));
-        (read, sink.valid, appended)
-    });
-    // The appender's error first: the reader only saw its channel close.
-    let binner = appended?;
-    match read {
-        Err(IngestError::Cancelled) => return Err(BuildError::Cancelled),
-        r => r?,
-    }
-    if seen != valid {
-        return Err(IngestError::Invalid(format!(
-            "the input changed while it was read: {valid} valid triangles on the first read, {seen} on the second"
-        ))
-        .into());
-    }
-    binner.into_bins()
-}
-
-/// The sink of [`bin_source`].
-struct SourceBinSink<'a> {
-    /// `None` once finished.
-    to_appender: Option<std::sync::mpsc::SyncSender<AppendBatch>>,
-    frame: &'a GridFrame,
-    layout: RecordLayout,
-    gathered: Vec<SourceTriangle>,
-    begun: bool,
-    /// Valid triangles seen (source-valid: what pass 1 counted).
-    valid: u64,
-    on_tick: &'a mut dyn FnMut() -> Result<(), IngestError>,
-}
-
-impl SourceBinSink<'_> {
-    /// Groups the pieces by block on all cores and hands them to the appender.
-    fn push_pieces(&mut self, pieces: Vec<EncodedPiece>) -> Result<(), IngestError> {
-        self.valid += pieces.iter().map(|p| p.valid).sum::<u64>();
-        let (layout, frame) = (self.layout, self.frame);
-        let grouped: Vec<Placed> = pieces
-            .par_iter()
-            .filter(|p| !p.bytes.is_empty())
-            .map(|p| group_chunk(layout, &p.bytes, frame))
-            .collect();
-        let sent = self.to_appender.as_ref().map(|tx| tx.send((grouped, Vec::new())));
-        match sent {
-            Some(Ok(())) => Ok(()),
-            // The appender stopped: its error is the build's.
-            _ => Err(IngestError::Invalid("binning stopped".into())),
-        }
-    }
-
-    fn push_gathered(&mut self) -> Result<(), IngestError> {
-        if self.gathered.is_empty() {
-            return Ok(());
-        }
-        let gathered = std::mem::take(&mut self.gathered);
-        self.push_pieces(encode_batch(self.spec(), &gathered))?;
-        self.gathered = gathered;
-        self.gathered.clear();
-        Ok(())
-    }
-
-    fn finish(&mut self) -> Result<(), IngestError> {
-        self.push_gathered()
-    }
-
-    /// The records only: the measures came with pass 1.
-    fn spec(&self) -> PieceSpec {
-        PieceSpec { layout: self.layout, records: true, measures: false }
-    }
-}
-
-impl TriangleSink for SourceBinSink<'_> {
-    fn begin(&mut self, layout: RecordLayout) -> Result<(), IngestError> {
-        if self.begun {
-            return Err(IngestError::Invalid("reader began twice".into()));
-        }
-        if layout != self.layout {
-            return Err(IngestError::Invalid(format!(
-                "the input changed while it was read: records of {layout:?} on the second read, {:?} on the first",
-                self.layout
-            )));
-        }
-        self.begun = true;
-        Ok(())
-    }
-
-    fn triangle(&mut self, tri: [[f64; 3]; 3], color: [f32; 3]) -> Result<(), IngestError> {
-        self.gathered.push((tri, color));
-        if self.gathered.len() >= SINK_BATCH {
-            self.push_gathered()?;
-        }
-        Ok(())
-    }
-
-    fn triangles(&mut self, tris: &[SourceTriangle]) -> Result<(), IngestError> {
-        self.push_gathered()?;
-        self.push_pieces(encode_batch(self.spec(), tris))
-    }
-
-    fn piece_spec(&self) -> Option<PieceSpec> {
-        self.begun.then(|| self.spec())
-    }
-
-    fn pieces(&mut self, pieces: Vec<EncodedPiece>) -> Result<(), IngestError> {
-        self.push_gathered()?;
-        self.push_pieces(pieces)
-    }
-
-    fn tick(&mut self) -> Result<(), IngestError> {
-        (self.on_tick)()
-    }
 }
 
 /// Pass 3 for one block: voxelizes its segments (in input order) into a
@@ -1196,75 +992,23 @@ mod tests {
         }
     }
 
-    /// Fails if a stream given up when it would spill keeps a record or
-    /// loses a count, bound or edge, if a stream that fits is given up, or if
-    /// binning the source read again gives any block other voxels than
-    /// binning the stream (the order of a block's triangles decides the
-    /// sums' rounding, so an order change shows).
+    /// Fails if a failure of the appending thread (here: its spill file cannot
+    /// be created) is lost or panics instead of failing pass 2.
     #[test]
-    fn a_source_read_again_bins_like_its_stream() {
+    fn an_append_that_fails_fails_the_pass() {
         let dir = tempfile::tempdir().unwrap();
-        let tris = triangles();
-        let layout = RecordLayout { f64_positions: false, color: true };
-        let measured = |resident: usize, reread: bool| {
-            let mut tick = || Ok(());
-            rayon::scope(|scope| {
-                let store = ChunkStore::new(&dir.path().join(format!("s{resident}{reread}.vxt")), resident);
-                let mut sink = StreamSink::new(store, &mut tick, scope);
-                if reread {
-                    sink.reread_instead_of_spilling();
-                }
-                sink.begin(layout).unwrap();
-                // In two calls, so the stream is given up between them.
-                sink.triangles(&tris[..30_000]).unwrap();
-                sink.triangles(&tris[30_000..]).unwrap();
-                sink.finish().unwrap();
-                let edges = sink.edges.median();
-                (sink.reread, sink.store.len(), sink.triangles, sink.skipped, sink.bounds, edges)
-            })
-        };
-        let streamed = measured(4 << 10, false);
-        let given_up = measured(4 << 10, true);
-        assert!(!streamed.0 && streamed.1 == 3);
-        assert!(given_up.0 && given_up.1 == 0, "the stream would spill: given up, nothing kept");
-        assert_eq!(
-            (streamed.2, streamed.3, streamed.4, streamed.5),
-            (given_up.2, given_up.3, given_up.4, given_up.5)
+        let (mut store, layout, frame) = stream(dir.path(), &triangles());
+        let progress = ProgressSink::new(&|_| {});
+        let got = bin_triangles(
+            &mut store,
+            layout,
+            &frame,
+            &dir.path().join("missing").join("bins.vxt"),
+            (4 << 10, 1 << 20, 64 << 20),
+            &BuildOptions::default(),
+            &progress,
         );
-        // Control: a stream that fits in memory is kept, reread allowed or not.
-        assert!(!measured(64 << 20, true).0);
-
-        let (stream_bins, frame) = bin(dir.path(), &tris, 4 << 10);
-        let replay = |tris: &[SourceTriangle]| {
-            let mut tick = || Ok(());
-            let read = |sink: &mut dyn TriangleSink| {
-                sink.begin(layout)?;
-                for part in tris.chunks(7_000) {
-                    sink.triangles(part)?;
-                }
-                Ok(())
-            };
-            let path = dir.path().join("again.vxt");
-            let _ = std::fs::remove_file(&path);
-            bin_source(read, layout, &frame, &path, (4 << 10, 1 << 20), 40_000, &mut tick)
-        };
-        let source_bins = replay(&tris).unwrap();
-        assert!(source_bins.store.spilled_bytes() > 0, "the small budget spills segments");
-        assert_eq!(
-            (source_bins.triangles, source_bins.skipped),
-            (stream_bins.triangles, stream_bins.skipped)
-        );
-        let a: Vec<_> = stream_bins.blocks().collect();
-        let b: Vec<_> = source_bins.blocks().collect();
-        assert_eq!(a.iter().map(|x| x.0).collect::<Vec<_>>(), b.iter().map(|x| x.0).collect::<Vec<_>>());
-        for ((key, pa), (_, pb)) in a.into_iter().zip(b) {
-            let va = voxelize_bin(&stream_bins, key, pa, &frame, Topology::Conservative).unwrap();
-            let vb = voxelize_bin(&source_bins, key, pb, &frame, Topology::Conservative).unwrap();
-            assert_eq!(va.map(|b| b.voxels), vb.map(|b| b.voxels), "block {key:?}");
-        }
-        // A source that changed between the reads is an error, not other bins.
-        let err = replay(&tris[1..]).err().map(|e| e.to_string()).unwrap_or_default();
-        assert!(err.contains("the input changed while it was read"), "{err}");
+        assert!(matches!(&got, Err(BuildError::Temp(m)) if m.contains("bins.vxt")), "{:?}", got.err());
     }
 
     /// Fails if appending parts on all cores loses, repeats or reorders a

@@ -29,8 +29,8 @@ use crate::pipeline::pyramid::{
     DrawnBlock, FULL_LOD_BLOCK_BYTES, LodVoxel, Pyramid, level_count, mark_exposed_faces_lod, parent_share,
 };
 use crate::pipeline::read::{IngestError, ReadOptions};
+use crate::pipeline::stream::ChunkStore;
 use crate::pipeline::stream::MAX_CHUNK_TRIANGLES;
-use crate::pipeline::stream::{ChunkStore, RecordLayout};
 use crate::pipeline::voxelize::BLOCK_VOXELIZER_BYTES;
 use crate::pipeline::voxelize::{Topology, VoxelizeError};
 use crate::pipeline::write::{BlockWriter, ENCODE_BYTES_PER_VOXEL};
@@ -69,10 +69,6 @@ pub struct BuildOptions {
     /// The precomputed AO field (issue 9 item 2): computed and stored in every
     /// block when `Some` (the default).
     pub ao_field: Option<aofield::AoFieldOptions>,
-    /// Whether a binary PLY whose triangle stream would spill is read a second
-    /// time instead; `None`: when nearly all of it would. Tests set it to
-    /// force either path on a small input.
-    pub read_twice: Option<bool>,
 }
 
 /// See [`BuildOptions::on_published`].
@@ -150,7 +146,6 @@ impl Default for BuildOptions {
             // Opt-in: the field costs ~30 % more bytes a block and is less accurate than cone
             // tracing on every benchmarked view (docs/ao-benchmark.md).
             ao_field: None,
-            read_twice: None,
         }
     }
 }
@@ -170,9 +165,6 @@ pub struct BuildReport {
     /// Encoded bytes of all blocks on all levels.
     pub bytes: u64,
     pub seconds: f64,
-    /// How often the input was read: 2 when nearly all its triangle stream
-    /// would have spilled and reading it again cost less ([`read::binary_ply_faces`]).
-    pub source_reads: u32,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -200,10 +192,6 @@ pub enum BuildError {
 fn mib(bytes: u64) -> String {
     format!("{} MiB", bytes.div_ceil(1 << 20))
 }
-
-/// A stream at least this many times its resident share is read twice
-/// instead of spilled (see `build_scene_reporting`).
-const REREAD_SPILLED_SHARE: u64 = 5;
 
 /// The largest triangle record: f64 positions and a colour.
 const MAX_RECORD_BYTES: usize = 72 + 12;
@@ -348,14 +336,6 @@ impl MemoryPlan {
 
     pub fn bin_buffers(&self) -> usize {
         (self.spare() / 8) as usize
-    }
-
-    /// Pass 2 over the source read again ([`bin::bin_source`]): the bin
-    /// store's resident share and the buffers' limit. The reader's vertex
-    /// table is alive again beside them, so they get half their shares: with
-    /// the buffers' slack, a quarter of the spare, as the stream store has in pass 1.
-    pub fn reread_bin_shares(&self) -> (usize, usize) {
-        (self.bin_resident() / 2, self.bin_buffers() / 2)
     }
 
     /// Pass 2: what the chunks being grouped by block may take. The pyramid
@@ -788,29 +768,14 @@ pub fn build_scene_reporting(
         Ok(())
     };
     let stream_store = ChunkStore::new(&temp.path().join("stream.vxt"), first_plan.stream_resident());
-    // Read twice only when nearly all the stream would spill: the part that
-    // stays in memory costs nothing to keep, and a second read costs the
-    // whole file (at 10 M triangles, a third spilled, reading twice was 7 %
-    // slower; at 100 M, 94 % spilled, 3 % faster). The AO field is computed
-    // from the stream, so a build with one keeps it.
-    let reread_allowed = opts.ao_field.is_none()
-        && read::binary_ply_faces(input).is_some_and(|faces| {
-            opts.read_twice.unwrap_or(
-                faces.saturating_mul(RecordLayout::SMALLEST as u64)
-                    > REREAD_SPILLED_SHARE * first_plan.stream_resident() as u64,
-            )
-        });
     // Spilled chunks are compressed and written by tasks of the scope, beside the reader.
     let (format, sink) = rayon::scope(|scope| {
         let mut sink = StreamSink::new(stream_store, &mut on_tick, scope);
-        if reread_allowed {
-            sink.reread_instead_of_spilling();
-        }
         let format = read::stream_mesh(input, &mut sink, &read_opts).and_then(|f| sink.finish().map(|()| f));
-        let StreamSink { store, layout, bounds, triangles, skipped, edges, reread, .. } = sink;
-        (format, (store, layout, bounds, triangles, skipped, edges, reread))
+        let StreamSink { store, layout, bounds, triangles, skipped, edges, .. } = sink;
+        (format, (store, layout, bounds, triangles, skipped, edges))
     });
-    let (mut stream_store, layout, bounds, read_triangles, read_skipped, edges, reread) = sink;
+    let (mut stream_store, layout, bounds, read_triangles, read_skipped, edges) = sink;
     let format = format.and_then(|f| stream_store.settle_behind().map(|()| f).map_err(bin::stream_err));
     let format = match format {
         Err(IngestError::Cancelled) => return Err(BuildError::Cancelled),
@@ -819,7 +784,7 @@ pub fn build_scene_reporting(
     if read_triangles + read_skipped == 0 {
         return Err(IngestError::Invalid("the file holds no triangles".into()).into());
     }
-    tracing::debug!(seconds = start.elapsed().as_secs_f64(), reread, "build: read done");
+    tracing::debug!(seconds = start.elapsed().as_secs_f64(), "build: read done");
     progress.set_triangles(read_triangles + read_skipped);
     progress.stage(Stage::Read, 1.0);
     opts.check_cancelled()?;
@@ -863,36 +828,15 @@ pub fn build_scene_reporting(
     // so its size is logged as it was.
     progress.stage(Stage::Voxelize, 0.0);
     let (stream_chunks, stream_spilled_bytes) = (stream_store.len(), stream_store.spilled_bytes());
-    let bins = if reread {
-        bytes_read.store(0, Ordering::Relaxed);
-        let mut on_tick = || {
-            if opts.check_cancelled().is_err() {
-                return Err(IngestError::Cancelled);
-            }
-            progress
-                .stage(Stage::Voxelize, 0.3 * bytes_read.load(Ordering::Relaxed) as f64 / input_len as f64);
-            Ok(())
-        };
-        bin::bin_source(
-            |sink| read::stream_mesh(input, sink, &read_opts).map(drop),
-            layout,
-            &frame,
-            &temp.path().join("bins.vxt"),
-            plan.reread_bin_shares(),
-            read_triangles,
-            &mut on_tick,
-        )?
-    } else {
-        bin::bin_triangles(
-            &mut stream_store,
-            layout,
-            &frame,
-            &temp.path().join("bins.vxt"),
-            (plan.bin_resident(), plan.bin_buffers(), plan.bin_groups()),
-            opts,
-            &progress,
-        )?
-    };
+    let bins = bin::bin_triangles(
+        &mut stream_store,
+        layout,
+        &frame,
+        &temp.path().join("bins.vxt"),
+        (plan.bin_resident(), plan.bin_buffers(), plan.bin_groups()),
+        opts,
+        &progress,
+    )?;
     tracing::debug!(
         seconds = start.elapsed().as_secs_f64(),
         stream_chunks,
@@ -941,7 +885,6 @@ pub fn build_scene_reporting(
         resolution_choice,
         bytes: manifest.levels.iter().map(|l| l.bytes).sum(),
         seconds: start.elapsed().as_secs_f64(),
-        source_reads: if reread { 2 } else { 1 },
     })
 }
 
@@ -959,19 +902,6 @@ mod tests {
                 assert!(pass1 <= budget, "{resolution}: {pass1} > {budget}");
                 // The paged table's cache is half the table: a quarter of the budget.
                 assert!(plan.ply_vertex_table() / 2 <= budget / 4);
-            }
-        }
-        // Pass 2 over the source read again: the vertex table is back beside the bin stores
-        // (resident share, buffers with their slack) and the segments written behind them.
-        for resolution in [64u32, 4096, 65536] {
-            let smallest = MemoryPlan::minimum_budget(resolution);
-            for budget in [smallest, smallest + (7 << 20), 1 << 30, 16 << 30] {
-                let plan = MemoryPlan::new(budget, resolution).unwrap();
-                let (resident, buffers) = plan.reread_bin_shares();
-                let pass2 = plan.ply_vertex_table()
-                    + (resident + 2 * buffers) as u64
-                    + bin::CHUNKS_IN_FLIGHT_BYTES as u64;
-                assert!(pass2 <= budget, "{resolution}: {pass2} > {budget}");
             }
         }
         // Pass 2's chunks in flight fit in the pyramid's own reserve, so they raise no minimum budget.

@@ -63,8 +63,6 @@ pub struct RecordLayout {
 impl RecordLayout {
     /// The largest record: f64 coordinates and a colour.
     const MAX_SIZE: usize = Self { f64_positions: true, color: true }.size();
-    /// The smallest record: f32 coordinates, no colour.
-    pub const SMALLEST: usize = Self { f64_positions: false, color: false }.size();
 
     pub const fn size(self) -> usize {
         (if self.f64_positions { 72 } else { 36 }) + if self.color { 12 } else { 0 }
@@ -348,21 +346,6 @@ impl ChunkStore {
         resident + HEADER_LEN + raw_len <= self.resident_limit
     }
 
-    /// Whether a chunk of `raw_len` record bytes would go to the spill file.
-    pub fn would_spill(&self, raw_len: usize) -> bool {
-        !self.fits(self.resident_bytes, raw_len)
-    }
-
-    /// Forgets every chunk, giving their memory back; for a producer that
-    /// gives its stream up before any chunk spilled (a spilled chunk's bytes
-    /// would stay in the file until the store is dropped).
-    pub fn clear(&mut self) {
-        debug_assert!(self.spill.is_none(), "cleared after spilling");
-        self.resident = Vec::new();
-        self.resident_bytes = 0;
-        self.chunks = Vec::new();
-    }
-
     /// Keeps records in memory (the caller checked that they fit).
     fn keep(&mut self, mut raw: Vec<u8>) -> usize {
         // The budget counts lengths: a buffer grown by doubling gives its slack back.
@@ -434,16 +417,6 @@ impl ChunkStore {
             shared.in_flight.fetch_sub(1, Ordering::AcqRel);
         });
         Ok(id)
-    }
-
-    /// Stores records as one chunk, as [`ChunkStore::push_behind`] does but
-    /// encoding and writing a spilled one here, for a producer that has a
-    /// thread of its own.
-    pub fn push(&mut self, layout: RecordLayout, raw: Vec<u8>) -> Result<usize, ChunkError> {
-        if self.fits(self.resident_bytes, raw.len()) {
-            return Ok(self.keep(raw));
-        }
-        self.spill_chunk(layout, &raw)
     }
 
     /// Places the chunks [`ChunkStore::push_behind`] wrote; call once their

@@ -35,7 +35,7 @@ use std::sync::Arc;
 use std::sync::LazyLock;
 use std::sync::atomic::{AtomicU64, Ordering};
 
-pub use crate::pipeline::bin::{EncodedPiece, PieceSpec};
+pub use crate::pipeline::bin::EncodedPiece;
 pub use crate::pipeline::stream::RecordLayout;
 
 /// An indexed triangle mesh in the source file's own coordinates and units.
@@ -112,13 +112,13 @@ pub trait TriangleSink {
         }
         Ok(())
     }
-    /// What this sink wants of triangles already checked and encoded
-    /// ([`Self::pieces`]), which readers then do on their worker threads;
-    /// `None`: it takes triangles. Asked before each batch: it may change.
-    fn piece_spec(&self) -> Option<PieceSpec> {
+    /// The record layout when this sink takes triangles already checked and
+    /// encoded ([`Self::pieces`]), which readers then do on their worker
+    /// threads; `None`: it takes triangles.
+    fn encoded_layout(&self) -> Option<RecordLayout> {
         None
     }
-    /// Encoded pieces, in order; only called when [`Self::piece_spec`] is `Some`.
+    /// Encoded pieces, in order; only called when [`Self::encoded_layout`] is `Some`.
     fn pieces(&mut self, _pieces: Vec<EncodedPiece>) -> Result<(), IngestError> {
         Err(IngestError::Invalid("this sink takes triangles, not encoded records".into()))
     }
@@ -383,60 +383,9 @@ pub fn stream_mesh(
     Ok(format)
 }
 
-/// The faces a binary PLY declares (`None` for any other file): what a
-/// second read of it costs is its file read and parse, a fixed-size index
-/// record a face on all cores, which is why only such a file is read twice
-/// instead of spilling its triangle stream (text formats cost more to parse
-/// than the stream does to spill, and the formats parsed in memory fit the
-/// budget anyway).
-pub fn binary_ply_faces(path: &Path) -> Option<u64> {
-    let mut head = Vec::with_capacity(4096);
-    File::open(path).and_then(|f| f.take(4096).read_to_end(&mut head)).ok()?;
-    if !head.starts_with(b"ply") {
-        return None;
-    }
-    let text = String::from_utf8_lossy(&head);
-    let mut binary = false;
-    let mut faces = None;
-    for line in text.split("end_header").next().unwrap_or("").lines() {
-        match line.split_ascii_whitespace().collect::<Vec<_>>()[..] {
-            ["format", f, ..] => binary = f.starts_with("binary_"),
-            ["element", "face", n] => faces = n.parse().ok(),
-            _ => {}
-        }
-    }
-    faces.filter(|_| binary)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// Fails if a binary PLY's face count is not found, or if an ASCII PLY,
-    /// another format or an unreadable path gets one.
-    #[test]
-    fn binary_ply_faces_are_read_from_the_header() {
-        let dir = tempfile::tempdir().unwrap();
-        let file = |name: &str, bytes: &[u8]| {
-            let p = dir.path().join(name);
-            std::fs::write(&p, bytes).unwrap();
-            p
-        };
-        let header = |format: &str| {
-            format!(
-                "ply\nformat {format} 1.0\nelement vertex 3\nproperty float x\nelement face 12\nend_header\n"
-            )
-        };
-        assert_eq!(binary_ply_faces(&file("le.ply", header("binary_little_endian").as_bytes())), Some(12));
-        assert_eq!(binary_ply_faces(&file("be.ply", header("binary_big_endian").as_bytes())), Some(12));
-        assert_eq!(binary_ply_faces(&file("a.ply", header("ascii").as_bytes())), None);
-        // A comment naming a binary format is not the format line.
-        let commented =
-            "ply\nformat ascii 1.0\ncomment format binary_little_endian\nelement face 2\nend_header\n";
-        assert_eq!(binary_ply_faces(&file("c.ply", commented.as_bytes())), None);
-        assert_eq!(binary_ply_faces(&file("x.stl", &[0u8; 84])), None);
-        assert_eq!(binary_ply_faces(&dir.path().join("missing.ply")), None);
-    }
 
     #[test]
     fn detect_by_magic_then_extension() {

@@ -1554,16 +1554,16 @@ fn emit_faces<P: Polygon + Sync, V: Vertices>(
 ) -> Result<(), IngestError> {
     use rayon::prelude::*;
     const PIECE: usize = 1024;
-    if let Some(spec) = sink.piece_spec() {
+    if let Some(layout) = sink.encoded_layout() {
         let pieces: Vec<Result<EncodedPiece, IngestError>> = faces
             .par_chunks(PIECE)
             .enumerate()
             .map(|(p, piece)| {
                 let mut scratch = Vec::new();
-                let mut out = EncodedPiece::with_capacity(spec, piece.len());
+                let mut out = EncodedPiece::with_capacity(layout, piece.len());
                 for (k, f) in piece.iter().enumerate() {
                     fan_each(f.indices(&mut scratch), table, start + p * PIECE + k, |tri, color| {
-                        out.push(spec, &tri, color)
+                        out.push(layout, &tri, color)
                     })?;
                 }
                 Ok(out)
