@@ -796,31 +796,37 @@ pub fn bin_triangles(
     // A full chunk's buffer: the capacity a spare must have to hold a whole segment.
     let segment_bytes = MAX_CHUNK_TRIANGLES * layout.size();
     let (to_appender, batches) = std::sync::mpsc::sync_channel::<AppendBatch>(1);
-    let (produced, appended) = std::thread::scope(|s| {
-        let appender = s.spawn(move || -> Result<Binner, BuildError> {
-            append_in_order(&mut binner, batches, frame)?;
-            Ok(binner)
-        });
-        let produced = (|| -> Result<(), BuildError> {
-            let mut next = 0;
-            while next < total {
-                opts.check_cancelled()?;
-                let ids = next..(next + group).min(total);
-                next = ids.end;
-                let grouped = read_group(stream, ids.clone())?;
-                // Grouped copies hold these chunks' records now.
-                let spares = ids
-                    .filter_map(|id| stream.take_resident(id).filter(|raw| raw.capacity() == segment_bytes))
-                    .collect();
-                if to_appender.send((grouped, spares)).is_err() {
-                    return Ok(()); // the appender stopped: its error is the build's
+    // The scope is this thread's, so the appender's spilled segments are written on the
+    // pool the build runs in (the one `install`ed, or the global one), not the global one.
+    let (produced, appended) = rayon::in_place_scope(|scope| {
+        std::thread::scope(|s| {
+            let appender = s.spawn(move || -> Result<Binner, BuildError> {
+                append_in_order(&mut binner, batches, frame, scope)?;
+                Ok(binner)
+            });
+            let produced = (|| -> Result<(), BuildError> {
+                let mut next = 0;
+                while next < total {
+                    opts.check_cancelled()?;
+                    let ids = next..(next + group).min(total);
+                    next = ids.end;
+                    let grouped = read_group(stream, ids.clone())?;
+                    // Grouped copies hold these chunks' records now.
+                    let spares = ids
+                        .filter_map(|id| {
+                            stream.take_resident(id).filter(|raw| raw.capacity() == segment_bytes)
+                        })
+                        .collect();
+                    if to_appender.send((grouped, spares)).is_err() {
+                        return Ok(()); // the appender stopped: its error is the build's
+                    }
+                    progress.stage(Stage::Voxelize, 0.3 * next as f64 / total.max(1) as f64);
                 }
-                progress.stage(Stage::Voxelize, 0.3 * next as f64 / total.max(1) as f64);
-            }
-            Ok(())
-        })();
-        drop(to_appender);
-        (produced, appender.join().unwrap_or_else(|p| std::panic::resume_unwind(p)))
+                Ok(())
+            })();
+            drop(to_appender);
+            (produced, appender.join().unwrap_or_else(|p| std::panic::resume_unwind(p)))
+        })
     });
     // The appender's error first: the producer only saw its channel close.
     let binner = appended?;
@@ -833,22 +839,21 @@ type AppendBatch = (Vec<Placed>, Vec<Vec<u8>>);
 
 /// The appending half of pass 2, on a thread of its own: appends each batch
 /// of groups in order (and takes its spare buffers) while the producer reads
-/// and groups the next; spilled segments are compressed and written on the
-/// pool, behind the appends. Flushes every buffer once the batches end.
+/// and groups the next; spilled segments are compressed and written by
+/// tasks of `scope`, behind the appends. Flushes every buffer once the batches end.
 fn append_in_order(
     binner: &mut Binner,
     batches: std::sync::mpsc::Receiver<AppendBatch>,
     frame: &GridFrame,
+    scope: &rayon::Scope<'_>,
 ) -> Result<(), BuildError> {
-    rayon::in_place_scope(|scope| -> Result<(), BuildError> {
-        for (placed, spares) in batches {
-            binner.spare.extend(spares);
-            for p in placed {
-                binner.append_placed(p, frame, scope)?;
-            }
+    for (placed, spares) in batches {
+        binner.spare.extend(spares);
+        for p in placed {
+            binner.append_placed(p, frame, scope)?;
         }
-        binner.flush_all(scope)
-    })
+    }
+    binner.flush_all(scope)
 }
 
 /// Pass 3 for one block: voxelizes its segments (in input order) into a
