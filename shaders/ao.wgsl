@@ -77,7 +77,8 @@ fn clip_trilinear(level: u32, p: vec3<f32>, w: vec3<f32>) -> f32 {
     // The slot, continuous (texel centres at +0.5), in the level's block.
     let n = clipmap.info.y;
     let slot = qc - n * floor(qc / n) + 0.5 + vec3<f32>(0.0, 0.0, f32(level) * (n + 1.0));
-    let size = vec3<f32>(n + 1.0, n + 1.0, (n + 1.0) * clipmap.info.x);
+    // The atlas may hold more levels than the layout (OccupancyClipmap::reserve).
+    let size = vec3<f32>(textureDimensions(clip_texels));
     let texel = textureSampleLevel(clip_texels, clip_sampler, slot / size, 0.0);
     return min(dot(texel.xyz, w), texel.w) * inside.x * inside.y * inside.z;
 }

@@ -17,6 +17,12 @@
 //!   view (the drawn blocks with no pixel on screen, from the G-buffer).
 //! - budget: a scripted orbit-and-zoom path with a 64 MiB budget: the most
 //!   resident bytes ÷ budget.
+//! - `--main-thread`: each streaming frame's main-thread CPU time (Linux's
+//!   per-thread schedstat, so time spent waiting for the GPU does not count),
+//!   with uploads paced as the browser paces them and the scene's phase
+//!   clock running: the longest, the median and the frames over 4 ms, and
+//!   the longest each phase took. The viewer's own share of the browser's
+//!   longest main-thread task, natively.
 //! - `--frame-times N`: also N frames of the converged view (with occlusion
 //!   culling) with AO and N without: median wall time and, where the adapter
 //!   has timestamp queries, each pass's median GPU time; and, while streaming,
@@ -42,10 +48,52 @@ struct Converged {
     culled_occlusion: u32,
     /// The most GPU time one streaming frame took (all its timed passes), ms.
     longest_gpu_frame_ms: Option<f64>,
+    /// Each frame's main-thread CPU time, ms (where the OS says).
+    frame_cpu_ms: Vec<f64>,
+}
+
+/// This thread's CPU time so far, ms: the first field of Linux's
+/// /proc/thread-self/schedstat (ns on a CPU); None elsewhere.
+fn thread_cpu_ms() -> Option<f64> {
+    let text = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
+    Some(text.split_whitespace().next()?.parse::<f64>().ok()? / 1e6)
+}
+
+/// Milliseconds since the first call: the scene's phase clock natively.
+fn bench_clock() -> f64 {
+    static START: std::sync::OnceLock<Instant> = std::sync::OnceLock::new();
+    START.get_or_init(Instant::now).elapsed().as_secs_f64() * 1e3
+}
+
+/// `--main-thread`: the frames' CPU times and the scene's longest phases (one JSON line).
+fn print_main_thread(o: &Offscreen, scene: &Path, kind: &str, (w, h): (u32, u32), c: &Converged) {
+    let mut ms = c.frame_cpu_ms.clone();
+    ms.sort_by(f64::total_cmp);
+    let median = ms.get(ms.len() / 2).copied().unwrap_or(f64::NAN);
+    let longest = ms.last().copied().unwrap_or(f64::NAN);
+    let over = ms.iter().filter(|&&m| m > 4.0).count();
+    let total: f64 = ms.iter().sum();
+    let phases: Vec<String> =
+        o.scene.stats.longest_phases_ms.iter().map(|(k, v)| format!("{k:?}:{v:.3}")).collect();
+    println!(
+        "{{\"measure\":\"main_thread\",\"scene\":{:?},\"view\":{kind:?},\"size\":\"{w}x{h}\",\"frames\":{},\
+         \"longest_frame_cpu_ms\":{longest:.3},\"median_frame_cpu_ms\":{median:.3},\"frames_over_4ms\":{over},\
+         \"frames_cpu_ms\":{total:.1},\"longest_traversal_ms\":{:.3},\"longest_phases_ms\":{{{}}},\"adapter\":{:?}}}",
+        scene.display().to_string(),
+        ms.len(),
+        o.scene.stats.longest_traversal_ms,
+        phases.join(","),
+        o.adapter_name()
+    );
 }
 
 fn view(offscreen: &Offscreen, kind: &str) -> OrbitCamera {
     let mut c = offscreen.scene.camera;
+    // The browser's ?view=x,y,z,yaw,pitch,distance.
+    if let Some(v) = kind.strip_prefix("view=") {
+        assert!(c.apply_url(v), "bad view {v:?}");
+        return c;
+    }
     match kind {
         // Eye near the middle of the scene, looking along the default direction.
         "inside" => {
@@ -65,11 +113,16 @@ fn stream(offscreen: &mut Offscreen, max_frames: usize) -> Converged {
     let mut frames = 0;
     let mut last = None;
     let mut longest_gpu = None;
+    let mut frame_cpu_ms = Vec::new();
     for _ in 0..max_frames {
         frames += 1;
         let requests = offscreen.scene.start_requests();
         offscreen.fetch(&requests);
-        let frame = offscreen.draw_frame().expect("frame");
+        let cpu_from = thread_cpu_ms();
+        let frame = offscreen.draw_frame_at(bench_clock()).expect("frame");
+        if let (Some(from), Some(to)) = (cpu_from, thread_cpu_ms()) {
+            frame_cpu_ms.push(to - from);
+        }
         if let Some(passes) = offscreen.last_pass_times().expect("pass times") {
             let total: f64 = passes.iter().map(|p| p.ms).filter(|ms| ms.is_finite()).sum();
             longest_gpu = Some(longest_gpu.map_or(total, |l: f64| l.max(total)));
@@ -96,6 +149,7 @@ fn stream(offscreen: &mut Offscreen, max_frames: usize) -> Converged {
         budget: s.budget_bytes,
         culled_occlusion: s.culled_occlusion,
         longest_gpu_frame_ms: longest_gpu,
+        frame_cpu_ms,
     }
 }
 
@@ -288,7 +342,16 @@ fn main() {
         // As many in flight per frame as the browser: feedback needs frames to act.
         o.scene.set_max_in_flight(6);
         o.scene.record_bytes_fetched(manifest_bytes);
+        let main_thread = args.iter().any(|a| a == "--main-thread");
+        if main_thread {
+            // As the page: uploads paced to 2 ms of main thread, the phases timed.
+            o.scene.pace_uploads(2.0);
+            o.scene.clock = bench_clock;
+        }
         let c = stream(&mut o, 400);
+        if occlusion && main_thread {
+            print_main_thread(&o, scene, kind, (w, h), &c);
+        }
         // Blocks the converged view finds hidden that were fetched all the same (before their
         // feedback came): what the request order lost.
         let hidden = o.scene.traversal().hidden.clone();

@@ -51,10 +51,17 @@ fn keys(sources: &[Vec<&Block>]) -> Vec<Vec<BlockKey>> {
     sources.iter().map(|l| l.iter().map(|b| b.key).collect()).collect()
 }
 
-fn run(gpu: &Gpu, clipmap: &mut OccupancyClipmap, layout: ClipmapLayout, all: &[Block], state: &State) {
+fn run(
+    gpu: &Gpu,
+    clipmap: &mut OccupancyClipmap,
+    layout: ClipmapLayout,
+    all: &[Block],
+    state: &State,
+) -> bool {
     run_on(GRID, gpu, clipmap, layout, all, state)
 }
 
+/// Runs one update; returns whether it replaced the clipmap's buffers (allocated them in the frame).
 fn run_on(
     grid: u32,
     gpu: &Gpu,
@@ -62,10 +69,10 @@ fn run_on(
     layout: ClipmapLayout,
     all: &[Block],
     state: &State,
-) {
+) -> bool {
     let find = |k: &BlockKey| all.iter().find(|b| b.key == *k);
     let mut encoder = gpu.device.create_command_encoder(&Default::default());
-    clipmap.update(
+    let replaced = clipmap.update(
         &gpu.device,
         &gpu.queue,
         &mut encoder,
@@ -78,6 +85,7 @@ fn run_on(
         None,
     );
     gpu.queue.submit([encoder.finish()]);
+    replaced
 }
 
 fn model(layout: ClipmapLayout, state: &State) -> ClipmapModel {
@@ -236,6 +244,40 @@ fn a_layout_change_rebuilds_every_level() {
     let fine_as_coarse =
         ClipmapModel { layout: coarse, levels: model(fine, &state(fine)).levels[..3].to_vec() };
     assert!(mismatches(&gpu, &clipmap, &fine_as_coarse) > 100);
+}
+
+/// The cells and textures are allocated once, for the most levels the scene
+/// can have: a reserved clipmap (as the renderer makes it, before streaming)
+/// changes layout as the finest drawn level falls without allocating in a
+/// frame, and the first update of an unreserved one allocates for every
+/// later layout too. Each state still matches its model.
+#[test]
+fn layout_changes_allocate_nothing_after_the_reserve() {
+    let gpu = Gpu::new().expect("a Vulkan adapter (lavapipe)");
+    let all = vec![block(0, [3, 3, 3], 7), block(1, [1, 1, 1], 8)];
+    let layouts = [
+        ClipmapLayout::for_scene(GRID, 4, 64),
+        ClipmapLayout::for_scene(GRID, 2, 64),
+        ClipmapLayout::for_scene(GRID, 1, 64),
+    ];
+    assert_eq!(layouts.map(|l| l.levels), [3, 4, 5], "coarse to fine, one level more each");
+    let eye = Vec3::new(200.0, 210.0, 220.0);
+    let state = |layout: ClipmapLayout| State {
+        eye,
+        sources: (0..layout.levels).map(|_| vec![&all[0], &all[1]]).collect(),
+    };
+    let mut reserved = OccupancyClipmap::new(&gpu.device, 64);
+    assert!(reserved.reserve(&gpu.device, GRID), "the reserve allocates");
+    assert!(!reserved.reserve(&gpu.device, GRID), "once");
+    // Control: without the reserve the first update allocates, then never again.
+    let mut lazy = OccupancyClipmap::new(&gpu.device, 64);
+    for (i, layout) in layouts.into_iter().enumerate() {
+        assert!(!run(&gpu, &mut reserved, layout, &all, &state(layout)), "layout {i} allocated");
+        assert_eq!(mismatches(&gpu, &reserved, &model(layout, &state(layout))), 0, "layout {i}");
+        assert_eq!(run(&gpu, &mut lazy, layout, &all, &state(layout)), i == 0, "layout {i}, unreserved");
+        assert_eq!(mismatches(&gpu, &lazy, &model(layout, &state(layout))), 0, "layout {i}, unreserved");
+    }
+    assert_eq!(reserved.counters.rebuilds, 3);
 }
 
 /// A 32768³ scene with level-0 blocks resident takes all 8 levels of 128³ cells: 192 MiB of

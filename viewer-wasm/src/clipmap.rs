@@ -748,6 +748,41 @@ impl OccupancyClipmap {
         self.voxel_words.buffer.size()
     }
 
+    /// Allocates the cells and the levels' texture for the most levels any
+    /// layout of a `grid_resolution`³ scene can have, once (before streaming
+    /// starts): the budget reserves them from the first frame anyway
+    /// ([`OccupancyClipmap::budget_bytes`]), and allocating them when a
+    /// layout first needs them put a 200 MB allocation into a streaming frame
+    /// each time the finest drawn level fell (10–12 ms of main thread
+    /// natively at 32768³: docs/streaming.md). Returns whether the buffers
+    /// were replaced (bind groups naming them must be remade).
+    pub fn reserve(&mut self, device: &wgpu::Device, grid_resolution: u32) -> bool {
+        self.reserve_levels(device, self.cells, self.most_levels(grid_resolution))
+    }
+
+    fn most_levels(&self, grid_resolution: u32) -> u32 {
+        ClipmapLayout::for_scene(grid_resolution, 1, self.cells).levels.clamp(1, MAX_CLIP_LEVELS)
+    }
+
+    /// Cells and texels for `levels` levels of `cells`³, where the present ones are smaller.
+    fn reserve_levels(&mut self, device: &wgpu::Device, cells: u32, levels: u32) -> bool {
+        let mut replaced = false;
+        let bytes = levels as u64 * (cells as u64).pow(3) * CELL_WORDS as u64 * 4;
+        if self.cells_buffer.size() < bytes {
+            self.cells_buffer = Self::cells_buffer(device, bytes);
+            self.texel_groups.clear();
+            replaced = true;
+        }
+        let edge = cells + 1;
+        if self.texels.width() != edge || self.texels.depth_or_array_layers() < edge * levels {
+            self.texels = texel_atlas(device, cells, levels);
+            self.texel_groups.clear();
+            self.texel_view = self.texels.create_view(&Default::default());
+            replaced = true;
+        }
+        replaced
+    }
+
     /// What the residency budget counts for the clipmap of a
     /// `grid_resolution`³ scene: the cells of the most levels any layout of
     /// it can have (reserved from the first frame, so the fixed bytes do not
@@ -808,19 +843,11 @@ impl OccupancyClipmap {
         // Levels that moved (or were rebuilt): (level, new region, cells kept).
         let mut moved = Vec::new();
         if self.layout != Some(layout) {
-            let bytes = layout.levels as u64 * layout.level_words() * 4;
-            if self.cells_buffer.size() < bytes {
-                self.cells_buffer = Self::cells_buffer(device, bytes);
-                self.texel_groups.clear();
-                replaced = true;
-            }
-            let edge = layout.cells + 1;
-            if self.texels.width() != edge || self.texels.depth_or_array_layers() != edge * layout.levels {
-                self.texels = texel_atlas(device, layout.cells, layout.levels);
-                self.texel_groups.clear();
-                self.texel_view = self.texels.create_view(&Default::default());
-                replaced = true;
-            }
+            replaced = self.reserve_levels(
+                device,
+                layout.cells,
+                layout.levels.max(self.most_levels(grid_resolution)),
+            );
             self.layout = Some(layout);
             self.levels = vec![ClipLevel::default(); layout.levels as usize];
             self.counters.rebuilds += 1;

@@ -152,7 +152,10 @@ impl Renderer {
             mapped_at_creation: false,
         });
         let occupancy = OccupancyTexture::new(&device, occupancy_cells);
-        let clipmap = OccupancyClipmap::new(&device, CLIP_CELLS);
+        let mut clipmap = OccupancyClipmap::new(&device, CLIP_CELLS);
+        // The AO's default structure: its cells are allocated here, before
+        // the first block streams in, not in a frame.
+        clipmap.reserve(&device, grid_resolution);
         let frame_group = frame_bind_group(&device, &frame_layout, &frame_uniform, &occupancy, &clipmap);
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("voxel.wgsl + ao.wgsl"),
