@@ -375,6 +375,13 @@ pub struct ClipmapCounters {
     pub word_moves: u64,
 }
 
+/// Bytes of `levels` levels of `cells`³: their cells ([`CELL_WORDS`] u32 a
+/// cell) and their block of the texel atlas ((`cells` + 1)³ texels a level).
+fn level_bytes(cells: u32, levels: u32) -> (u64, u64) {
+    let (cells, levels) = (cells as u64, levels as u64);
+    (levels * cells.pow(3) * CELL_WORDS as u64 * 4, levels * (cells + 1).pow(3) * TEXEL_BYTES)
+}
+
 /// The levels' filterable copy of their cells (clipmap_texels.wgsl), what
 /// the trace samples: `levels` blocks of (`cells` + 1)³ texels stacked in
 /// depth (a 1³ placeholder before the first layout).
@@ -757,17 +764,21 @@ impl OccupancyClipmap {
     /// natively at 32768³: docs/streaming.md). Returns whether the buffers
     /// were replaced (bind groups naming them must be remade).
     pub fn reserve(&mut self, device: &wgpu::Device, grid_resolution: u32) -> bool {
-        self.reserve_levels(device, self.cells, self.most_levels(grid_resolution))
+        let most = self.most_levels(grid_resolution);
+        self.reserve_levels(device, most.cells, most.levels)
     }
 
-    fn most_levels(&self, grid_resolution: u32) -> u32 {
-        ClipmapLayout::for_scene(grid_resolution, 1, self.cells).levels.clamp(1, MAX_CLIP_LEVELS)
+    /// The layout of a `grid_resolution`³ scene with the most levels (level-0
+    /// voxels drawn): what [`OccupancyClipmap::reserve`] allocates and
+    /// [`OccupancyClipmap::budget_bytes`] counts.
+    fn most_levels(&self, grid_resolution: u32) -> ClipmapLayout {
+        ClipmapLayout::for_scene(grid_resolution, 1, self.cells)
     }
 
     /// Cells and texels for `levels` levels of `cells`³, where the present ones are smaller.
     fn reserve_levels(&mut self, device: &wgpu::Device, cells: u32, levels: u32) -> bool {
         let mut replaced = false;
-        let bytes = levels as u64 * (cells as u64).pow(3) * CELL_WORDS as u64 * 4;
+        let (bytes, _) = level_bytes(cells, levels);
         if self.cells_buffer.size() < bytes {
             self.cells_buffer = Self::cells_buffer(device, bytes);
             self.texel_groups.clear();
@@ -788,9 +799,8 @@ impl OccupancyClipmap {
     /// it can have (reserved from the first frame, so the fixed bytes do not
     /// jump when the cells are allocated) plus the voxel words held now.
     pub fn budget_bytes(&self, grid_resolution: u32) -> u64 {
-        let most = ClipmapLayout::for_scene(grid_resolution, 1, self.cells);
-        let reserve = most.levels as u64 * most.level_words() * 4;
-        let texels = most.levels as u64 * (most.cells as u64 + 1).pow(3) * TEXEL_BYTES;
+        let most = self.most_levels(grid_resolution);
+        let (reserve, texels) = level_bytes(most.cells, most.levels);
         reserve.max(self.cells_buffer.size()) + texels.max(self.texel_bytes()) + self.voxel_words_bytes()
     }
 
@@ -846,7 +856,7 @@ impl OccupancyClipmap {
             replaced = self.reserve_levels(
                 device,
                 layout.cells,
-                layout.levels.max(self.most_levels(grid_resolution)),
+                layout.levels.max(self.most_levels(grid_resolution).levels),
             );
             self.layout = Some(layout);
             self.levels = vec![ClipLevel::default(); layout.levels as usize];
