@@ -19,7 +19,8 @@ struct FaceRecord {
     color: u32,
 }
 
-// Layout of wgpu::util::DrawIndirectArgs. The CPU initialises it to (0, 1, 0, 0).
+// Layout of wgpu::util::DrawIndirectArgs. The CPU initialises a block's to
+// (0, 1, 6 x its first face, 0), in the slot of its first page.
 struct DrawArgs {
     vertex_count: atomic<u32>,
     instance_count: u32,
@@ -27,36 +28,65 @@ struct DrawArgs {
     first_instance: u32,
 }
 
+// A page's entry in its chunk's page table (viewer-wasm/src/expand.rs: PageInfo).
+struct PageInfo {
+    origin: vec3<f32>,
+    voxel_size: f32,
+    // One past the block's last face in the chunk.
+    face_end: u32,
+    pad0: u32,
+    pad1: u32,
+    pad2: u32,
+}
+
+// One block of the batch (viewer-wasm/src/expand.rs: ExpandHeader), at a dynamic offset.
+struct ExpandBlock {
+    voxel_first: u32,
+    voxel_count: u32,
+    first_page: u32,
+    pages: u32,
+    info: PageInfo,
+}
+
 const VERTICES_PER_FACE: u32 = 6u;
+const PAGE_FACES: u32 = 256u;
 const WORKGROUP_SIZE: u32 = 64u;
 
+// The frame's whole upload buffer; the block's voxels start at `block.voxel_first`.
 @group(0) @binding(0) var<storage, read> voxels: array<Voxel>;
-@group(0) @binding(1) var<storage, read_write> faces: array<FaceRecord>;
-@group(0) @binding(2) var<storage, read_write> draw_args: DrawArgs;
+@group(0) @binding(1) var<uniform> block: ExpandBlock;
+// The chunk of the face arena the block's run of pages is in.
+@group(0) @binding(2) var<storage, read_write> faces: array<FaceRecord>;
+@group(0) @binding(3) var<storage, read_write> pages: array<PageInfo>;
+@group(0) @binding(4) var<storage, read_write> draw_args: array<DrawArgs>;
 
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn expand_faces(@builtin(global_invocation_id) id: vec3<u32>) {
     let index = id.x;
-    if index >= arrayLength(&voxels) {
+    if index < block.pages {
+        pages[block.first_page + index] = block.info;
+    }
+    if index >= block.voxel_count {
         return;
     }
-    let voxel = voxels[index];
+    let voxel = voxels[block.voxel_first + index];
     let mask = (voxel.pos_faces >> 18u) & 63u;
     let count = countOneBits(mask);
     if count == 0u {
         return;
     }
     // One atomic per voxel reserves all of its faces at once.
-    let first = atomicAdd(&draw_args.vertex_count, count * VERTICES_PER_FACE) / VERTICES_PER_FACE;
+    let first = atomicAdd(&draw_args[block.first_page].vertex_count, count * VERTICES_PER_FACE) / VERTICES_PER_FACE;
     let position = voxel.pos_faces & 0x3ffffu;
-    let capacity = arrayLength(&faces);
+    let base = block.first_page * PAGE_FACES;
+    // The CPU sizes the run from the popcount; the guard only keeps a wrong
+    // size from writing into the next block's pages.
+    let capacity = block.info.face_end - base;
     var slot = first;
     for (var face = 0u; face < 6u; face += 1u) {
         if (mask & (1u << face)) != 0u {
-            // The CPU sizes the buffer from the popcount; the guard only keeps
-            // a wrong size from writing out of bounds.
             if slot < capacity {
-                faces[slot] = FaceRecord(position | (face << 18u), voxel.normal, voxel.color);
+                faces[base + slot] = FaceRecord(position | (face << 18u), voxel.normal, voxel.color);
             }
             slot += 1u;
         }

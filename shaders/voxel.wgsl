@@ -6,12 +6,22 @@
 // (ao_trace.wgsl with ao.wgsl, ao_upsample, ao_temporal) and ao_composite.wgsl
 // multiplies it in.
 
-struct BlockInfo {
+// A page's entry in its chunk's page table (viewer-wasm/src/expand.rs:
+// PageInfo): the block that owns the page's faces.
+struct PageInfo {
     // Grid-unit position of the block's corner.
     origin: vec3<f32>,
     // Voxel edge in grid units (2^level).
     voxel_size: f32,
+    // One past the block's last face in the chunk.
+    face_end: u32,
+    pad0: u32,
+    pad1: u32,
+    pad2: u32,
 }
+
+// Faces a page of the face arena holds (viewer-wasm/src/face_arena.rs).
+const PAGE_FACES: u32 = 256u;
 
 struct FaceRecord {
     pos_face: u32,
@@ -20,7 +30,10 @@ struct FaceRecord {
     color: u32,
 }
 
-@group(1) @binding(0) var<uniform> block: BlockInfo;
+// One chunk of the face arena. A block's draw starts at its first face
+// (first_vertex = 6 x first face), so the vertex index names the face in the
+// chunk, and the face's page names the block.
+@group(1) @binding(0) var<storage, read> pages: array<PageInfo>;
 @group(1) @binding(1) var<storage, read> faces: array<FaceRecord>;
 
 // A block fading in or out over a level change (viewer-wasm/src/crossfade.rs).
@@ -75,7 +88,8 @@ fn face_corner(corner: u32, positive: bool) -> vec2<f32> {
 fn vs_main(@builtin(vertex_index) vertex_index: u32) -> VertexOut {
     var out: VertexOut;
     let face_index = vertex_index / 6u;
-    if face_index >= arrayLength(&faces) {
+    let block = pages[min(face_index / PAGE_FACES, arrayLength(&pages) - 1u)];
+    if face_index >= arrayLength(&faces) || face_index >= block.face_end {
         // Degenerate: outside the clip volume.
         out.clip = vec4<f32>(2.0, 2.0, 2.0, 1.0);
         return out;

@@ -189,7 +189,13 @@ fn gpu_expansion_writes_exactly_the_cpu_faces() {
         let records = offscreen.face_records(&key).unwrap();
         let faces = block.face_count();
         assert_eq!(faces, index.block(&key).unwrap().faces, "manifest face count of {key}");
-        assert_eq!(args, [faces * 6, 1, 0, 0], "indirect args of {key}");
+        let slot = offscreen.scene.gpu_block(&key).unwrap().slot;
+        assert_eq!(args, [faces * 6, 1, slot.first_face() * 6, 0], "indirect args of {key}");
+        // Every page of the block's run names the block: its origin, voxel size and last face.
+        let expected = voxstream_viewer::expand::PageInfo::for_block(&key, &slot, faces);
+        let pages = offscreen.page_infos(&key).unwrap();
+        assert_eq!(pages.len(), slot.pages as usize);
+        assert!(pages.iter().all(|p| *p == expected), "page table of {key}: {pages:?} != {expected:?}");
         let mut gpu: Vec<[u32; 3]> = records;
         gpu.sort();
         let mut cpu: Vec<[u32; 3]> = block

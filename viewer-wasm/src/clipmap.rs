@@ -446,6 +446,9 @@ pub struct OccupancyClipmap {
     /// The device's largest storage binding in u32 words, read once: in a
     /// browser each `limits()` is a call into JavaScript.
     max_binding_words: u64,
+    /// The most words the source-voxel buffer may grow to under the GPU
+    /// budget ([`OccupancyClipmap::limit_source_bytes`]); no limit by default.
+    source_word_limit: u64,
     /// Test only: scrolls leave the newly exposed cells as they were (a deliberately wrong clipmap).
     pub skip_scroll_clear: bool,
     /// Test only: updates leave the level textures as they were (textures behind their cells).
@@ -693,6 +696,7 @@ impl OccupancyClipmap {
             splat_layout,
             counters: ClipmapCounters::default(),
             max_binding_words: device.limits().max_storage_buffer_binding_size / 4,
+            source_word_limit: u64::MAX,
             skip_scroll_clear: false,
             skip_texel_copy: false,
         }
@@ -753,6 +757,18 @@ impl OccupancyClipmap {
 
     fn voxel_words_bytes(&self) -> u64 {
         self.voxel_words.buffer.size()
+    }
+
+    /// Bytes of the buffer of source voxels (it grows as sources arrive).
+    pub fn source_bytes(&self) -> u64 {
+        self.voxel_words_bytes()
+    }
+
+    /// Caps what the buffer of source voxels may grow to (the residency's
+    /// headroom plus what it holds now); sources that do not fit are refused
+    /// and added by a later update.
+    pub fn limit_source_bytes(&mut self, bytes: u64) {
+        self.source_word_limit = bytes / 4;
     }
 
     /// Allocates the cells and the levels' texture for the most levels any
@@ -917,7 +933,8 @@ impl OccupancyClipmap {
             }
         }
         self.counters.blocks_uploaded += new_words.len() as u64;
-        let refused = self.voxel_words.insert_many(device, queue, new_words, self.max_binding_words);
+        let max_words = self.max_binding_words.min(self.source_word_limit);
+        let refused = self.voxel_words.insert_many(device, queue, new_words, max_words);
         self.counters.word_moves = self.voxel_words.moves;
         if !refused.is_empty() {
             // Never added, so never to be subtracted: a later update adds them when there is room.

@@ -1,13 +1,16 @@
 //! GPU voxel expansion: one compute dispatch per block turns its PackedVoxel
-//! storage buffer into face records and fills the indirect draw args
-//! (shaders/expand.wgsl). The CPU only sizes the face buffer from the popcount
-//! of the face masks ([`Block::face_count`]); a frame's blocks are uploaded
-//! with one staging write ([`UploadBatch`]) and expanded in one compute pass.
+//! voxels into face records in its run of the face arena
+//! ([`crate::face_arena`]), fills that run's page table and counts the
+//! indirect draw's vertices (shaders/expand.wgsl). The CPU only sizes the run
+//! from the popcount of the face masks ([`Block::face_count`]); a frame's
+//! blocks are uploaded with one staging write ([`UploadBatch`]) and expanded
+//! in one compute pass, a block a dispatch under one bind group per chunk (its
+//! header is a dynamic offset), so a new block creates no WebGPU object.
 
 use bytemuck::{Pod, Zeroable};
 use voxstream_format::{BLOCK_SIZE, Block, BlockKey, PackedVoxel};
 
-use crate::residency::BlockBuffers;
+use crate::face_arena::{BlockSlot, FaceArena, PAGE_INFO_BYTES};
 use crate::shaders;
 
 /// Bytes of one face record (shaders: `FaceRecord`).
@@ -15,60 +18,70 @@ pub const FACE_RECORD_BYTES: u64 = 12;
 /// Invocations per workgroup in expand.wgsl.
 const WORKGROUP_SIZE: u32 = 64;
 
-/// Per-block uniform of voxel.wgsl (`BlockInfo`).
+/// A page's entry in its chunk's page table (voxel.wgsl and expand.wgsl: `PageInfo`):
+/// where the block that owns the page sits, and where its faces end.
 #[repr(C)]
-#[derive(Debug, Clone, Copy, Pod, Zeroable)]
-pub struct BlockUniform {
+#[derive(Debug, Clone, Copy, PartialEq, Pod, Zeroable)]
+pub struct PageInfo {
     /// Grid-unit position of the block's corner.
     pub origin: [f32; 3],
     /// Voxel edge in grid units.
     pub voxel_size: f32,
+    /// One past the block's last face, as an index into the chunk's faces.
+    pub face_end: u32,
+    pub _pad: [u32; 3],
 }
 
-impl BlockUniform {
-    pub fn for_key(key: &BlockKey) -> Self {
+impl PageInfo {
+    pub fn for_block(key: &BlockKey, slot: &BlockSlot, faces: u32) -> Self {
         let voxel_size = (1u64 << key.level) as f32;
-        Self { origin: key.coord().map(|c| c as f32 * BLOCK_SIZE as f32 * voxel_size), voxel_size }
+        Self {
+            origin: key.coord().map(|c| c as f32 * BLOCK_SIZE as f32 * voxel_size),
+            voxel_size,
+            face_end: slot.first_face() + faces,
+            _pad: [0; 3],
+        }
     }
 }
+
+/// What one dispatch of expand.wgsl expands (`ExpandBlock`), read at a dynamic offset.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct ExpandHeader {
+    /// Index of the block's first voxel in the upload buffer.
+    voxel_first: u32,
+    voxel_count: u32,
+    first_page: u32,
+    pages: u32,
+    info: PageInfo,
+}
+
+/// Bytes of an [`ExpandHeader`]; the block's initial draw args follow it.
+const HEADER_BYTES: u64 = 48;
 
 /// A block living on the GPU, ready to draw with one indirect draw.
 pub struct GpuBlock {
     pub key: BlockKey,
     pub faces: u32,
-    /// Pooled buffers (see [`crate::residency`]): face records written by the
-    /// compute pass (the first `faces`), indirect draw args, block uniform.
-    pub buffers: BlockBuffers,
-    /// Group 1 of the draw pipeline: block uniform + face buffer.
-    pub bind_group: wgpu::BindGroup,
+    /// Its run of pages in the face arena.
+    pub slot: BlockSlot,
 }
 
-/// Layout of group 1 in voxel.wgsl: what one block's draw reads.
+/// Layout of group 1 in voxel.wgsl: a chunk's page table and faces.
 pub fn block_bind_group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
+    let entry = |binding, min| wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::VERTEX,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Storage { read_only: true },
+            has_dynamic_offset: false,
+            min_binding_size: wgpu::BufferSize::new(min),
+        },
+        count: None,
+    };
     device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-        label: Some("block draw"),
-        entries: &[
-            wgpu::BindGroupLayoutEntry {
-                binding: 0,
-                visibility: wgpu::ShaderStages::VERTEX,
-                ty: wgpu::BindingType::Buffer {
-                    ty: wgpu::BufferBindingType::Uniform,
-                    has_dynamic_offset: false,
-                    min_binding_size: wgpu::BufferSize::new(size_of::<BlockUniform>() as u64),
-                },
-                count: None,
-            },
-            wgpu::BindGroupLayoutEntry {
-                binding: 1,
-                visibility: wgpu::ShaderStages::VERTEX,
-                ty: wgpu::BindingType::Buffer {
-                    ty: wgpu::BufferBindingType::Storage { read_only: true },
-                    has_dynamic_offset: false,
-                    min_binding_size: wgpu::BufferSize::new(FACE_RECORD_BYTES),
-                },
-                count: None,
-            },
-        ],
+        label: Some("arena draw"),
+        entries: &[entry(0, PAGE_INFO_BYTES), entry(1, FACE_RECORD_BYTES)],
     })
 }
 
@@ -97,8 +110,19 @@ impl Expander {
             label: Some("expand"),
             entries: &[
                 storage_entry(0, true, size_of::<PackedVoxel>() as u64),
-                storage_entry(1, false, FACE_RECORD_BYTES),
-                storage_entry(2, false, 16),
+                wgpu::BindGroupLayoutEntry {
+                    binding: 1,
+                    visibility: wgpu::ShaderStages::COMPUTE,
+                    ty: wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Uniform,
+                        has_dynamic_offset: true,
+                        min_binding_size: wgpu::BufferSize::new(HEADER_BYTES),
+                    },
+                    count: None,
+                },
+                storage_entry(2, false, FACE_RECORD_BYTES),
+                storage_entry(3, false, PAGE_INFO_BYTES),
+                storage_entry(4, false, 16),
             ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -121,28 +145,67 @@ impl Expander {
         Self { pipeline, layout }
     }
 
+    /// The expansion's bind group over `upload` and one chunk's buffers.
+    fn group(
+        &self,
+        device: &wgpu::Device,
+        upload: &wgpu::Buffer,
+        chunk: &crate::face_arena::FaceChunk,
+    ) -> wgpu::BindGroup {
+        device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("expand chunk"),
+            layout: &self.layout,
+            entries: &[
+                wgpu::BindGroupEntry { binding: 0, resource: upload.as_entire_binding() },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                        buffer: upload,
+                        offset: 0,
+                        size: wgpu::BufferSize::new(HEADER_BYTES),
+                    }),
+                },
+                wgpu::BindGroupEntry { binding: 2, resource: chunk.faces.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 3, resource: chunk.page_table.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 4, resource: chunk.args.as_entire_binding() },
+            ],
+        })
+    }
+
     /// Runs the expansion once on nothing (zero workgroups), at startup: the
     /// first use of the pipeline and of its submit path costs the browser's
     /// main thread milliseconds, which would otherwise land on the first frame
     /// that streams blocks in.
     pub fn prime(&self, device: &wgpu::Device, queue: &wgpu::Queue) {
-        let buffer = |size: u64| {
+        let buffer = |size: u64, usage| {
             device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("expand primer"),
                 size,
-                usage: wgpu::BufferUsages::STORAGE,
+                usage,
                 mapped_at_creation: false,
             })
         };
-        let (voxels, faces, args) =
-            (buffer(size_of::<PackedVoxel>() as u64), buffer(FACE_RECORD_BYTES), buffer(16));
+        let storage = wgpu::BufferUsages::STORAGE;
+        let upload = buffer(256, storage | wgpu::BufferUsages::UNIFORM);
+        let chunk_buffer = |size| buffer(size, storage);
+        let (faces, table, args) =
+            (chunk_buffer(FACE_RECORD_BYTES), chunk_buffer(PAGE_INFO_BYTES), chunk_buffer(16));
         let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("expand primer"),
             layout: &self.layout,
             entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: voxels.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 1, resource: faces.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 2, resource: args.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 0, resource: upload.as_entire_binding() },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                        buffer: &upload,
+                        offset: 0,
+                        size: wgpu::BufferSize::new(HEADER_BYTES),
+                    }),
+                },
+                wgpu::BindGroupEntry { binding: 2, resource: faces.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 3, resource: table.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 4, resource: args.as_entire_binding() },
             ],
         });
         let mut encoder =
@@ -153,46 +216,36 @@ impl Expander {
                 timestamp_writes: None,
             });
             pass.set_pipeline(&self.pipeline);
-            pass.set_bind_group(0, &group, &[]);
+            pass.set_bind_group(0, &group, &[0]);
             pass.dispatch_workgroups(0, 1, 1);
         }
         queue.submit([encoder.finish()]);
     }
 
     /// Records one compute pass that expands every block of `batch` (whose
-    /// voxels [`UploadBatch::finish`] has just written) into its buffers.
+    /// voxels [`UploadBatch::write`] has just written) into its run of `arena`.
     pub fn expand_batch(
         &self,
         device: &wgpu::Device,
         encoder: &mut wgpu::CommandEncoder,
         batch: &mut UploadBatch,
-        draw_layout: &wgpu::BindGroupLayout,
+        arena: &mut FaceArena,
         upload: &wgpu::Buffer,
         timer: Option<&crate::pass_timer::PassTimer>,
     ) -> Vec<GpuBlock> {
-        let mut groups = Vec::with_capacity(batch.items.len());
         for item in &batch.items {
-            // Args (0, 1, 0, 0) and the block uniform sit after the voxels in the upload buffer.
-            let tail = item.offset + item.voxel_bytes;
-            encoder.copy_buffer_to_buffer(upload, tail, &item.buffers.draw_args, 0, 16);
-            encoder.copy_buffer_to_buffer(upload, tail + 16, &item.buffers.uniform, 0, 16);
-            // Static labels: a formatted one a block costs an allocation and a JS string.
-            groups.push(device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("expand block"),
-                layout: &self.layout,
-                entries: &[
-                    wgpu::BindGroupEntry {
-                        binding: 0,
-                        resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                            buffer: upload,
-                            offset: item.offset,
-                            size: wgpu::BufferSize::new(item.voxel_bytes),
-                        }),
-                    },
-                    wgpu::BindGroupEntry { binding: 1, resource: face_binding(&item.buffers, item.faces) },
-                    wgpu::BindGroupEntry { binding: 2, resource: item.buffers.draw_args.as_entire_binding() },
-                ],
-            }));
+            let Some(chunk) = arena.chunk_mut(item.slot.chunk) else { continue };
+            // The args (0, 1, 6 × first face, 0) sit after the header in the upload buffer.
+            encoder.copy_buffer_to_buffer(
+                upload,
+                item.header + HEADER_BYTES,
+                &chunk.args,
+                item.slot.args_offset(),
+                16,
+            );
+            if chunk.expand_group.is_none() {
+                chunk.expand_group = Some(self.group(device, upload, chunk));
+            }
         }
         {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
@@ -200,45 +253,22 @@ impl Expander {
                 timestamp_writes: timer.and_then(|t| t.compute_writes("expand blocks")),
             });
             pass.set_pipeline(&self.pipeline);
-            for (item, group) in batch.items.iter().zip(&groups) {
-                pass.set_bind_group(0, group, &[]);
-                let voxels = (item.voxel_bytes / size_of::<PackedVoxel>() as u64) as u32;
-                pass.dispatch_workgroups(voxels.div_ceil(WORKGROUP_SIZE), 1, 1);
+            for item in &batch.items {
+                let Some(group) = arena.chunk(item.slot.chunk).and_then(|c| c.expand_group.as_ref()) else {
+                    continue;
+                };
+                pass.set_bind_group(0, group, &[item.header as u32]);
+                let invocations = item.voxel_count.max(item.slot.pages);
+                pass.dispatch_workgroups(invocations.div_ceil(WORKGROUP_SIZE), 1, 1);
             }
         }
         batch.bytes.clear();
         batch
             .items
             .drain(..)
-            .map(|item| {
-                let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-                    label: Some("block draw"),
-                    layout: draw_layout,
-                    entries: &[
-                        wgpu::BindGroupEntry {
-                            binding: 0,
-                            resource: item.buffers.uniform.as_entire_binding(),
-                        },
-                        wgpu::BindGroupEntry {
-                            binding: 1,
-                            resource: face_binding(&item.buffers, item.faces),
-                        },
-                    ],
-                });
-                GpuBlock { key: item.key, faces: item.faces, buffers: item.buffers, bind_group }
-            })
+            .map(|item| GpuBlock { key: item.key, faces: item.faces, slot: item.slot })
             .collect()
     }
-}
-
-/// The face records of a block: only the first `faces` of its pooled buffer,
-/// so `arrayLength` in the shaders is the block's own face count.
-fn face_binding(buffers: &BlockBuffers, faces: u32) -> wgpu::BindingResource<'_> {
-    wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-        buffer: &buffers.face_buffer,
-        offset: 0,
-        size: wgpu::BufferSize::new(faces.max(1) as u64 * FACE_RECORD_BYTES),
-    })
 }
 
 /// Bytes of the upload buffer, and so the per-frame upload cap. A block holds
@@ -289,19 +319,20 @@ impl UploadPacer {
     }
 }
 
-/// Storage-buffer binding offsets must be multiples of this (WebGPU's default limit).
+/// Uniform binding offsets must be multiples of this (WebGPU's default limit).
 const UPLOAD_ALIGN: u64 = 256;
 
 struct UploadItem {
     key: BlockKey,
     faces: u32,
-    offset: u64,
-    voxel_bytes: u64,
-    buffers: BlockBuffers,
+    voxel_count: u32,
+    /// Byte offset of the block's [`ExpandHeader`] in the upload buffer.
+    header: u64,
+    slot: BlockSlot,
 }
 
-/// One frame's uploads: every block's voxels, draw args and uniform packed
-/// into one CPU buffer, written to the GPU with one `write_buffer`. Kept from
+/// One frame's uploads: every block's voxels, expansion header and draw args
+/// packed into one CPU buffer, written to the GPU with one `write_buffer`. Kept from
 /// frame to frame ([`Expander::expand_batch`] empties it): its buffer is
 /// allocated once, so packing a frame is a copy, never a reallocation.
 #[derive(Default)]
@@ -317,9 +348,11 @@ impl UploadBatch {
         Self { bytes: Vec::with_capacity(UPLOAD_BYTES_PER_FRAME as usize), items: Vec::new() }
     }
 
-    /// Bytes `block` takes in a batch (with alignment).
+    /// The most bytes `block` takes in a batch: its voxels at a multiple of
+    /// their size, its header at the next multiple of [`UPLOAD_ALIGN`], the args after it.
     pub fn bytes_for(block: &Block) -> u64 {
-        (std::mem::size_of_val(block.voxels.as_slice()) as u64 + 32).next_multiple_of(UPLOAD_ALIGN)
+        let voxel_bytes = std::mem::size_of_val(block.voxels.as_slice()) as u64;
+        size_of::<PackedVoxel>() as u64 - 1 + voxel_bytes + UPLOAD_ALIGN - 1 + HEADER_BYTES + 16
     }
 
     pub fn len(&self) -> usize {
@@ -340,26 +373,35 @@ impl UploadBatch {
         self.bytes.is_empty() || self.byte_len() + Self::bytes_for(block) <= cap.min(UPLOAD_BYTES_PER_FRAME)
     }
 
-    /// Adds `block`, which expands to `faces` > 0 faces, to be expanded into `buffers`.
-    pub fn push(&mut self, block: &Block, faces: u32, buffers: BlockBuffers) {
-        let offset = self.bytes.len() as u64;
-        let voxels: &[u8] = bytemuck::cast_slice(&block.voxels);
-        self.bytes.extend_from_slice(voxels);
+    /// Adds `block`, which expands to `faces` > 0 faces, to be expanded into `slot`.
+    pub fn push(&mut self, block: &Block, faces: u32, slot: BlockSlot) {
+        let voxel_size = size_of::<PackedVoxel>();
+        self.bytes.resize(self.bytes.len().next_multiple_of(voxel_size), 0);
+        let voxel_first = (self.bytes.len() / voxel_size) as u32;
+        self.bytes.extend_from_slice(bytemuck::cast_slice(&block.voxels));
+        self.bytes.resize(self.bytes.len().next_multiple_of(UPLOAD_ALIGN as usize), 0);
+        let header = self.bytes.len() as u64;
+        let expand = ExpandHeader {
+            voxel_first,
+            voxel_count: block.voxels.len() as u32,
+            first_page: slot.first_page,
+            pages: slot.pages,
+            info: PageInfo::for_block(&block.key, &slot, faces),
+        };
+        self.bytes.extend_from_slice(bytemuck::bytes_of(&expand));
         let args = wgpu::util::DrawIndirectArgs {
             vertex_count: 0,
             instance_count: 1,
-            first_vertex: 0,
+            first_vertex: slot.first_face() * 6,
             first_instance: 0,
         };
         self.bytes.extend_from_slice(args.as_bytes());
-        self.bytes.extend_from_slice(bytemuck::bytes_of(&BlockUniform::for_key(&block.key)));
-        self.bytes.resize(self.bytes.len().next_multiple_of(UPLOAD_ALIGN as usize), 0);
         self.items.push(UploadItem {
             key: block.key,
             faces,
-            offset,
-            voxel_bytes: voxels.len() as u64,
-            buffers,
+            voxel_count: block.voxels.len() as u32,
+            header,
+            slot,
         });
     }
 
@@ -376,7 +418,10 @@ pub fn upload_buffer(device: &wgpu::Device) -> wgpu::Buffer {
     device.create_buffer(&wgpu::BufferDescriptor {
         label: Some("block uploads"),
         size: UPLOAD_BYTES_PER_FRAME,
-        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
+        usage: wgpu::BufferUsages::STORAGE
+            | wgpu::BufferUsages::UNIFORM
+            | wgpu::BufferUsages::COPY_SRC
+            | wgpu::BufferUsages::COPY_DST,
         mapped_at_creation: false,
     })
 }
@@ -384,6 +429,7 @@ pub fn upload_buffer(device: &wgpu::Device) -> wgpu::Buffer {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::face_arena::PAGE_FACES;
 
     #[test]
     fn the_pacer_fits_a_frames_upload_to_its_time_budget() {
@@ -430,13 +476,49 @@ mod tests {
     }
 
     #[test]
-    fn block_uniform_places_blocks_in_grid_units() {
-        let u = BlockUniform::for_key(&BlockKey::new(2, 1, 0, 3));
+    fn page_info_places_blocks_in_grid_units() {
+        let slot = BlockSlot { chunk: 0, first_page: 2, pages: 1 };
+        let u = PageInfo::for_block(&BlockKey::new(2, 1, 0, 3), &slot, 100);
         assert_eq!(u.voxel_size, 4.0);
         assert_eq!(u.origin, [256.0, 0.0, 768.0]);
-        assert_eq!(size_of::<BlockUniform>(), 16);
+        assert_eq!(u.face_end, 2 * PAGE_FACES + 100);
+        assert_eq!(size_of::<PageInfo>() as u64, PAGE_INFO_BYTES);
+        assert_eq!(size_of::<ExpandHeader>() as u64, HEADER_BYTES);
         // expand.wgsl's Voxel and FaceRecord are three u32 each.
         assert_eq!(size_of::<PackedVoxel>(), 12);
         assert_eq!(FACE_RECORD_BYTES, 12);
+    }
+
+    #[test]
+    fn a_batch_places_voxels_headers_and_args_where_the_shader_reads_them() {
+        let key = BlockKey::new(1, 0, 0, 0);
+        let mut batch = UploadBatch::default();
+        let mut ends = Vec::new();
+        for (i, n) in [5usize, 1, 77].into_iter().enumerate() {
+            let block = Block { key, voxels: vec![PackedVoxel::new([i as u32, 0, 0], 1, 0); n] };
+            let before = batch.byte_len();
+            let slot = BlockSlot { chunk: 0, first_page: 10 * i as u32, pages: 1 };
+            batch.push(&block, 3, slot);
+            assert!(
+                batch.byte_len() - before <= UploadBatch::bytes_for(&block),
+                "bytes_for is an upper bound"
+            );
+            ends.push(batch.byte_len());
+        }
+        for (i, item) in batch.items.iter().enumerate() {
+            assert_eq!(item.header % UPLOAD_ALIGN, 0, "a uniform's dynamic offset must be aligned");
+            let h = item.header as usize;
+            let header: ExpandHeader =
+                bytemuck::pod_read_unaligned(&batch.bytes[h..h + HEADER_BYTES as usize]);
+            assert_eq!(header.voxel_count, item.voxel_count);
+            assert_eq!(header.first_page, 10 * i as u32);
+            // The voxels the header points at are the block's own.
+            let v = header.voxel_first as usize * 12;
+            let first: PackedVoxel = bytemuck::pod_read_unaligned(&batch.bytes[v..v + 12]);
+            assert_eq!(first, PackedVoxel::new([i as u32, 0, 0], 1, 0));
+            let args: [u32; 4] = bytemuck::pod_read_unaligned(&batch.bytes[h + 48..h + 64]);
+            assert_eq!(args, [0, 1, 10 * i as u32 * PAGE_FACES * 6, 0]);
+            assert_eq!(h + 64, ends[i] as usize);
+        }
     }
 }

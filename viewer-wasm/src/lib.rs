@@ -8,7 +8,8 @@
 //! [`voxstream_format::Block`]) → upload and [`expand`] (one staging write per
 //! frame, compute pass: voxels to face records and indirect draw args) →
 //! [`render`] (vertex pulling, shading, with [`ao`]) → feedback.
-//! [`residency`] holds GPU memory under a hard budget, [`camera`] is the
+//! [`residency`] holds GPU memory under a hard budget, blocks' faces in the
+//! [`face_arena`], [`camera`] is the
 //! camera, [`select`] the LOD geometry and [`scene`] the thin driver.
 
 pub mod ao;
@@ -18,6 +19,7 @@ pub mod clipmap;
 pub mod crossfade;
 pub mod decode;
 pub mod expand;
+pub mod face_arena;
 pub mod fetch;
 pub mod occlusion;
 pub mod pass_timer;

@@ -406,22 +406,44 @@ impl Offscreen {
     /// The indirect draw args the compute pass wrote for a cached block:
     /// (vertex_count, instance_count, first_vertex, first_instance).
     pub fn draw_args(&self, key: &BlockKey) -> Result<Option<[u32; 4]>, OffscreenError> {
-        let Some(gpu) = self.scene.gpu_block(key) else { return Ok(None) };
-        let bytes = read_buffer(&self.renderer, &gpu.buffers.draw_args)?;
-        Ok(Some(bytemuck::pod_read_unaligned(&bytes[..16])))
+        let Some((gpu, chunk)) = self.arena_block(key) else { return Ok(None) };
+        let bytes = read_buffer(&self.renderer, &chunk.args)?;
+        let at = gpu.slot.args_offset() as usize;
+        Ok(Some(bytemuck::pod_read_unaligned(&bytes[at..at + 16])))
     }
 
     /// The face records the compute pass wrote for a cached block, as
     /// (x | y << 6 | z << 12 | face << 18, normal, colour) records in GPU order.
     pub fn face_records(&self, key: &BlockKey) -> Result<Vec<[u32; 3]>, OffscreenError> {
-        let Some(gpu) = self.scene.gpu_block(key) else { return Ok(Vec::new()) };
-        let bytes = read_buffer(&self.renderer, &gpu.buffers.face_buffer)?;
-        // The pooled buffer is larger than the block: only its own records count.
-        Ok(bytes
-            .chunks_exact(crate::expand::FACE_RECORD_BYTES as usize)
+        let Some((gpu, chunk)) = self.arena_block(key) else { return Ok(Vec::new()) };
+        let bytes = read_buffer(&self.renderer, &chunk.faces)?;
+        let record = crate::expand::FACE_RECORD_BYTES as usize;
+        // The block's run of pages is longer than its faces: only its own records count.
+        Ok(bytes[gpu.slot.first_face() as usize * record..]
+            .chunks_exact(record)
             .take(gpu.faces as usize)
             .map(bytemuck::pod_read_unaligned)
             .collect())
+    }
+
+    /// The page-table entries of a cached block's run of pages.
+    pub fn page_infos(&self, key: &BlockKey) -> Result<Vec<crate::expand::PageInfo>, OffscreenError> {
+        let Some((gpu, chunk)) = self.arena_block(key) else { return Ok(Vec::new()) };
+        let bytes = read_buffer(&self.renderer, &chunk.page_table)?;
+        let entry = crate::face_arena::PAGE_INFO_BYTES as usize;
+        Ok(bytes[gpu.slot.first_page as usize * entry..]
+            .chunks_exact(entry)
+            .take(gpu.slot.pages as usize)
+            .map(bytemuck::pod_read_unaligned)
+            .collect())
+    }
+
+    fn arena_block(
+        &self,
+        key: &BlockKey,
+    ) -> Option<(&crate::expand::GpuBlock, &crate::face_arena::FaceChunk)> {
+        let gpu = self.scene.gpu_block(key)?;
+        Some((gpu, self.scene.face_arena().chunk(gpu.slot.chunk)?))
     }
 }
 

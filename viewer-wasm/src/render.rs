@@ -14,6 +14,7 @@ pub use crate::ao_passes::{GBUFFER_COLOUR_FORMAT, GBUFFER_NORMAL_FORMAT, GBUFFER
 use crate::clipmap::{CLIP_CELLS, ClipmapLayout, OccupancyClipmap};
 use crate::crossfade::{FADE_SLOT_BYTES, Fade, MAX_FADES};
 use crate::expand::{Expander, GpuBlock, block_bind_group_layout};
+use crate::face_arena::FaceArena;
 use crate::shaders;
 
 pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
@@ -418,6 +419,7 @@ impl Renderer {
         target: &wgpu::TextureView,
         size: (u32, u32),
         params: &FrameParams,
+        arena: &FaceArena,
         blocks: &[(&GpuBlock, Option<Fade>)],
     ) {
         // A key light from above and to the side of the viewer; the headlight is implicit.
@@ -458,7 +460,7 @@ impl Renderer {
         self.queue.write_buffer(&self.frame_uniform, 0, bytemuck::bytes_of(&uniform));
         let depth = self.depth_view(width, height).clone();
         let [position, normal, colour] = self.ao_passes.gbuffer_views();
-        self.encode_voxels(encoder, &depth, [&position, &normal, &colour], blocks);
+        self.encode_voxels(encoder, &depth, [&position, &normal, &colour], arena, blocks);
         self.ao_passes.encode(
             &self.device,
             encoder,
@@ -476,6 +478,7 @@ impl Renderer {
         encoder: &mut wgpu::CommandEncoder,
         depth: &wgpu::TextureView,
         [position, normal, colour]: [&wgpu::TextureView; 3],
+        arena: &FaceArena,
         blocks: &[(&GpuBlock, Option<Fade>)],
     ) {
         let attachments = [
@@ -501,9 +504,15 @@ impl Renderer {
         });
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, &self.frame_group, &[]);
+        // A chunk's group is set once for the blocks after it that share it.
+        let mut bound = None;
         for (block, _) in blocks.iter().filter(|(_, fade)| fade.is_none()) {
-            pass.set_bind_group(1, &block.bind_group, &[]);
-            pass.draw_indirect(&block.buffers.draw_args, 0);
+            let Some(chunk) = arena.chunk(block.slot.chunk) else { continue };
+            if bound != Some(block.slot.chunk) {
+                pass.set_bind_group(1, &chunk.draw_group, &[]);
+                bound = Some(block.slot.chunk);
+            }
+            pass.draw_indirect(&chunk.args, block.slot.args_offset());
         }
         let fading: Vec<(&GpuBlock, Fade)> =
             blocks.iter().filter_map(|(b, f)| f.map(|f| (*b, f))).take(MAX_FADES).collect();
@@ -518,9 +527,10 @@ impl Renderer {
         self.queue.write_buffer(&self.fade_buffer, 0, &slots);
         pass.set_pipeline(&self.fade_pipeline);
         for (i, (block, _)) in fading.iter().enumerate() {
-            pass.set_bind_group(1, &block.bind_group, &[]);
+            let Some(chunk) = arena.chunk(block.slot.chunk) else { continue };
+            pass.set_bind_group(1, &chunk.draw_group, &[]);
             pass.set_bind_group(2, &self.fade_group, &[(i as u64 * FADE_SLOT_BYTES) as u32]);
-            pass.draw_indirect(&block.buffers.draw_args, 0);
+            pass.draw_indirect(&chunk.args, block.slot.args_offset());
         }
     }
 }

@@ -1,101 +1,66 @@
 //! GPU memory under a hard byte budget. Every buffer and texture the viewer
-//! holds is counted: the frame's fixed targets (colour, depth, occupancy
-//! volume, uniforms, the upload buffer) and each block's buffers. Block
-//! buffers come from pools of size classes with a free list, so a block that
-//! comes back reuses a freed buffer instead of allocating. An allocation that
-//! would pass the budget first drops free buffers, then evicts the least
-//! recently visible blocks that are not protected (drawn this frame); if it
-//! still does not fit it is refused. The budget is never exceeded.
-//! No compaction: size classes bound the waste instead (WebGPU cannot copy a
-//! buffer onto itself, so compaction would need a second buffer anyway).
+//! holds is counted: the frame's fixed targets (colour and depth, the AO
+//! targets, the occupancy volume and clipmap, uniforms, the upload buffer)
+//! and every chunk of the face arena ([`crate::face_arena`]), used or not.
+//! A block is placed in a free run of pages; if none holds it, a new chunk is
+//! made when the budget allows, else empty chunks are dropped and the least
+//! recently visible blocks that are not protected (needed this frame) are
+//! evicted, one at a time, until a run holds it. If nothing is left to evict
+//! the block is refused: the budget is never exceeded.
+//! No compaction: a block only needs a contiguous run within one chunk, and
+//! eviction frees runs in least-recently-visible order; chunks are small
+//! against the budget (at most 1/[`CHUNK_SHARE_OF_BUDGET`] of it), so a
+//! fragmented chunk empties and goes before it strands much.
 
 use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
 
 use voxstream_format::BlockKey;
 
-use crate::expand::FACE_RECORD_BYTES;
+use crate::face_arena::{BlockSlot, FaceArena, PAGE_BYTES, pages_for};
 
 /// The default budget: 512 MiB.
 pub const DEFAULT_BUDGET_BYTES: u64 = 512 << 20;
-/// Smallest face-buffer class.
-const MIN_CLASS_BYTES: u64 = 4 << 10;
-/// Classes per doubling: a buffer wastes at most 1/8 of its size.
-const CLASS_STEPS: u64 = 8;
-/// A block's draw args and uniform: 16 bytes each.
-pub const BLOCK_FIXED_BYTES: u64 = 32;
+/// The most pages a chunk is made with (12 MiB of faces).
+const MAX_CHUNK_PAGES: u32 = 4096;
+/// The fewest pages a chunk is made with.
+const MIN_CHUNK_PAGES: u32 = 64;
+/// A chunk takes at most this share of the block budget, so a small budget
+/// is not mostly rounding.
+pub const CHUNK_SHARE_OF_BUDGET: u64 = 16;
 
-/// The face-buffer bytes a pool hands out for `bytes`: rounded up to the next
-/// of eight steps per power of two (at least [`MIN_CLASS_BYTES`]).
-pub fn class_bytes(bytes: u64) -> u64 {
-    if bytes <= MIN_CLASS_BYTES {
-        return MIN_CLASS_BYTES;
-    }
-    let octave = 1u64 << (63 - bytes.leading_zeros());
-    let step = (octave / CLASS_STEPS).max(1);
-    bytes.div_ceil(step) * step
-}
-
-/// GPU bytes a resident block of `faces` faces takes.
+/// GPU bytes a resident block of `faces` faces takes in the arena.
 pub fn block_gpu_bytes(faces: u32) -> u64 {
-    class_bytes(faces.max(1) as u64 * FACE_RECORD_BYTES) + BLOCK_FIXED_BYTES
-}
-
-/// One block's buffers: faces, indirect draw args, block uniform.
-pub struct BlockBuffers {
-    pub face_buffer: wgpu::Buffer,
-    pub draw_args: wgpu::Buffer,
-    pub uniform: wgpu::Buffer,
-}
-
-impl BlockBuffers {
-    pub fn bytes(&self) -> u64 {
-        self.face_buffer.size() + BLOCK_FIXED_BYTES
-    }
-
-    fn destroy(&self) {
-        self.face_buffer.destroy();
-        self.draw_args.destroy();
-        self.uniform.destroy();
-    }
+    pages_for(faces) as u64 * PAGE_BYTES
 }
 
 struct Resident {
-    bytes: u64,
+    slot: BlockSlot,
     last_visible: u64,
 }
 
-/// Bookkeeping of GPU bytes. The caller owns the buffers of resident blocks;
-/// this decides who may allocate and who must go.
+/// What [`Residency::place`] did.
+#[derive(Debug, Default, PartialEq)]
+pub struct Placement {
+    /// Where the block goes; `None` when it cannot fit.
+    pub slot: Option<BlockSlot>,
+    /// Blocks taken off the GPU to make room (the caller forgets them).
+    pub evicted: Vec<BlockKey>,
+}
+
+/// Who may hold GPU memory: the face arena's chunks and the blocks in them,
+/// within the budget.
 pub struct Residency {
     budget: u64,
     /// Bytes of the frame's own targets and buffers.
     fixed: u64,
+    arena: FaceArena,
     resident: HashMap<BlockKey, Resident>,
-    free: HashMap<u64, Vec<BlockBuffers>>,
-    free_bytes: u64,
-    resident_bytes: u64,
     peak: u64,
-}
-
-/// What [`Residency::make_room`] decided.
-#[derive(Debug, Default, PartialEq)]
-pub struct Room {
-    pub fits: bool,
-    /// Blocks to drop from the GPU (their buffers go back with [`Residency::release`]).
-    pub evict: Vec<BlockKey>,
 }
 
 impl Residency {
     pub fn new(budget: u64) -> Self {
-        Self {
-            budget,
-            fixed: 0,
-            resident: HashMap::default(),
-            free: HashMap::default(),
-            free_bytes: 0,
-            resident_bytes: 0,
-            peak: 0,
-        }
+        Self { budget, fixed: 0, arena: FaceArena::default(), resident: HashMap::default(), peak: 0 }
     }
 
     pub fn budget(&self) -> u64 {
@@ -116,9 +81,9 @@ impl Residency {
         self.fixed
     }
 
-    /// Everything counted now: fixed, resident blocks and free pool buffers.
+    /// Everything counted now: fixed targets and every arena chunk.
     pub fn used_bytes(&self) -> u64 {
-        self.fixed + self.resident_bytes + self.free_bytes
+        self.fixed + self.arena.bytes()
     }
 
     pub fn peak_bytes(&self) -> u64 {
@@ -128,6 +93,14 @@ impl Residency {
     /// What blocks may take: the budget less the fixed targets.
     pub fn block_budget(&self) -> u64 {
         self.budget.saturating_sub(self.fixed)
+    }
+
+    pub fn arena(&self) -> &FaceArena {
+        &self.arena
+    }
+
+    pub fn arena_mut(&mut self) -> &mut FaceArena {
+        &mut self.arena
     }
 
     pub fn is_resident(&self, key: &BlockKey) -> bool {
@@ -148,165 +121,110 @@ impl Residency {
         self.peak = self.peak.max(self.used_bytes());
     }
 
-    /// Finds room for `bytes` more: drops free buffers first, then picks the
-    /// least recently visible unprotected blocks to evict. The caller must
-    /// release every evicted block before allocating.
-    pub fn make_room(&mut self, bytes: u64, protected: &HashSet<BlockKey>) -> Room {
-        let mut used = self.used_bytes();
-        if used + bytes <= self.budget {
-            return Room { fits: true, evict: Vec::new() };
-        }
-        // Free buffers of other sizes are the cheapest to give up.
-        for (_, buffers) in self.free.drain() {
-            for b in buffers {
-                self.free_bytes -= b.bytes();
-                used -= b.bytes();
-                b.destroy();
-            }
-        }
-        let mut victims: Vec<(u64, BlockKey, u64)> = self
+    /// Pages of a new chunk for a block of `pages`: a share of the block
+    /// budget within [`MIN_CHUNK_PAGES`, `MAX_CHUNK_PAGES`], or the block's own
+    /// size when it is larger.
+    fn chunk_pages_for(&self, pages: u32) -> u32 {
+        let share = (self.block_budget() / CHUNK_SHARE_OF_BUDGET / PAGE_BYTES) as u32;
+        share.clamp(MIN_CHUNK_PAGES, MAX_CHUNK_PAGES).max(pages)
+    }
+
+    /// Unprotected resident blocks, least recently visible first.
+    fn victims(&self, protected: &HashSet<BlockKey>) -> std::vec::IntoIter<(u64, BlockKey)> {
+        let mut victims: Vec<(u64, BlockKey)> = self
             .resident
             .iter()
             .filter(|(k, _)| !protected.contains(k))
-            .map(|(k, r)| (r.last_visible, *k, r.bytes))
+            .map(|(k, r)| (r.last_visible, *k))
             .collect();
-        victims.sort();
-        let mut evict = Vec::new();
-        for (_, key, b) in victims {
-            if used + bytes <= self.budget {
-                break;
-            }
-            used -= b;
-            evict.push(key);
-        }
-        Room { fits: used + bytes <= self.budget, evict }
+        victims.sort_unstable();
+        victims.into_iter()
     }
 
-    /// A block left the GPU: its buffers go to the free list (they stay counted).
-    pub fn release(&mut self, key: &BlockKey, buffers: BlockBuffers) {
+    fn evict(&mut self, key: &BlockKey) {
         if let Some(r) = self.resident.remove(key) {
-            self.resident_bytes -= r.bytes;
-        }
-        let bytes = buffers.bytes();
-        self.free_bytes += bytes;
-        self.free.entry(buffers.face_buffer.size()).or_default().push(buffers);
-        // Keep the free list from holding what the budget needs.
-        if self.used_bytes() > self.budget {
-            self.trim_free();
+            self.arena.give(r.slot);
         }
     }
 
-    fn trim_free(&mut self) {
-        for (_, buffers) in self.free.drain() {
-            for b in buffers {
-                b.destroy();
-            }
-        }
-        self.free_bytes = 0;
-    }
-
-    /// Buffers for a block of `faces` faces: a free one of its class, or new
-    /// ones. Call [`Residency::make_room`] first; `None` when they would not fit.
-    pub fn allocate(
+    /// Places a block of `faces` faces (see the module's comment for the
+    /// order of resorts). The caller must forget every evicted block.
+    pub fn place(
         &mut self,
         device: &wgpu::Device,
+        draw_layout: &wgpu::BindGroupLayout,
         key: BlockKey,
         faces: u32,
         frame: u64,
-    ) -> Option<BlockBuffers> {
-        let class = class_bytes(faces.max(1) as u64 * FACE_RECORD_BYTES);
-        let buffers = match self.free.get_mut(&class).and_then(Vec::pop) {
-            Some(b) => {
-                self.free_bytes -= b.bytes();
-                b
+        protected: &HashSet<BlockKey>,
+    ) -> Placement {
+        let pages = pages_for(faces);
+        let mut evicted = Vec::new();
+        let mut victims = None;
+        loop {
+            if let Some(slot) = self.arena.take(pages) {
+                self.resident.insert(key, Resident { slot, last_visible: frame });
+                self.note_peak();
+                return Placement { slot: Some(slot), evicted };
             }
-            None => {
-                // `make_room` counted its victims as gone, but `release` pools their buffers:
-                // other classes are dropped before a new buffer is refused.
-                if self.used_bytes() + class + BLOCK_FIXED_BYTES > self.budget {
-                    self.trim_free();
-                }
-                if self.used_bytes() + class + BLOCK_FIXED_BYTES > self.budget {
-                    return None;
-                }
-                new_block_buffers(device, class)
+            let chunk_pages = self.chunk_pages_for(pages);
+            if self.used_bytes() + chunk_pages as u64 * PAGE_BYTES <= self.budget {
+                self.arena.add_chunk(device, draw_layout, chunk_pages);
+                continue;
             }
-        };
-        let bytes = buffers.bytes();
-        self.resident_bytes += bytes;
-        self.resident.insert(key, Resident { bytes, last_visible: frame });
-        self.note_peak();
-        Some(buffers)
-    }
-
-    /// Drops everything free and forgets every block (their buffers must be destroyed by the caller).
-    pub fn clear_free(&mut self) {
-        self.trim_free();
-    }
-}
-
-fn new_block_buffers(device: &wgpu::Device, face_bytes: u64) -> BlockBuffers {
-    let face_buffer = device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("block faces (pooled)"),
-        size: face_bytes,
-        // COPY_SRC lets tests read the records back.
-        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-        mapped_at_creation: false,
-    });
-    let draw_args = device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("block draw args (pooled)"),
-        size: 16,
-        usage: wgpu::BufferUsages::STORAGE
-            | wgpu::BufferUsages::INDIRECT
-            | wgpu::BufferUsages::COPY_SRC
-            | wgpu::BufferUsages::COPY_DST,
-        mapped_at_creation: false,
-    });
-    let uniform = device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("block uniform (pooled)"),
-        size: 16,
-        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-        mapped_at_creation: false,
-    });
-    BlockBuffers { face_buffer, draw_args, uniform }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn classes_round_up_by_at_most_an_eighth() {
-        assert_eq!(class_bytes(1), MIN_CLASS_BYTES);
-        assert_eq!(class_bytes(MIN_CLASS_BYTES), MIN_CLASS_BYTES);
-        for bytes in [4097u64, 10_000, 123_457, 3 << 20, (3 << 20) + 1] {
-            let c = class_bytes(bytes);
-            assert!(c >= bytes && (c - bytes) * 8 <= c, "{bytes} -> {c}");
-            assert_eq!(c % 4, 0, "storage bindings need multiples of 4");
-            assert_eq!(class_bytes(c), c, "a class is its own class");
+            // An empty chunk that cannot hold the block is worth less than room for one that can.
+            if self.arena.drop_empty_chunk() {
+                continue;
+            }
+            let victims = victims.get_or_insert_with(|| self.victims(protected));
+            match victims.next() {
+                Some((_, victim)) => {
+                    self.evict(&victim);
+                    evicted.push(victim);
+                }
+                None => return Placement { slot: None, evicted },
+            }
         }
-        // Control: a plain power-of-two pool would waste almost half.
-        assert!(class_bytes(4097 * 16) < 8192 * 16);
     }
 
-    #[test]
-    fn room_evicts_least_recently_visible_unprotected_blocks() {
-        let mut r = Residency::new(1000);
-        r.set_fixed_bytes(100);
-        for (i, frame) in [(0u32, 5u64), (1, 1), (2, 3)] {
-            let key = BlockKey::new(0, i, 0, 0);
-            r.resident.insert(key, Resident { bytes: 250, last_visible: frame });
-            r.resident_bytes += 250;
+    /// Bytes the budget has left.
+    pub fn headroom(&self) -> u64 {
+        self.budget.saturating_sub(self.used_bytes())
+    }
+
+    /// Makes `bytes` of headroom for a fixed target about to grow: drops
+    /// empty chunks, then evicts the least recently visible unprotected
+    /// blocks, until it is there or nothing is left to give; returns the
+    /// blocks evicted.
+    pub fn make_headroom(&mut self, bytes: u64, protected: &HashSet<BlockKey>) -> Vec<BlockKey> {
+        let mut evicted = Vec::new();
+        let mut victims = None;
+        while self.headroom() < bytes {
+            if self.arena.drop_empty_chunk() {
+                continue;
+            }
+            let victims = victims.get_or_insert_with(|| self.victims(protected));
+            let Some((_, victim)) = victims.next() else { break };
+            self.evict(&victim);
+            evicted.push(victim);
         }
-        assert_eq!(r.used_bytes(), 850);
-        assert_eq!(r.make_room(100, &HashSet::default()), Room { fits: true, evict: vec![] });
-        // 300 more needs one block out: the one seen longest ago (frame 1).
-        let room = r.make_room(300, &HashSet::default());
-        assert_eq!(room, Room { fits: true, evict: vec![BlockKey::new(0, 1, 0, 0)] });
-        // Protected blocks stay, even if that means no room.
-        let all: HashSet<BlockKey> = r.resident.keys().copied().collect();
-        assert!(!r.make_room(300, &all).fits);
-        // More than the budget can ever hold is refused.
-        assert!(!r.make_room(2000, &HashSet::default()).fits);
+        evicted
+    }
+
+    /// Evicts until within the budget (after the budget or the fixed targets
+    /// changed), never a protected block; returns the blocks evicted.
+    pub fn enforce_budget(&mut self, protected: &HashSet<BlockKey>) -> Vec<BlockKey> {
+        let mut evicted = Vec::new();
+        let mut victims = None;
+        while self.used_bytes() > self.budget {
+            if self.arena.drop_empty_chunk() {
+                continue;
+            }
+            let victims = victims.get_or_insert_with(|| self.victims(protected));
+            let Some((_, victim)) = victims.next() else { break };
+            self.evict(&victim);
+            evicted.push(victim);
+        }
+        evicted
     }
 }

@@ -1,6 +1,8 @@
 //! AO beside draw: which resident blocks feed the AO structure (the occupancy volume, built
 //! in a worker in the browser, or the clipmap, splatted on the GPU), and when to rebuild it.
 
+use rustc_hash::FxHashSet as HashSet;
+
 use voxstream_format::BlockKey;
 
 use super::Scene;
@@ -128,10 +130,36 @@ impl Scene {
             (0..layout.levels).map(|k| self.sources_at_level(drawn, layout.cell(k).ilog2() as u8)).collect();
         let eye = self.eye();
         let forward = view_forward(self.view_proj(), eye);
+        self.give_clipmap_room(renderer, &sources, drawn);
         let before = renderer.clipmap.counters;
         renderer.update_clipmap(encoder, resolution, layout, (eye, forward), &sources, |k| self.block(k));
         let after = renderer.clipmap.counters;
         self.stats.ao_clipmap_updates += (after.updates - before.updates) as u32;
         self.stats.ao_clipmap_splats += after.splats - before.splats;
+    }
+
+    /// The clipmap's source voxels are GPU memory too: before its buffer
+    /// grows to hold `sources`, the residency makes room for them (evicting
+    /// blocks neither drawn nor needed), and the clipmap may grow only into
+    /// the room there is, so the budget holds.
+    fn give_clipmap_room(&mut self, renderer: &mut Renderer, sources: &[Vec<BlockKey>], drawn: &[BlockKey]) {
+        let mut distinct: HashSet<BlockKey> = HashSet::default();
+        let mut words = 0u64;
+        for key in sources.iter().flatten() {
+            if distinct.insert(*key)
+                && let Some(b) = self.block(key)
+            {
+                words += b.voxels.len() as u64;
+            }
+        }
+        let held = renderer.clipmap.source_bytes();
+        if words * 4 > held && words * 4 - held > self.residency.headroom() {
+            let mut protected: HashSet<BlockKey> = self.needed().keys().copied().collect();
+            protected.extend(drawn.iter().copied());
+            for victim in self.residency.make_headroom(words * 4 - held, &protected) {
+                self.gpu.remove(&victim);
+            }
+        }
+        renderer.clipmap.limit_source_bytes(held + self.residency.headroom());
     }
 }

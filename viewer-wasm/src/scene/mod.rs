@@ -6,7 +6,8 @@
 //! - [`intake`], decode ([`crate::decode`], fed by the caller: pages into the index,
 //!   blocks into the decoded cache);
 //! - [`upload`], upload (one staging write per frame, capped, [`crate::expand::UploadBatch`])
-//!   → expand (compute), into pools under the hard byte budget ([`crate::residency`]);
+//!   → expand (compute), into the face arena ([`crate::face_arena`]) under the hard byte
+//!   budget ([`crate::residency`]);
 //! - this file: draw ([`Scene::draw`], [`crate::render`]), the order of a frame;
 //! - [`feedback`], what was visible (occlusion), which steers the next traversal;
 //! - [`ao_sources`], the AO structure's sources, beside draw.
@@ -300,6 +301,11 @@ impl Scene {
         self.gpu.get(key)
     }
 
+    /// Where the resident blocks' faces live.
+    pub fn face_arena(&self) -> &crate::face_arena::FaceArena {
+        self.residency.arena()
+    }
+
     /// Keys drawn by the last [`Scene::draw`].
     pub fn drawn(&self) -> &[BlockKey] {
         &self.drawn
@@ -366,7 +372,14 @@ impl Scene {
         let tests = if self.occlusion_culling { self.occlusion_tests() } else { Vec::new() };
         self.stats.note_phase("occlusion tests", &mut step, (self.clock)());
         let webgpu_from = (self.clock)();
-        renderer.encode_frame(&mut encoder, target, self.viewport, &params, &gpu_blocks);
+        renderer.encode_frame(
+            &mut encoder,
+            target,
+            self.viewport,
+            &params,
+            self.residency.arena(),
+            &gpu_blocks,
+        );
         let occlusion = self.occlusion.get_or_insert_with(Occlusion::default);
         occlusion.prepare(&renderer.device, self.viewport, params.view_proj, tests, self.frame_counter);
         if let Some(depth) = renderer.depth_texture() {

@@ -1,4 +1,4 @@
-//! upload → expand: one capped staging write a frame into pooled GPU buffers that the
+//! upload → expand: one capped staging write a frame into runs of the face arena that the
 //! residency grants within the hard byte budget, and the budget enforced after a change.
 
 use rustc_hash::FxHashSet as HashSet;
@@ -9,7 +9,6 @@ use super::{Scene, frame_target_bytes};
 use crate::ao::AoStructure;
 use crate::expand::{UPLOAD_BYTES_PER_FRAME, UploadPacer, upload_buffer};
 use crate::render::{FADE_BUFFER_BYTES, Renderer};
-use crate::residency::block_gpu_bytes;
 
 impl Scene {
     /// GPU bytes of the frame's own targets: colour and depth at the viewport
@@ -80,25 +79,24 @@ impl Scene {
                 break;
             }
             let faces = cached.faces;
-            let room = self.residency.make_room(block_gpu_bytes(faces), &protected);
-            for victim in &room.evict {
-                if let Some(g) = self.gpu.remove(victim) {
-                    self.residency.release(victim, g.buffers);
-                }
-            }
-            if !room.fits {
-                self.stats.uploads_refused += 1;
-                break;
-            }
             let allocate_from = (self.clock)();
-            let buffers = self.residency.allocate(&renderer.device, key, faces, self.frame_counter);
+            let placed = self.residency.place(
+                &renderer.device,
+                &renderer.block_layout,
+                key,
+                faces,
+                self.frame_counter,
+                &protected,
+            );
             self.stats.note_webgpu((self.clock)() - allocate_from);
-            let Some(buffers) = buffers else {
+            for victim in &placed.evicted {
+                self.gpu.remove(victim);
+            }
+            let Some(slot) = placed.slot else {
                 self.stats.uploads_refused += 1;
                 break;
             };
-            let Some(cached) = self.decoded.get(&key) else { continue };
-            batch.push(&cached.block, cached.faces, buffers);
+            batch.push(&cached.block, faces, slot);
         }
         if batch.is_empty() {
             self.batch = batch;
@@ -113,7 +111,7 @@ impl Scene {
             &renderer.device,
             encoder,
             &mut batch,
-            &renderer.block_layout,
+            self.residency.arena_mut(),
             upload,
             renderer.pass_timer.as_ref(),
         );
@@ -160,11 +158,8 @@ impl Scene {
     /// After a budget change: evicts until within it, never what was just drawn.
     pub(super) fn enforce_budget(&mut self) {
         let protected: HashSet<BlockKey> = self.drawn.iter().copied().collect();
-        let room = self.residency.make_room(0, &protected);
-        for victim in &room.evict {
-            if let Some(g) = self.gpu.remove(victim) {
-                self.residency.release(victim, g.buffers);
-            }
+        for victim in self.residency.enforce_budget(&protected) {
+            self.gpu.remove(&victim);
         }
     }
 }
