@@ -13,16 +13,11 @@ import json
 from collections import Counter
 
 
-def main():
-    import signal
-    signal.signal(signal.SIGPIPE, signal.SIG_DFL)
-    ap = argparse.ArgumentParser()
-    ap.add_argument("trace")
-    ap.add_argument("--top", type=int, default=10)
-    ap.add_argument("--json", action="store_true", help="print one JSON summary instead")
-    ap.add_argument("--streaming", action="store_true", help="only tasks from the first block a worker answered on")
-    a = ap.parse_args()
-    events = json.load(open(a.trace))["traceEvents"]
+def page_tasks(path, streaming=False):
+    """The viewer page's main-thread tasks (RunTask events), the trace's first task time, and a
+    function naming what ran in a task. `streaming`: only tasks from the first block a worker
+    answered on."""
+    events = json.load(open(path))["traceEvents"]
     names = {
         (e["pid"], e["tid"]): e["args"]["name"]
         for e in events
@@ -99,10 +94,23 @@ def main():
         and "DevTools" in json.dumps(e.get("args", {}).get("chrome_mojo_event_info", {}))
     ]
     tasks = [t for t in tasks if not any(t["ts"] <= lo <= t["ts"] + t["dur"] for lo, _ in devtools)]
-    if a.streaming:
+    if streaming:
         if first_answer is None:
             raise SystemExit("no worker message in the trace: nothing was streamed")
         tasks = [e for e in tasks if e["ts"] + e["dur"] >= first_answer]
+    return tasks, t0, kind
+
+
+def main():
+    import signal
+    signal.signal(signal.SIGPIPE, signal.SIG_DFL)
+    ap = argparse.ArgumentParser()
+    ap.add_argument("trace")
+    ap.add_argument("--top", type=int, default=10)
+    ap.add_argument("--json", action="store_true", help="print one JSON summary instead")
+    ap.add_argument("--streaming", action="store_true", help="only tasks from the first block a worker answered on")
+    a = ap.parse_args()
+    tasks, t0, kind = page_tasks(a.trace, a.streaming)
     wall = sorted(tasks, key=lambda e: -e["dur"])
     cpu = sorted(tasks, key=lambda e: -e.get("tdur", 0))
     over = lambda key, ms: sum(1 for e in tasks if e.get(key, 0) > ms * 1000)

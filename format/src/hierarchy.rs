@@ -477,7 +477,9 @@ impl HierarchyPage {
         if !self.child_pages.windows(2).all(|w| w[0].root < w[1].root) {
             return bad("child pages are not sorted and unique".into());
         }
-        let known: HashMap<BlockKey, &BlockEntry> = self.entries.iter().map(|e| (e.key, e)).collect();
+        // Entries are sorted (checked above): a lookup is a binary search, no map to build (a
+        // viewer validates every page it loads, on its main thread).
+        let known = |k: &BlockKey| self.entries.binary_search_by(|e| e.key.cmp(k)).is_ok();
         for e in &self.entries {
             let Some(depth) = depth_of(&e.key).filter(|d| (1..=self.page_levels).contains(d)) else {
                 return bad(format!(
@@ -488,7 +490,7 @@ impl HierarchyPage {
             if ancestor(&e.key, depth) != self.root {
                 return bad(format!("block {} is not below {}", e.key, self.root));
             }
-            if depth > 1 && !known.contains_key(&e.key.parent()) {
+            if depth > 1 && !known(&e.key.parent()) {
                 return bad(format!("block {} has no parent in the page", e.key));
             }
             if e.key.level == 0 && e.child_mask != 0 {
@@ -496,7 +498,7 @@ impl HierarchyPage {
             }
             if e.key.level > 0 && depth < self.page_levels {
                 let children = e.key.children().expect("level > 0");
-                let mask = (0..8).fold(0u8, |m, i| m | ((known.contains_key(&children[i]) as u8) << i));
+                let mask = (0..8).fold(0u8, |m, i| m | ((known(&children[i]) as u8) << i));
                 if mask != e.child_mask {
                     return bad(format!(
                         "block {} child mask {:#04x} disagrees with the page",

@@ -104,7 +104,8 @@ type TraversedFor = (OrbitCamera, (u32, u32), usize, SelectParams, u64, usize, u
 struct CachedBlock {
     block: Block,
     faces: u32,
-    cells: OccupiedCells,
+    /// Boxed: about 2 KB inline, which every rehash of the decoded map would move.
+    cells: Box<OccupiedCells>,
     needed_frame: u64,
 }
 
@@ -353,11 +354,6 @@ impl Scene {
         for key in &drawn {
             if let Some(g) = self.gpu.get(key) {
                 faces += g.faces as u64;
-            }
-        }
-        for key in self.traversal.priority.keys() {
-            if let Some(entry) = self.decoded.get_mut(key) {
-                entry.needed_frame = self.frame_counter;
             }
         }
         let gpu_blocks: Vec<(&GpuBlock, Option<Fade>)> =
