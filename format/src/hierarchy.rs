@@ -477,9 +477,10 @@ impl HierarchyPage {
         if !self.child_pages.windows(2).all(|w| w[0].root < w[1].root) {
             return bad("child pages are not sorted and unique".into());
         }
-        // Entries are sorted (checked above): a lookup is a binary search, no map to build (a
-        // viewer validates every page it loads, on its main thread).
-        let known = |k: &BlockKey| self.entries.binary_search_by(|e| e.key.cmp(k)).is_ok();
+        // Fx, not SipHash: a viewer validates every page it loads on its main thread, and a
+        // page of thousands of entries is looked up about ten times an entry.
+        let keys: rustc_hash::FxHashSet<BlockKey> = self.entries.iter().map(|e| e.key).collect();
+        let known = |k: &BlockKey| keys.contains(k);
         for e in &self.entries {
             let Some(depth) = depth_of(&e.key).filter(|d| (1..=self.page_levels).contains(d)) else {
                 return bad(format!(

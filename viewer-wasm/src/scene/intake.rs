@@ -96,7 +96,7 @@ impl Scene {
             return;
         }
         self.decoded_bytes += std::mem::size_of_val(block.voxels.as_slice()) as u64;
-        let cached = CachedBlock { block, faces, cells: Box::new(cells), needed_frame: self.frame_counter };
+        let cached = CachedBlock { block, faces, cells, needed_frame: self.frame_counter };
         if let Some(old) = self.decoded.insert(key, cached) {
             self.decoded_bytes -= std::mem::size_of_val(old.block.voxels.as_slice()) as u64;
         }

@@ -104,8 +104,7 @@ type TraversedFor = (OrbitCamera, (u32, u32), usize, SelectParams, u64, usize, u
 struct CachedBlock {
     block: Block,
     faces: u32,
-    /// Boxed: about 2 KB inline, which every rehash of the decoded map would move.
-    cells: Box<OccupiedCells>,
+    cells: OccupiedCells,
     needed_frame: u64,
 }
 
@@ -354,6 +353,11 @@ impl Scene {
         for key in &drawn {
             if let Some(g) = self.gpu.get(key) {
                 faces += g.faces as u64;
+            }
+        }
+        for key in self.traversal.priority.keys() {
+            if let Some(entry) = self.decoded.get_mut(key) {
+                entry.needed_frame = self.frame_counter;
             }
         }
         let gpu_blocks: Vec<(&GpuBlock, Option<Fade>)> =

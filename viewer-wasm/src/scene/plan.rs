@@ -53,14 +53,6 @@ impl Scene {
                 .map_or_else(|| self.camera.focal_pixels(self.viewport.1 as f32), |v| v.focal_pixels),
         };
         let started = (self.clock)();
-        // The blocks the old traversal visited were needed up to now: their mark for the decoded
-        // cache's least-recently-needed order (marking every visited block every frame was
-        // thousands of lookups a frame).
-        for key in self.traversal.priority.keys() {
-            if let Some(entry) = self.decoded.get_mut(key) {
-                entry.needed_frame = self.frame_counter;
-            }
-        }
         let no_feedback = HashSet::default();
         let occluded = if self.occlusion_culling { &self.hidden } else { &no_feedback };
         self.traversal =
