@@ -145,15 +145,16 @@ impl Expander {
         Self { pipeline, layout }
     }
 
-    /// The expansion's bind group over `upload` and one chunk's buffers.
+    /// The expansion's bind group over `upload` and one chunk's (or the primer's) buffers.
     fn group(
         &self,
         device: &wgpu::Device,
+        label: &str,
         upload: &wgpu::Buffer,
-        chunk: &crate::face_arena::FaceChunk,
+        [faces, page_table, args]: [&wgpu::Buffer; 3],
     ) -> wgpu::BindGroup {
         device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("expand chunk"),
+            label: Some(label),
             layout: &self.layout,
             entries: &[
                 wgpu::BindGroupEntry { binding: 0, resource: upload.as_entire_binding() },
@@ -165,9 +166,9 @@ impl Expander {
                         size: wgpu::BufferSize::new(HEADER_BYTES),
                     }),
                 },
-                wgpu::BindGroupEntry { binding: 2, resource: chunk.faces.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 3, resource: chunk.page_table.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 4, resource: chunk.args.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 2, resource: faces.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 3, resource: page_table.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 4, resource: args.as_entire_binding() },
             ],
         })
     }
@@ -190,24 +191,7 @@ impl Expander {
         let chunk_buffer = |size| buffer(size, storage);
         let (faces, table, args) =
             (chunk_buffer(FACE_RECORD_BYTES), chunk_buffer(PAGE_INFO_BYTES), chunk_buffer(16));
-        let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("expand primer"),
-            layout: &self.layout,
-            entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: upload.as_entire_binding() },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                        buffer: &upload,
-                        offset: 0,
-                        size: wgpu::BufferSize::new(HEADER_BYTES),
-                    }),
-                },
-                wgpu::BindGroupEntry { binding: 2, resource: faces.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 3, resource: table.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 4, resource: args.as_entire_binding() },
-            ],
-        });
+        let group = self.group(device, "expand primer", &upload, [&faces, &table, &args]);
         let mut encoder =
             device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("expand primer") });
         {
@@ -244,7 +228,12 @@ impl Expander {
                 16,
             );
             if chunk.expand_group.is_none() {
-                chunk.expand_group = Some(self.group(device, upload, chunk));
+                chunk.expand_group = Some(self.group(
+                    device,
+                    "expand chunk",
+                    upload,
+                    [&chunk.faces, &chunk.page_table, &chunk.args],
+                ));
             }
         }
         {

@@ -197,26 +197,21 @@ impl Residency {
     /// blocks, until it is there or nothing is left to give; returns the
     /// blocks evicted.
     pub fn make_headroom(&mut self, bytes: u64, protected: &HashSet<BlockKey>) -> Vec<BlockKey> {
-        let mut evicted = Vec::new();
-        let mut victims = None;
-        while self.headroom() < bytes {
-            if self.arena.drop_empty_chunk() {
-                continue;
-            }
-            let victims = victims.get_or_insert_with(|| self.victims(protected));
-            let Some((_, victim)) = victims.next() else { break };
-            self.evict(&victim);
-            evicted.push(victim);
-        }
-        evicted
+        self.evict_until(protected, |r| r.headroom() >= bytes)
     }
 
     /// Evicts until within the budget (after the budget or the fixed targets
     /// changed), never a protected block; returns the blocks evicted.
     pub fn enforce_budget(&mut self, protected: &HashSet<BlockKey>) -> Vec<BlockKey> {
+        self.evict_until(protected, |r| r.used_bytes() <= r.budget)
+    }
+
+    /// Drops empty chunks, then evicts unprotected blocks least recently
+    /// visible first, until `done` holds or nothing is left to give.
+    fn evict_until(&mut self, protected: &HashSet<BlockKey>, done: impl Fn(&Self) -> bool) -> Vec<BlockKey> {
         let mut evicted = Vec::new();
         let mut victims = None;
-        while self.used_bytes() > self.budget {
+        while !done(self) {
             if self.arena.drop_empty_chunk() {
                 continue;
             }
