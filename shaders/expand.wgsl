@@ -28,17 +28,6 @@ struct DrawArgs {
     first_instance: u32,
 }
 
-// A page's entry in its chunk's page table (viewer-wasm/src/expand.rs: PageInfo).
-struct PageInfo {
-    origin: vec3<f32>,
-    voxel_size: f32,
-    // One past the block's last face in the chunk.
-    face_end: u32,
-    pad0: u32,
-    pad1: u32,
-    pad2: u32,
-}
-
 // One block of the batch (viewer-wasm/src/expand.rs: ExpandHeader), at a dynamic offset.
 struct ExpandBlock {
     voxel_first: u32,
@@ -49,7 +38,6 @@ struct ExpandBlock {
 }
 
 const VERTICES_PER_FACE: u32 = 6u;
-const PAGE_FACES: u32 = 256u;
 const WORKGROUP_SIZE: u32 = 64u;
 
 // The frame's whole upload buffer; the block's voxels start at `block.voxel_first`.

@@ -2,6 +2,7 @@
 //! compiled into the viewer for both targets.
 
 pub const EXPAND_WGSL: &str = include_str!("../../shaders/expand.wgsl");
+pub const FACE_ARENA_WGSL: &str = include_str!("../../shaders/face_arena.wgsl");
 pub const FRAME_WGSL: &str = include_str!("../../shaders/frame.wgsl");
 pub const SCREEN_WGSL: &str = include_str!("../../shaders/screen.wgsl");
 pub const VOXEL_WGSL: &str = include_str!("../../shaders/voxel.wgsl");
@@ -19,6 +20,7 @@ pub const CLIPMAP_TEXELS_WGSL: &str = include_str!("../../shaders/clipmap_texels
 /// Every file in `shaders/`, by name (a test checks that this list is complete).
 pub const SHADER_FILES: &[(&str, &str)] = &[
     ("expand.wgsl", EXPAND_WGSL),
+    ("face_arena.wgsl", FACE_ARENA_WGSL),
     ("frame.wgsl", FRAME_WGSL),
     ("screen.wgsl", SCREEN_WGSL),
     ("voxel.wgsl", VOXEL_WGSL),
@@ -141,17 +143,17 @@ fn dev_file(name: &str, required: bool) -> Option<std::borrow::Cow<'static, str>
     None
 }
 
-/// The compute module that expands voxels into face records.
-pub fn expand_module_source() -> &'static str {
-    EXPAND_WGSL
+/// The compute module that expands voxels into face records: face_arena.wgsl then expand.wgsl.
+pub fn expand_module_source() -> String {
+    format!("{FACE_ARENA_WGSL}\n{EXPAND_WGSL}")
 }
 
-/// The draw module: frame.wgsl then voxel.wgsl (WGSL has no includes), or the
+/// The draw module: frame.wgsl, face_arena.wgsl, then voxel.wgsl (WGSL has no includes), or the
 /// voxel.wgsl in [`DEV_AO_WGSL_ENV`]'s directory where it holds one (the
 /// shading's negative controls; ao.wgsl and ao_trace.wgsl must be there too).
 pub fn voxel_module_source() -> String {
     let voxel = dev_file("voxel.wgsl", false).unwrap_or(std::borrow::Cow::Borrowed(VOXEL_WGSL));
-    format!("{FRAME_WGSL}\n{voxel}")
+    format!("{FRAME_WGSL}\n{FACE_ARENA_WGSL}\n{voxel}")
 }
 
 #[cfg(all(test, not(target_arch = "wasm32")))]
@@ -175,7 +177,7 @@ mod tests {
 
     #[test]
     fn every_pipeline_module_validates_with_naga() {
-        let expand = validate("expand.wgsl", expand_module_source());
+        let expand = validate("face_arena.wgsl + expand.wgsl", &expand_module_source());
         assert_eq!(entry_points(&expand), vec![("expand_faces".to_string(), naga::ShaderStage::Compute)]);
         let reduce = validate("depth_reduce.wgsl", DEPTH_REDUCE_WGSL);
         assert_eq!(entry_points(&reduce), vec![("reduce_depth".to_string(), naga::ShaderStage::Compute)]);
@@ -185,7 +187,7 @@ mod tests {
         assert_eq!(entry_points(&splat), vec![("splat_block".to_string(), naga::ShaderStage::Compute)]);
         let texels = validate("clipmap_texels.wgsl", CLIPMAP_TEXELS_WGSL);
         assert_eq!(entry_points(&texels), vec![("copy_texels".to_string(), naga::ShaderStage::Compute)]);
-        let voxel = validate("frame.wgsl + voxel.wgsl", &voxel_module_source());
+        let voxel = validate("frame.wgsl + face_arena.wgsl + voxel.wgsl", &voxel_module_source());
         assert_eq!(
             entry_points(&voxel),
             vec![
